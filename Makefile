@@ -1,0 +1,35 @@
+# twohr: `make demo` runs the main job end to end; `make test` runs the suite.
+# Both create .venv and install everything on first use.
+SHELL := /bin/bash
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | sha256sum | cut -c1-12)
+DEMO_SEQUENCE ?= ../shared/data/rgbd_bonn_crowd_dev
+DEMO_OUT ?= runs/demo
+
+.PHONY: demo test venv models lint clean
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "twohr needs Python 3.11, found " + sys.version' 
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	set -o pipefail; $(BIN)/python -m pip install -q --upgrade pip 2>&1 | { grep -v "^WARNING: Location" || true; }
+	set -o pipefail; $(BIN)/python -m pip install -q -e ".[dev,train]" 2>&1 | { grep -v "^WARNING: Location" || true; }
+	rm -f $(VENV)/.installed-* && touch $@
+
+models: venv
+	$(BIN)/twohr models fetch
+
+lint: venv
+	$(BIN)/ruff check .
+
+test: venv models lint
+	$(BIN)/python -m pytest -q
+
+demo: venv models
+	$(BIN)/twohr demo --sequence $(DEMO_SEQUENCE) --out $(DEMO_OUT)
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache .ruff_cache

@@ -1,0 +1,175 @@
+"""The ``twohr`` command line: a thin shell over the library and the service cores.
+
+Each service package may contribute subcommands through a ``cli.py`` module with a
+``register(subparsers)`` function; handlers import their heavy dependencies lazily so that
+``twohr --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import logging
+import sys
+from pathlib import Path
+
+from twohr.errors import TwohrError
+
+#: Modules that add subcommands, in the order they appear in ``--help``.
+COMMAND_MODULES = [
+    "twohr_services.pipeline_cli",
+    "twohr_services.detector.cli",
+    "twohr_services.yolo.cli",
+    "twohr_services.matcher.cli",
+    "twohr_services.launcher_cli",
+]
+
+
+def _models(args: argparse.Namespace) -> int:
+    from twohr import models
+
+    if args.action == "list":
+        print(f"{'name':24} {'kind':10} {'file':26} {'status':10} licence")
+        for name, spec in models.registry().items():
+            status = "cached" if (models.cache_dir() / spec.file).is_file() or spec.bundled else "-"
+            print(f"{name:24} {spec.kind:10} {spec.file:26} {status:10} {spec.licence}")
+        return 0
+    names = args.names or list(models.registry())
+    failed = 0
+    for name in names:
+        try:
+            path = models.fetch(name, force=args.force) if args.action == "fetch" else None
+            if args.action == "verify":
+                spec = models.get_spec(name)
+                path = models._bundled_path(spec) or models.cache_dir() / spec.file
+                if not path.is_file():
+                    mirror = next((m / spec.file for m in models.mirror_dirs() if (m / spec.file).is_file()), path)
+                    path = mirror
+                models.verify_file(spec, path)
+            print(f"ok      {name:24} {path}")
+        except TwohrError as exc:
+            failed += 1
+            print(f"FAILED  {name:24} {exc}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def _eval(args: argparse.Namespace) -> int:
+    from twohr.dataset import load_gt_extrinsic
+    from twohr.evaluation import evaluate
+    from twohr.plots import plot_trajectories
+    from twohr.trajectory import read_tum
+
+    name, left, right = load_gt_extrinsic(args.gt_extrinsic)
+    gt = read_tum(args.gt).transformed(left, right)
+    est = read_tum(args.est)
+    try:
+        report, arrays = evaluate(gt, est, align=args.align, max_dt=args.max_dt, gt_extrinsic=name)
+    except ValueError as exc:
+        raise TwohrError(str(exc)) from None
+    print(format_report(report))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(report.model_dump_json(indent=2))
+        print(f"report: {args.json}")
+    if args.plot:
+        plot_trajectories(args.plot, arrays["gt"], arrays["est"], arrays["ate"],
+                          title=f"{Path(args.est).name} vs {Path(args.gt).name}")
+        print(f"plot:   {args.plot}")
+    return 0
+
+
+def format_report(report) -> str:
+    """A short human-readable block for an :class:`~twohr.evaluation.EvaluationReport`."""
+    a, r1, rs = report.ate, report.rpe_frame, report.rpe_1s
+    return "\n".join([
+        f"ATE ({report.align}, max dt {report.max_dt} s, gt extrinsic {report.gt_extrinsic}): "
+        f"RMSE {a.rmse:.4f} m  mean {a.mean:.4f}  median {a.median:.4f}  std {a.std:.4f}  max {a.max:.4f}",
+        f"RPE trans: per frame RMSE {r1.rmse:.4f} m, over 1 s RMSE {rs.rmse:.4f} m",
+        f"paired {report.matched} of {report.estimate_poses} estimate poses; GT coverage {report.gt_coverage:.1f} %"
+        + (f"; scale {report.scale:.4f}" if report.align == "sim3" else ""),
+    ])
+
+
+def _synth(args: argparse.Namespace) -> int:
+    from twohr.synthetic import SyntheticSpec, generate
+
+    spec = SyntheticSpec(frames=args.frames, width=args.width, height=args.height, occluders=args.occluders,
+                         seed=args.seed)
+    out = generate(args.out, spec)
+    print(json.dumps({"sequence": str(out), "frames": spec.frames, "size": [spec.width, spec.height]}))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="twohr",
+        description="2HR-Net visual SLAM for dynamic scenes: run it, evaluate it, serve it on Zenoh.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="Start with `twohr run --sequence ../shared/data/rgbd_bonn_crowd_dev`. "
+        "Every subcommand has its own --help.",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("models", help="list, fetch or verify the registered models",
+                       description="Models come from $TWOHR_MODEL_MIRROR (default ../shared/models) or their "
+                       "official URL, into $TWOHR_CACHE/models, and are checked by sha256.")
+    p.add_argument("action", choices=["list", "fetch", "verify"])
+    p.add_argument("names", nargs="*", help="model names (default: all)")
+    p.add_argument("--force", action="store_true", help="fetch again even when cached")
+    p.set_defaults(func=_models)
+
+    p = sub.add_parser("eval", help="ATE/RPE of a trajectory against ground truth (TUM/evo conventions)",
+                       description="ATE after Umeyama alignment and translational RPE, as evo_ape/evo_rpe "
+                       "compute them. Trajectories are TUM text files.")
+    p.add_argument("--gt", required=True, help="ground-truth trajectory (TUM format)")
+    p.add_argument("--est", required=True, help="estimated trajectory (TUM format)")
+    p.add_argument("--align", choices=["se3", "sim3", "none"], default="se3", help="alignment (default se3)")
+    p.add_argument("--max-dt", type=float, default=0.02, help="association window in seconds (default 0.02)")
+    p.add_argument("--gt-extrinsic", default="none",
+                   help="fixed sensor extrinsic for the ground truth: none, bonn, or a 4x4 matrix file")
+    p.add_argument("--json", help="write the report as JSON here")
+    p.add_argument("--plot", help="write a PNG with top/side views and ATE over time here")
+    p.set_defaults(func=_eval)
+
+    p = sub.add_parser("synth", help="generate a synthetic RGB-D sequence with exact ground truth")
+    p.add_argument("--out", required=True, help="output folder (TUM layout)")
+    p.add_argument("--frames", type=int, default=60)
+    p.add_argument("--width", type=int, default=320)
+    p.add_argument("--height", type=int, default=240)
+    p.add_argument("--occluders", type=int, default=1, help="moving boxes that play people")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_synth)
+
+    for module_name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name != module_name:
+                raise
+            continue
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except TwohrError as exc:
+        print(f"twohr: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("twohr: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,123 @@
+"""Rigid-body geometry: quaternions, SE(3) matrices and Umeyama alignment.
+
+Conventions: poses are 4x4 camera-to-world matrices; quaternions are (qx, qy, qz, qw)
+as in the TUM format.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def quat_to_rot(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices from quaternions (..., 4) in (x, y, z, w) order; normalises first."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = np.moveaxis(q, -1, 0)
+    r = np.empty(q.shape[:-1] + (3, 3))
+    r[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    r[..., 0, 1] = 2 * (x * y - z * w)
+    r[..., 0, 2] = 2 * (x * z + y * w)
+    r[..., 1, 0] = 2 * (x * y + z * w)
+    r[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    r[..., 1, 2] = 2 * (y * z - x * w)
+    r[..., 2, 0] = 2 * (x * z - y * w)
+    r[..., 2, 1] = 2 * (y * z + x * w)
+    r[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return r
+
+
+def rot_to_quat(r: np.ndarray) -> np.ndarray:
+    """Quaternions (x, y, z, w) with w >= 0 from rotation matrices (..., 3, 3)."""
+    r = np.asarray(r, dtype=np.float64)
+    flat = r.reshape(-1, 3, 3)
+    out = np.empty((flat.shape[0], 4))
+    for i, m in enumerate(flat):
+        t = np.trace(m)
+        if t > 0:
+            s = 2.0 * np.sqrt(t + 1.0)
+            out[i] = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+        elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+            s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+            out[i] = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+        elif m[1, 1] > m[2, 2]:
+            s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+            out[i] = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+        else:
+            s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+            out[i] = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    out /= np.linalg.norm(out, axis=1, keepdims=True)
+    out[out[:, 3] < 0] *= -1
+    return out.reshape(r.shape[:-2] + (4,))
+
+
+def make_pose(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """A 4x4 homogeneous transform from a 3x3 rotation and a 3-vector."""
+    pose = np.eye(4)
+    pose[:3, :3] = rotation
+    pose[:3, 3] = np.asarray(translation).reshape(3)
+    return pose
+
+
+def invert_pose(pose: np.ndarray) -> np.ndarray:
+    """Inverse of one or many rigid transforms (..., 4, 4), using R^T instead of a general inverse."""
+    pose = np.asarray(pose, dtype=np.float64)
+    inv = np.zeros_like(pose)
+    rt = np.swapaxes(pose[..., :3, :3], -1, -2)
+    inv[..., :3, :3] = rt
+    inv[..., :3, 3] = -np.einsum("...ij,...j->...i", rt, pose[..., :3, 3])
+    inv[..., 3, 3] = 1.0
+    return inv
+
+
+def rotation_angle(r: np.ndarray) -> np.ndarray:
+    """Rotation angle in radians of rotation matrices (..., 3, 3)."""
+    cos = (np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+def so3_exp(omega: np.ndarray) -> np.ndarray:
+    """Rotation matrix from an axis-angle 3-vector (Rodrigues)."""
+    omega = np.asarray(omega, dtype=np.float64)
+    theta = np.linalg.norm(omega)
+    k = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
+    if theta < 1e-12:
+        return np.eye(3) + k
+    k /= theta
+    return np.eye(3) + np.sin(theta) * k + (1 - np.cos(theta)) * (k @ k)
+
+
+def nearest_rotation(m: np.ndarray) -> np.ndarray:
+    """The rotation closest to a 3x3 matrix in the Frobenius sense (removes scale and shear)."""
+    u, _, vt = np.linalg.svd(m)
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares similarity (R, t, s) with target ~ s * R @ source + t (Umeyama, PAMI 1991).
+
+    ``source`` and ``target`` are (N, 3) arrays of corresponding points.
+    """
+    source = np.asarray(source, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    if source.shape != target.shape or source.ndim != 2 or source.shape[1] != 3:
+        raise ValueError(f"umeyama needs two (N, 3) arrays of equal shape, got {source.shape} and {target.shape}")
+    if len(source) < 3:
+        raise ValueError("umeyama needs at least 3 point pairs")
+    mean_s = source.mean(axis=0)
+    mean_t = target.mean(axis=0)
+    xs = source - mean_s
+    xt = target - mean_t
+    var_s = (xs**2).sum() / len(source)
+    cov = xt.T @ xs / len(source)
+    u, d, vt = np.linalg.svd(cov)
+    if np.count_nonzero(d > np.finfo(d.dtype).eps) < 2:
+        raise ValueError("degenerate point set: Umeyama alignment is not possible")
+    s_mat = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        s_mat[2, 2] = -1
+    rotation = u @ s_mat @ vt
+    scale = float(np.trace(np.diag(d) @ s_mat) / var_s) if with_scale else 1.0
+    translation = mean_t - scale * rotation @ mean_s
+    return rotation, translation, scale

@@ -1,0 +1,159 @@
+"""The verified model registry: ``twohr models list | fetch | verify``.
+
+Resolution order for a model file: the cache (``$TWOHR_CACHE/models``, default
+``~/.cache/twohr/models``), then a mirror directory (``$TWOHR_MODEL_MIRROR``, else
+``../shared/models`` beside the repo or the working directory), then the official URL.
+Every file is checked against its sha256 before use.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import tempfile
+import urllib.request
+from functools import cache
+from importlib import resources
+from pathlib import Path
+
+import yaml
+from pydantic import BaseModel, Field
+
+from .errors import ModelError
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+class ModelSpec(BaseModel):
+    """One registry entry."""
+
+    name: str
+    file: str
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+    kind: str = Field(description="r2d2, yolov8, yolov5, siamese or checkpoint")
+    licence: str
+    source: str
+    url: str | None = None
+    derived_from: str | None = None
+    bundled: str | None = Field(None, description="path inside the installed package, for models we ship")
+    inputs: dict[str, str] = Field(default_factory=dict)
+    outputs: dict[str, str] = Field(default_factory=dict)
+
+
+@cache
+def registry() -> dict[str, ModelSpec]:
+    """All registered models by name."""
+    text = resources.files("twohr").joinpath("models.yaml").read_text()
+    return {name: ModelSpec(name=name, **entry) for name, entry in yaml.safe_load(text).items()}
+
+
+def get_spec(name: str, kind: str | None = None) -> ModelSpec:
+    """The registry entry for ``name``; with ``kind``, also checks that the model is of that kind."""
+    models = registry()
+    if name not in models:
+        raise ModelError(f"unknown model {name!r}; registered models: {', '.join(sorted(models))}")
+    spec = models[name]
+    if kind is not None and spec.kind != kind:
+        choices = sorted(n for n, s in models.items() if s.kind == kind)
+        raise ModelError(f"model {name!r} is a {spec.kind} model, not {kind}; choose one of {choices}")
+    return spec
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("TWOHR_CACHE", Path.home() / ".cache" / "twohr")) / "models"
+
+
+def mirror_dirs() -> list[Path]:
+    """Mirror directories to copy models from, in order of preference."""
+    if os.environ.get("TWOHR_MODEL_MIRROR"):
+        return [Path(os.environ["TWOHR_MODEL_MIRROR"])]
+    candidates = [REPO_ROOT.parent / "shared" / "models", Path.cwd().parent / "shared" / "models"]
+    seen: list[Path] = []
+    for c in candidates:
+        if c.is_dir() and c.resolve() not in [s.resolve() for s in seen]:
+            seen.append(c)
+    return seen
+
+
+def sha256_of(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _how_to_get(spec: ModelSpec) -> str:
+    where = f"download {spec.url}" if spec.url else f"it has no public download ({spec.source})"
+    return (
+        f"put {spec.file} (sha256 {spec.sha256}) in $TWOHR_MODEL_MIRROR and run `twohr models fetch {spec.name}`; "
+        f"or {where}"
+    )
+
+
+def _bundled_path(spec: ModelSpec) -> Path | None:
+    if spec.bundled is None:
+        return None
+    package, _, rel = spec.bundled.partition(":")
+    return Path(str(resources.files(package).joinpath(rel)))
+
+
+def verify_file(spec: ModelSpec, path: Path) -> None:
+    """Raise :class:`ModelError` unless ``path`` holds exactly the registered bytes."""
+    if not path.is_file():
+        raise ModelError(f"model {spec.name} is missing: {path}. {_how_to_get(spec)}")
+    actual = sha256_of(path)
+    if actual != spec.sha256:
+        raise ModelError(
+            f"model {spec.name} at {path} fails its checksum: sha256 {actual}, expected {spec.sha256}. "
+            f"Delete it and {_how_to_get(spec)}"
+        )
+
+
+def fetch(name: str, force: bool = False) -> Path:
+    """Make the verified model file available locally and return its path."""
+    spec = get_spec(name)
+    bundled = _bundled_path(spec)
+    if bundled is not None:
+        verify_file(spec, bundled)
+        return bundled
+    target = cache_dir() / spec.file
+    if target.is_file() and not force:
+        verify_file(spec, target)
+        return target
+    target.parent.mkdir(parents=True, exist_ok=True)
+    for mirror in mirror_dirs():
+        source = mirror / spec.file
+        if source.is_file():
+            verify_file(spec, source)
+            _atomic_copy(source, target)
+            return target
+    if spec.url:
+        tmp = Path(tempfile.mkstemp(dir=target.parent, suffix=".part")[1])
+        try:
+            with urllib.request.urlopen(spec.url, timeout=60) as response, open(tmp, "wb") as out:
+                shutil.copyfileobj(response, out)
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise ModelError(
+                f"model {spec.name}: download from {spec.url} failed ({exc}). {_how_to_get(spec)}"
+            ) from None
+        verify_file(spec, tmp)
+        tmp.replace(target)
+        return target
+    searched = ", ".join(str(m) for m in mirror_dirs()) or "no mirror directory"
+    raise ModelError(f"model {spec.name} not found (searched {searched}). {_how_to_get(spec)}")
+
+
+def _atomic_copy(source: Path, target: Path) -> None:
+    tmp = target.with_suffix(target.suffix + ".part")
+    shutil.copyfile(source, tmp)
+    tmp.replace(target)
+
+
+@cache
+def model_path(name: str, kind: str | None = None) -> Path:
+    """Path of a verified model file, fetching it on first use. This is what the cores call."""
+    get_spec(name, kind)
+    return fetch(name)

@@ -1,0 +1,97 @@
+"""Timestamped pose trajectories and the TUM text format (``timestamp tx ty tz qx qy qz qw``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DatasetError
+from .geometry import quat_to_rot, rot_to_quat
+
+
+@dataclass
+class Trajectory:
+    """Poses (N, 4, 4), camera-to-world, at strictly increasing timestamps (N,) in seconds."""
+
+    stamps: np.ndarray
+    poses: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.stamps = np.asarray(self.stamps, dtype=np.float64).reshape(-1)
+        self.poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)
+        if len(self.stamps) != len(self.poses):
+            raise ValueError(f"{len(self.stamps)} timestamps but {len(self.poses)} poses")
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.poses[:, :3, 3]
+
+    def subset(self, idx: np.ndarray | list[int]) -> Trajectory:
+        idx = np.asarray(idx, dtype=int)
+        return Trajectory(self.stamps[idx], self.poses[idx])
+
+    def transformed(self, left: np.ndarray | None = None, right: np.ndarray | None = None) -> Trajectory:
+        """``left @ pose @ right`` for every pose: a world change on the left, a sensor extrinsic on the right."""
+        poses = self.poses
+        if left is not None:
+            poses = np.einsum("ij,njk->nik", left, poses)
+        if right is not None:
+            poses = np.einsum("nij,jk->nik", poses, right)
+        return Trajectory(self.stamps.copy(), poses)
+
+    @classmethod
+    def from_tum_array(cls, data: np.ndarray) -> Trajectory:
+        data = np.asarray(data, dtype=np.float64).reshape(-1, 8)
+        poses = np.tile(np.eye(4), (len(data), 1, 1))
+        poses[:, :3, :3] = quat_to_rot(data[:, 4:8])
+        poses[:, :3, 3] = data[:, 1:4]
+        return cls(data[:, 0], poses)
+
+    def to_tum_array(self) -> np.ndarray:
+        out = np.empty((len(self), 8))
+        out[:, 0] = self.stamps
+        out[:, 1:4] = self.positions
+        out[:, 4:8] = rot_to_quat(self.poses[:, :3, :3]) if len(self) else np.empty((0, 4))
+        return out
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """Read a TUM trajectory file; comments (#) and blank lines are skipped; commas are accepted."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"trajectory file not found: {path}")
+    rows = []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = line.replace(",", " ").split()
+        if len(fields) != 8:
+            raise DatasetError(f"{path}:{lineno}: expected 'timestamp tx ty tz qx qy qz qw', got {len(fields)}")
+        try:
+            rows.append([float(f) for f in fields])
+        except ValueError as exc:
+            raise DatasetError(f"{path}:{lineno}: {exc}") from None
+    if not rows:
+        raise DatasetError(f"trajectory file has no poses: {path}")
+    data = np.array(rows)
+    order = np.argsort(data[:, 0], kind="stable")
+    return Trajectory.from_tum_array(data[order])
+
+
+def write_tum(path: str | Path, trajectory: Trajectory, header: str | None = None) -> None:
+    """Write a trajectory in TUM format with full float precision."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text((f"# {header}\n" if header else "") + tum_text(trajectory))
+
+
+def tum_text(trajectory: Trajectory) -> str:
+    """The TUM text of a trajectory (as written by :func:`write_tum`)."""
+    rows = [f"{r[0]:.6f} " + " ".join(f"{v:.9f}" for v in r[1:]) for r in trajectory.to_tum_array()]
+    return "# timestamp tx ty tz qx qy qz qw\n" + "".join(line + "\n" for line in rows)

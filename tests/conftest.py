@@ -1,0 +1,43 @@
+"""Shared fixtures: the real dev sequence and models from ../shared, and small synthetic sequences."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+DEV_SEQUENCE = SHARED / "data" / "rgbd_bonn_crowd_dev"
+MODEL_MIRROR = SHARED / "models"
+
+
+@pytest.fixture(scope="session")
+def dev_sequence() -> Path:
+    if not DEV_SEQUENCE.is_dir():
+        pytest.fail(f"the real dev sequence is required at {DEV_SEQUENCE} (../shared beside the repo)")
+    return DEV_SEQUENCE
+
+
+@pytest.fixture(scope="session")
+def model_mirror() -> Path:
+    if not MODEL_MIRROR.is_dir():
+        pytest.fail(f"the model mirror is required at {MODEL_MIRROR}")
+    return MODEL_MIRROR
+
+
+@pytest.fixture(scope="session")
+def synthetic_sequence(tmp_path_factory) -> Path:
+    """60 frames at 320x240 with one moving occluder; exact depth and ground truth."""
+    from twohr.synthetic import SyntheticSpec, generate
+
+    return generate(tmp_path_factory.mktemp("synth") / "synthetic_room", SyntheticSpec(frames=60))
+
+
+@pytest.fixture(scope="session")
+def static_synthetic_sequence(tmp_path_factory) -> Path:
+    """30 frames, no moving objects."""
+    from twohr.synthetic import SyntheticSpec, generate
+
+    return generate(tmp_path_factory.mktemp("synth_static") / "synthetic_static",
+                    SyntheticSpec(frames=30, occluders=0, seed=3))
