@@ -1,4 +1,5 @@
 import pytest
+
 from twohr.config import PipelineConfig, load_config
 from twohr.errors import ConfigError
 

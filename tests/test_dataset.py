@@ -5,6 +5,7 @@ import shutil
 import cv2
 import numpy as np
 import pytest
+
 from twohr.dataset import CAMERA_PRESETS, GT_EXTRINSIC_PRESETS, RGBDSequence, associate_stamps
 from twohr.errors import DatasetError
 from twohr.geometry import invert_pose

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+
 from twohr.evaluation import associate, evaluate
 from twohr.geometry import make_pose, so3_exp
 from twohr.trajectory import Trajectory, read_tum, write_tum

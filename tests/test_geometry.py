@@ -1,4 +1,5 @@
 import numpy as np
+
 from twohr.geometry import invert_pose, make_pose, nearest_rotation, quat_to_rot, rot_to_quat, so3_exp, umeyama
 
 

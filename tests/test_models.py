@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import pytest
+
 from twohr import models
 from twohr.errors import ModelError
 
