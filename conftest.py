@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parent
 SHARED = REPO.parent / "shared"
 DEV_SEQUENCE = SHARED / "data" / "rgbd_bonn_crowd_dev"
 MODEL_MIRROR = SHARED / "models"
