@@ -41,3 +41,29 @@ def static_synthetic_sequence(tmp_path_factory) -> Path:
 
     return generate(tmp_path_factory.mktemp("synth_static") / "synthetic_static",
                     SyntheticSpec(frames=30, occluders=0, seed=3))
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="session")
+def zenoh_router():
+    """A real Zenoh router on a free loopback port; yields its endpoint."""
+    from twohr.bus import start_router
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = start_router([endpoint])
+    yield endpoint
+    router.close()
+
+
+@pytest.fixture
+def bus_config(zenoh_router):
+    from twohr.bus import BusConfig
+
+    return BusConfig(connect=[zenoh_router])

@@ -42,15 +42,24 @@ class YoloConfig(Section):
     """Dynamic-object detection and keypoint masking (paper §3.2)."""
 
     enabled: bool = True
-    model: str = Field("yolov8n_320", description="registered yolov8- or yolov5-kind model")
-    threads: int = Field(2, ge=1)
-    conf_threshold: float = Field(0.25, ge=0, le=1)
-    iou_threshold: float = Field(0.45, ge=0, le=1)
-    dynamics_table: str | None = Field(None, description="YAML: class -> high|medium|low; None = the paper's table")
-    remove_levels: list[Literal["high", "medium", "low"]] = Field(default_factory=lambda: ["high"])
+    model: str = Field("yolov8n_320", description="registered yolov8- or yolov5-kind model (input size from the ONNX)")
+    threads: int = Field(2, ge=1, description="onnxruntime intra-op threads")
+    conf_threshold: float = Field(0.25, ge=0, le=1, description="keep detections scoring at least this")
+    iou_threshold: float = Field(0.45, ge=0, le=1, description="class-aware NMS overlap")
+    max_detections: int = Field(100, ge=1, description="keep at most this many detections per image")
+    dynamics_table: str | None = Field(
+        None, description="YAML file: high/medium/low -> class names; None = the paper's table")
+    remove_levels: list[Literal["high", "medium", "low"]] = Field(
+        default_factory=lambda: ["high"], description="mask objects of these dynamics levels")
     mask: Literal["box", "depth"] = Field("box", description="box = dilated boxes; depth = box pixels near its depth")
     box_margin: int = Field(8, ge=0, description="dilate boxes by this many pixels")
+    depth_band: float = Field(0.5, gt=0, description="depth mask: keep box pixels within this many metres of the "
+                              "object's own depth (plus anything nearer); pixels without depth stay masked")
+    depth_percentile: float = Field(40.0, ge=0, le=100, description="object depth = this percentile of valid "
+                                    "depth in the central part of its box")
     every_n: int = Field(1, ge=1, description="detect every n-th frame, propagate masks between")
+    propagate_growth: float = Field(0.08, ge=0, description="between detections, grow boxes on every side by this "
+                                    "fraction of their width per elapsed frame")
     border_grow: int = Field(0, ge=0, description="grow masks that touch the image border by this many pixels")
 
 
@@ -62,21 +71,62 @@ class MatcherConfig(Section):
     candidates: int = Field(3, ge=1, le=16, description="k nearest descriptors scored by the Siamese head")
     threshold: float = Field(0.5, ge=0, le=1, description="tau: keep pairs with Siamese score >= tau")
     ratio: float = Field(0.8, gt=0, le=1, description="Lowe ratio for method=ratio")
+    threads: int = Field(1, ge=1, description="onnxruntime intra-op threads for the Siamese head (a tiny network)")
 
 
 class TrackerConfig(Section):
-    """RGB-D tracking back end."""
+    """RGB-D tracking back end: PnP + RANSAC against a local map, pose refinement, keyframes, local BA,
+    loss detection and relocalisation. Residuals are in units of one pixel of reprojection noise."""
 
-    min_depth: float = Field(0.1, ge=0, description="metres")
-    max_depth: float = Field(8.0, gt=0, description="metres")
-    ransac_reprojection_px: float = Field(3.0, gt=0)
+    # depth
+    min_depth: float = Field(0.1, ge=0, description="ignore depth readings nearer than this (m)")
+    max_depth: float = Field(6.0, gt=0, description="ignore depth readings farther than this (m)")
+    depth_edge_ratio: float = Field(0.05, gt=0, description="reject depth where the 3x3 neighbourhood spreads "
+                                    "more than this fraction of the depth (object boundaries)")
+    depth_noise: float = Field(0.005, gt=0, description="depth sigma = depth_noise * z^2 (m), i.e. the inverse-"
+                               "depth sigma (1/m) that weighs one pixel of reprojection error")
+    # matching against the local map
+    match_radius_px: float = Field(25.0, gt=0, description="accept a descriptor match only this close to the "
+                                   "landmark's projection under the motion-model prediction (px)")
+    lost_radius_growth_px: float = Field(15.0, ge=0, description="the radius grows by this per untracked frame")
+    match_depth_gate: float = Field(0.15, gt=0, description="reject matches whose measured depth differs from the "
+                                    "predicted landmark depth by more than this fraction")
+    local_map_keyframes: int = Field(6, ge=1, description="keyframes whose landmarks form the local map: the "
+                                     "latest plus the nearest in pose")
+    keyframe_distance_per_rad: float = Field(0.5, gt=0, description="metres a radian of viewing-direction "
+                                             "change counts as when ranking keyframes by nearness")
+    # pose estimation
+    ransac_reprojection_px: float = Field(3.0, gt=0, description="RANSAC and final inlier threshold (px)")
     ransac_iterations: int = Field(200, ge=10)
-    min_inliers: int = Field(15, ge=6)
-    keyframe_min_inlier_ratio: float = Field(0.6, ge=0, le=1)
-    keyframe_max_translation: float = Field(0.15, gt=0, description="metres")
-    keyframe_max_rotation_deg: float = Field(10.0, gt=0)
-    local_map_keyframes: int = Field(6, ge=1)
+    huber_px: float = Field(2.0, gt=0, description="Huber scale of pose refinement and BA (px)")
+    motion_prior_m: float = Field(0.02, ge=0, description="sigma of the motion-model prior per frame (m); 0 = off")
+    motion_prior_deg: float = Field(2.0, ge=0, description="sigma of the motion-model prior per frame (deg)")
+    min_inliers: int = Field(15, ge=6, description="fewer inliers than this and the frame is lost")
+    max_jump_m: float = Field(0.08, gt=0, description="a tracked pose this far from the prediction (per frame "
+                              "since the last good one) is rejected as implausible (m)")
+    max_jump_deg: float = Field(8.0, gt=0, description="the same for rotation (deg)")
+    coast_velocity_decay: float = Field(0.7, ge=0, le=1, description="while lost, the pose coasts on the "
+                                        "motion model whose velocity decays by this factor per frame")
+    # keyframes and map
+    keyframe_min_inlier_ratio: float = Field(0.6, ge=0, le=1, description="new keyframe when inliers fall below "
+                                             "this fraction of those at the latest keyframe")
+    keyframe_max_translation: float = Field(0.10, gt=0, description="new keyframe when no keyframe lies within "
+                                            "this distance (m) ...")
+    keyframe_max_rotation_deg: float = Field(10.0, gt=0, description="... and this rotation (deg)")
+    init_min_points: int = Field(50, ge=6, description="keypoints with depth needed to start the map")
+    landmark_max_outlier_ratio: float = Field(1.0, gt=0, description="drop a landmark once it has been "
+                                              "rejected 3+ times and more often than this times accepted")
+    # local bundle adjustment
     bundle_adjustment: bool = True
+    ba_window_keyframes: int = Field(5, ge=2, description="latest keyframes optimised; others that see "
+                                     "their landmarks are held fixed")
+    ba_max_evaluations: int = Field(15, ge=1)
+    # relocalisation
+    relocalisation: bool = True
+    relocalisation_candidates: int = Field(8, ge=1, description="keyframes tried, the nearest to the last good pose")
+    relocalisation_min_inliers: int = Field(30, ge=6)
+    reinit_after_lost_frames: int = Field(60, ge=1, description="lost this long with enough depth: start a new "
+                                          "map at the coasted pose")
 
 
 class PipelineConfig(Section):

@@ -1,0 +1,26 @@
+"""``python -m twohr_services.gateway``: serve the HTTP control API with uvicorn."""
+
+import argparse
+from pathlib import Path
+
+import uvicorn
+
+from twohr.bus import BusConfig
+
+from .app import GatewaySettings, create_app
+
+parser = argparse.ArgumentParser(prog="python -m twohr_services.gateway", description="twohr HTTP gateway")
+parser.add_argument("--host", default="127.0.0.1")
+parser.add_argument("--port", type=int, default=8080)
+parser.add_argument("--router", default=None, help="Zenoh router endpoint (default $TWOHR_ZENOH_ROUTER)")
+parser.add_argument("--data-root", action="append", default=None, help="folder sequences may come from (repeatable)")
+parser.add_argument("--recordings", default="recordings", help="folder the recorder writes MCAP files to")
+parser.add_argument("--api-token", default=None, help="require 'Authorization: Bearer TOKEN' on /sessions")
+args = parser.parse_args()
+settings = GatewaySettings(
+    data_roots=[Path(r) for r in (args.data_root or ["data"])],
+    recordings=Path(args.recordings),
+    api_token=args.api_token,
+    bus=BusConfig(connect=[args.router]) if args.router else BusConfig(),
+)
+uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")

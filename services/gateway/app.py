@@ -1,0 +1,217 @@
+"""The gateway: FastAPI control of sessions over the Zenoh bus.
+
+``POST /sessions`` validates the request (the sequence must lie under a configured data root,
+the config overrides and model names must validate) and publishes a ``start`` control message;
+the source, the cores and the recorder take it from there. The gateway follows each session's
+poses and status on the bus, and serves its state, trajectory, ATE and recording.
+"""
+
+from __future__ import annotations
+
+import logging
+import secrets
+import threading
+import time
+import uuid
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import Depends, FastAPI, HTTPException, Request, status
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
+from pydantic import BaseModel, Field
+
+from twohr import keys
+from twohr.bus import BusConfig, open_session
+from twohr.config import PipelineConfig, load_config
+from twohr.dataset import RGBDSequence
+from twohr.errors import TwohrError
+from twohr.evaluation import evaluate
+from twohr.messages import ControlMsg, MessageError, PoseMsg, StatusMsg, decode, encode
+from twohr.models import get_spec
+from twohr.paths import resolve_under_roots
+from twohr.service import query_health
+from twohr.trajectory import tum_text
+
+from .sessions import PoseOut, Session, SessionInfo, SessionRequest, SessionTable
+
+log = logging.getLogger("twohr.gateway")
+
+SERVICES = ["source", "detector", "yolo", "matcher", "tracker", "recorder"]
+
+
+class GatewaySettings(BaseModel):
+    """Gateway configuration (command-line flags of ``python -m twohr_services.gateway``)."""
+
+    data_roots: list[Path] = Field(default_factory=lambda: [Path("data")])
+    recordings: Path = Path("recordings")
+    api_token: str | None = Field(None, description="if set, requests need 'Authorization: Bearer <token>'")
+    bus: BusConfig = Field(default_factory=BusConfig)
+    idle_timeout: float = Field(15.0, gt=0, description="a session whose source is done and that gets no pose "
+                                "for this long is finished")
+
+
+def validate_models(config: PipelineConfig) -> None:
+    """Every model the config names must be registered, and of the right kind."""
+    if config.detector.features != "orb":
+        get_spec(config.detector.model, "r2d2")
+    if config.yolo.enabled:
+        spec = get_spec(config.yolo.model)
+        if spec.kind not in ("yolov8", "yolov5"):
+            raise TwohrError(f"yolo.model {config.yolo.model!r} is a {spec.kind} model, not a YOLO detector")
+    if config.matcher.method == "siamese":
+        get_spec(config.matcher.model, "siamese")
+
+
+def create_app(settings: GatewaySettings) -> FastAPI:
+    table = SessionTable()
+    bus_state: dict = {}
+
+    def on_pose(sample) -> None:
+        try:
+            pose, _ = decode(sample.payload.to_bytes(), PoseMsg)
+            table.on_pose(pose)
+        except MessageError as exc:
+            log.warning("malformed pose on %s: %s", sample.key_expr, exc)
+
+    def on_status(sample) -> None:
+        try:
+            status_msg, _ = decode(sample.payload.to_bytes(), StatusMsg)
+            table.on_status(status_msg)
+        except MessageError as exc:
+            log.warning("malformed status on %s: %s", sample.key_expr, exc)
+
+    def send_control(session: Session, command: str, config: PipelineConfig | None = None) -> None:
+        req = session.request
+        control = ControlMsg(session_id=session.id, robot_id=req.robot_id, frame_index=-1, stamp=time.time(),
+                             command=command, sequence=str(session.folder), rate=req.rate,
+                             max_frames=req.max_frames, record=req.record, config=config or PipelineConfig())
+        bus_state["session"].put(keys.key(req.robot_id, keys.CONTROL), encode(control))
+
+    def finish(session: Session) -> None:
+        try:
+            seq = RGBDSequence(session.folder)
+            if seq.has_ground_truth() and len(session.poses) >= 3:
+                report, _ = evaluate(seq.ground_truth(seq.default_gt_extrinsic()), session.trajectory())
+                session.ate_rmse = report.ate.rmse
+        except (TwohrError, ValueError) as exc:
+            session.detail = f"no ATE: {exc}"
+        send_control(session, "stop")
+
+    def monitor(stop: threading.Event) -> None:
+        while not stop.wait(0.25):
+            for session in table.finished_sessions(settings.idle_timeout):
+                finish(session)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        zsession = open_session(settings.bus)
+        bus_state["session"] = zsession
+        subs = [zsession.declare_subscriber(keys.all_robots("pose"), on_pose),
+                zsession.declare_subscriber(keys.all_robots("status"), on_status)]
+        stop = threading.Event()
+        thread = threading.Thread(target=monitor, args=(stop,), daemon=True)
+        thread.start()
+        yield
+        stop.set()
+        thread.join(timeout=2)
+        for sub in subs:
+            sub.undeclare()
+        zsession.close()
+
+    app = FastAPI(title="twohr gateway", version="1", lifespan=lifespan,
+                  description="Start, follow and stop twohr SLAM sessions. Poses stream on Zenoh at "
+                  "twohr/<robot>/pose.")
+
+    def require_token(request: Request) -> None:
+        if settings.api_token is None:
+            return
+        supplied = request.headers.get("authorization", "").removeprefix("Bearer ").strip()
+        if not secrets.compare_digest(supplied, settings.api_token):
+            raise HTTPException(status.HTTP_401_UNAUTHORIZED, "missing or wrong API token (Authorization: Bearer …)")
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'] if p != 'body')}: {e['msg']}" for e in exc.errors())
+        return JSONResponse({"detail": f"invalid request: {problems}"}, status_code=422)
+
+    def info(session: Session) -> SessionInfo:
+        latest = session.poses[-1] if session.poses else None
+        recording = settings.recordings / f"{session.id}.mcap"
+        return SessionInfo(
+            id=session.id, robot_id=session.request.robot_id, sequence=session.request.sequence,
+            state=session.state, detail=session.detail, created=session.created,
+            frames_total=session.frames_total, frames_sent=session.frames_sent, frames=len(session.poses),
+            fps=round(session.fps(), 3),
+            latest_pose=PoseOut(frame_index=latest.frame_index, stamp=latest.stamp, position=latest.position,
+                                orientation=latest.orientation, status=latest.status) if latest else None,
+            ate_rmse=session.ate_rmse, record=session.request.record,
+            recording=f"/sessions/{session.id}/recording" if recording.is_file() else None,
+        )
+
+    def lookup(session_id: str) -> Session:
+        session = table.get(session_id)
+        if session is None:
+            raise HTTPException(status.HTTP_404_NOT_FOUND, f"no session {session_id}")
+        return session
+
+    @app.get("/healthz")
+    def healthz() -> dict:
+        """Gateway liveness plus each service's counters (null when a service does not answer)."""
+        zsession = bus_state.get("session")
+        services = {name: query_health(zsession, name, timeout=0.5) for name in SERVICES} if zsession else {}
+        return {"status": "ok", "services": services}
+
+    @app.post("/sessions", status_code=201, response_model=SessionInfo, dependencies=[Depends(require_token)])
+    def create_session(request: SessionRequest) -> SessionInfo:
+        """Start a session on a sequence under the data roots. 409 if the robot already runs one."""
+        try:
+            folder = resolve_under_roots(request.sequence, settings.data_roots)
+            config = load_config(None, request.config)
+            validate_models(config)
+            RGBDSequence(folder, camera=config.camera)
+        except TwohrError as exc:
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)) from None
+        if table.active_for_robot(request.robot_id):
+            raise HTTPException(status.HTTP_409_CONFLICT, f"robot {request.robot_id} already runs a session")
+        session = Session(id=uuid.uuid4().hex[:12], request=request, folder=folder)
+        table.add(session)
+        send_control(session, "start", config)
+        return info(session)
+
+    @app.get("/sessions", response_model=list[SessionInfo], dependencies=[Depends(require_token)])
+    def list_sessions() -> list[SessionInfo]:
+        return [info(s) for s in list(table.sessions.values())]
+
+    @app.get("/sessions/{session_id}", response_model=SessionInfo, dependencies=[Depends(require_token)])
+    def get_session(session_id: str) -> SessionInfo:
+        return info(lookup(session_id))
+
+    @app.delete("/sessions/{session_id}", response_model=SessionInfo, dependencies=[Depends(require_token)])
+    def stop_session(session_id: str) -> SessionInfo:
+        session = lookup(session_id)
+        if session.state in ("starting", "running"):
+            session.state = "stopped"
+            send_control(session, "stop")
+        return info(session)
+
+    @app.get("/sessions/{session_id}/trajectory", response_class=PlainTextResponse,
+             dependencies=[Depends(require_token)])
+    def trajectory(session_id: str) -> str:
+        """The session's trajectory so far, in TUM format (camera-to-world)."""
+        return tum_text(lookup(session_id).trajectory())
+
+    @app.get("/sessions/{session_id}/recording", dependencies=[Depends(require_token)])
+    def recording(session_id: str) -> FileResponse:
+        """The session's MCAP file, once the session has ended."""
+        session = lookup(session_id)
+        path = settings.recordings / f"{session.id}.mcap"
+        if not session.request.record:
+            raise HTTPException(status.HTTP_404_NOT_FOUND, "this session was not recorded")
+        if session.state in ("starting", "running"):
+            raise HTTPException(status.HTTP_409_CONFLICT, "the recording is finalised when the session ends")
+        if not path.is_file():
+            raise HTTPException(status.HTTP_404_NOT_FOUND, "no recording found (is the recorder running?)")
+        return FileResponse(path, media_type="application/octet-stream", filename=path.name)
+
+    return app

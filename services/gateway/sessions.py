@@ -1,0 +1,149 @@
+"""Session bookkeeping for the gateway: what was asked, what the bus has reported since. No HTTP, no Zenoh."""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, Field
+
+from twohr.geometry import make_pose, quat_to_rot
+from twohr.messages import ID_PATTERN, PoseMsg, StatusMsg
+from twohr.trajectory import Trajectory
+
+SessionState = Literal["starting", "running", "finished", "stopped", "error"]
+
+
+class SessionRequest(BaseModel):
+    """Body of ``POST /sessions``."""
+
+    sequence: str = Field(description="sequence folder, relative to a data root or absolute inside one")
+    robot_id: str = Field("robot1", pattern=ID_PATTERN)
+    rate: float = Field(0.0, ge=0, le=100, description="1 = real time, 0 = as fast as the pipeline keeps up")
+    record: bool = Field(True, description="write every stream to an MCAP file")
+    max_frames: int | None = Field(None, ge=1, description="stop after this many frames")
+    config: dict[str, Any] = Field(
+        default_factory=dict, description="pipeline config overrides, nested or dotted: {'detector.max_keypoints': 800}"
+    )
+
+    model_config = {"extra": "forbid"}
+
+
+class PoseOut(BaseModel):
+    frame_index: int
+    stamp: float
+    position: list[float]
+    orientation: list[float]
+    status: str
+
+
+class SessionInfo(BaseModel):
+    """What ``GET /sessions/{id}`` returns."""
+
+    id: str
+    robot_id: str
+    sequence: str
+    state: SessionState
+    detail: str = ""
+    created: float
+    frames_total: int | None = Field(None, description="frames the source will send (known once it starts)")
+    frames_sent: int | None = Field(None, description="frames the source has finished sending")
+    frames: int = Field(0, description="poses received")
+    fps: float = 0.0
+    latest_pose: PoseOut | None = None
+    ate_rmse: float | None = Field(None, description="ATE RMSE in metres (SE(3), 0.02 s) when ground truth exists")
+    record: bool
+    recording: str | None = None
+
+
+@dataclass
+class Session:
+    id: str
+    request: SessionRequest
+    folder: Path
+    state: SessionState = "starting"
+    detail: str = ""
+    created: float = field(default_factory=time.time)
+    frames_total: int | None = None
+    frames_sent: int | None = None
+    poses: list[PoseMsg] = field(default_factory=list)
+    first_pose_at: float | None = None
+    last_pose_at: float | None = None
+    source_done_at: float | None = None
+    ate_rmse: float | None = None
+
+    def trajectory(self) -> Trajectory:
+        ordered = sorted(self.poses, key=lambda p: p.frame_index)
+        poses = [make_pose(quat_to_rot(np.array(p.orientation)), p.position) for p in ordered]
+        return Trajectory(np.array([p.stamp for p in ordered]), np.array(poses).reshape(-1, 4, 4))
+
+    def fps(self) -> float:
+        if len(self.poses) < 2 or self.first_pose_at is None or self.last_pose_at == self.first_pose_at:
+            return 0.0
+        return (len(self.poses) - 1) / (self.last_pose_at - self.first_pose_at)
+
+
+class SessionTable:
+    """Thread-safe table of sessions, fed by bus callbacks and read by HTTP handlers."""
+
+    def __init__(self) -> None:
+        self.sessions: dict[str, Session] = {}
+        self.lock = threading.Lock()
+
+    def add(self, session: Session) -> None:
+        with self.lock:
+            self.sessions[session.id] = session
+
+    def get(self, session_id: str) -> Session | None:
+        with self.lock:
+            return self.sessions.get(session_id)
+
+    def active_for_robot(self, robot_id: str) -> Session | None:
+        with self.lock:
+            return next((s for s in self.sessions.values()
+                         if s.request.robot_id == robot_id and s.state in ("starting", "running")), None)
+
+    def on_pose(self, pose: PoseMsg) -> None:
+        with self.lock:
+            session = self.sessions.get(pose.session_id)
+            if session is None or session.request.robot_id != pose.robot_id:
+                return
+            now = time.time()
+            session.poses.append(pose)
+            session.first_pose_at = session.first_pose_at or now
+            session.last_pose_at = now
+            if session.state == "starting":
+                session.state = "running"
+
+    def on_status(self, status: StatusMsg) -> None:
+        with self.lock:
+            session = self.sessions.get(status.session_id)
+            if session is None or status.service != "source":
+                return
+            if status.state == "started":
+                session.state = "running" if session.state == "starting" else session.state
+                session.frames_total = status.counters.get("frames")
+            elif status.state in ("finished", "stopped"):
+                session.frames_sent = status.counters.get("frames", 0)
+                session.source_done_at = time.time()
+            elif status.state == "error":
+                session.state = "error"
+                session.detail = status.detail
+
+    def finished_sessions(self, idle_timeout: float) -> list[Session]:
+        """Running sessions whose source is done and whose last pose arrived (or that went quiet)."""
+        now = time.time()
+        done = []
+        with self.lock:
+            for s in self.sessions.values():
+                if s.state not in ("starting", "running") or s.source_done_at is None:
+                    continue
+                last = max(s.source_done_at, s.last_pose_at or 0)
+                if len(s.poses) >= (s.frames_sent or 0) or now - last > idle_timeout:
+                    s.state = "finished"
+                    done.append(s)
+        return done

@@ -1,0 +1,71 @@
+"""The recorder service: every stream of every recorded session into ``<recordings>/<session>.mcap``.
+
+A session's file opens on its ``start`` control message (when ``record`` is true) and is
+finalised on ``stop``. Files of sessions still open when the service exits are finalised too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from twohr import keys
+from twohr.bus import BusConfig
+from twohr.messages import ControlMsg, decode, split
+from twohr.service import Service
+
+from .core import SessionRecorder
+
+
+class RecorderService(Service):
+    name = "recorder"
+
+    def __init__(self, bus: BusConfig | None = None, recordings: Path = Path("recordings")) -> None:
+        super().__init__(bus, queue_size=256, policy="backpressure")
+        self.recordings = recordings
+        self.open: dict[str, SessionRecorder] = {}
+
+    def subscriptions(self) -> list[str]:
+        return [keys.all_robots(stream) for stream in (*keys.STREAMS, keys.CONTROL)]
+
+    def handle(self, key: str, payload: bytes) -> None:
+        _, stream = keys.parse(key)
+        now = time.time_ns()
+        if stream == keys.CONTROL:
+            control, _ = decode(payload, ControlMsg)
+            if control.command == "start" and control.record:
+                self._close(control.session_id)
+                self.open[control.session_id] = SessionRecorder(self.recordings / f"{control.session_id}.mcap")
+            recorder = self.open.get(control.session_id)
+            if recorder is not None:
+                recorder.write(key, payload, now)
+            if control.command == "stop":
+                self._close(control.session_id)
+            return
+        message, _ = split(payload)
+        recorder = self.open.get(message.session_id)
+        if recorder is not None:
+            recorder.write(key, payload, now)
+
+    def _close(self, session_id: str) -> None:
+        recorder = self.open.pop(session_id, None)
+        if recorder is not None:
+            recorder.close()
+            self.log.info("finalised %s (%s)", recorder.path, recorder.counts)
+
+    def run(self, stop=None) -> None:
+        try:
+            super().run(stop)
+        finally:
+            for session_id in list(self.open):
+                self._close(session_id)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m twohr_services.recorder", description=__doc__)
+    parser.add_argument("--router", default=None, help="Zenoh router endpoint (default $TWOHR_ZENOH_ROUTER)")
+    parser.add_argument("--recordings", default="recordings", help="folder for the MCAP files")
+    args = parser.parse_args(argv)
+    bus = BusConfig(connect=[args.router]) if args.router else BusConfig()
+    RecorderService(bus, Path(args.recordings)).run_forever()

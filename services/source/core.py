@@ -1,0 +1,79 @@
+"""The source core: a TUM-layout sequence turned into frame messages. Files in, payloads out.
+
+Colour and depth travel as the files' own encoded bytes (JPEG/PNG), validated by decoding
+once, so every consumer decodes exactly the pixels that ``twohr run`` reads from disk.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+from twohr.dataset import RGBDSequence
+from twohr.errors import DatasetError
+from twohr.messages import FrameMsg, encode, encoded_image
+
+log = logging.getLogger(__name__)
+
+
+def _encoding_of(path) -> str:
+    return "png" if path.suffix.lower() == ".png" else "jpeg"
+
+
+@dataclass
+class PlaybackItem:
+    index: int
+    stamp: float
+    payload: bytes
+
+
+def frame_payloads(sequence: RGBDSequence, session_id: str, robot_id: str, start: int = 0,
+                   max_frames: int | None = None, pace: Callable[[float], None] | None = None
+                   ) -> Iterator[PlaybackItem]:
+    """Encoded :class:`FrameMsg` payloads of a sequence; corrupt frames are skipped, logged and counted
+    in ``sequence.skipped``. ``pace(stamp)`` is called before each frame is stamped with its send time."""
+    stop = len(sequence) if max_frames is None else min(len(sequence), start + max_frames)
+    for index in range(start, stop):
+        record = sequence.records[index]
+        try:
+            frame = sequence.read(index)  # validates both images
+        except DatasetError as exc:
+            log.warning("skipping frame %d: %s", index, exc)
+            sequence.skipped.append(index)
+            continue
+        if pace is not None:
+            pace(record.stamp)
+        message = FrameMsg(session_id=session_id, robot_id=robot_id, frame_index=index, stamp=record.stamp,
+                           camera=sequence.camera, sent_at=time.time())
+        blobs = {
+            "rgb": encoded_image("rgb", record.rgb_path.read_bytes(), _encoding_of(record.rgb_path), "uint8",
+                                 frame.rgb.shape),
+            "depth": encoded_image("depth", record.depth_path.read_bytes(), "png", "uint16", frame.depth.shape),
+        }
+        yield PlaybackItem(index, record.stamp, encode(message, blobs=blobs))
+
+
+class Pacer:
+    """Real-time pacing: ``rate`` 1 plays at the recorded speed, 2 twice as fast, 0 does not wait."""
+
+    def __init__(self, rate: float) -> None:
+        self.rate = rate
+        self.t0_wall: float | None = None
+        self.t0_stamp = 0.0
+
+    def wait(self, stamp: float, stop: threading.Event | None = None) -> None:
+        if self.rate <= 0:
+            return
+        if self.t0_wall is None:
+            self.t0_wall, self.t0_stamp = time.monotonic(), stamp
+            return
+        due = self.t0_wall + (stamp - self.t0_stamp) / self.rate
+        delay = due - time.monotonic()
+        if delay > 0:
+            if stop is not None:
+                stop.wait(delay)
+            else:
+                time.sleep(delay)

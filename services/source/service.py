@@ -1,0 +1,142 @@
+"""The source service: plays sequences on ``twohr/<robot>/frames`` when the gateway says so, or
+relays frames that any camera driver publishes on ``twohr/<robot>/camera``.
+
+Flow control: at ``rate`` 0 the source plays as fast as the pipeline keeps up, keeping at most
+``window`` frames in flight (sent but not yet answered by a pose); at ``rate`` > 0 it plays in
+(scaled) real time and the services' queues decide what is dropped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from twohr import keys
+from twohr.bus import BusConfig
+from twohr.dataset import RGBDSequence
+from twohr.errors import TwohrError
+from twohr.messages import ControlMsg, FrameMsg, PoseMsg, StatusMsg, decode, encode
+from twohr.paths import resolve_under_roots
+from twohr.service import Service
+
+from .core import Pacer, frame_payloads
+
+
+@dataclass
+class Playback:
+    control: ControlMsg
+    stop: threading.Event = field(default_factory=threading.Event)
+    sent: int = 0
+    answered: int = 0
+    progress: threading.Condition = field(default_factory=threading.Condition)
+    thread: threading.Thread | None = None
+
+
+class SourceService(Service):
+    name = "source"
+
+    def __init__(self, bus: BusConfig | None = None, data_roots: list[Path] | None = None, window: int = 2) -> None:
+        super().__init__(bus, queue_size=64, policy="backpressure")
+        self.data_roots = data_roots or [Path.cwd()]
+        self.window = window
+        self.playbacks: dict[str, Playback] = {}  # by robot id
+
+    def subscriptions(self) -> list[str]:
+        return [keys.all_robots(keys.CONTROL), keys.all_robots("pose"), keys.all_robots(keys.RAW_CAMERA)]
+
+    def handle(self, key: str, payload: bytes) -> None:
+        robot, stream = keys.parse(key)
+        if stream == keys.CONTROL:
+            control, _ = decode(payload, ControlMsg)
+            if control.robot_id != robot:
+                raise TwohrError(f"control for robot {control.robot_id} published on {key}")
+            self._start(control) if control.command == "start" else self._stop(robot, control.session_id)
+        elif stream == "pose":
+            pose, _ = decode(payload, PoseMsg)
+            playback = self.playbacks.get(robot)
+            if playback and playback.control.session_id == pose.session_id:
+                with playback.progress:
+                    playback.answered += 1
+                    playback.progress.notify_all()
+        elif stream == keys.RAW_CAMERA:
+            self._relay(robot, payload)
+
+    def _status(self, control: ControlMsg, state: str, detail: str = "", **counters: int) -> None:
+        status = StatusMsg(session_id=control.session_id, robot_id=control.robot_id, frame_index=-1,
+                           stamp=time.time(), service=self.name, state=state, detail=detail, counters=counters)
+        self.publish(keys.key(control.robot_id, "status"), encode(status))
+
+    def _start(self, control: ControlMsg) -> None:
+        self._stop(control.robot_id)
+        playback = Playback(control)
+        self.playbacks[control.robot_id] = playback
+        if control.sequence:
+            playback.thread = threading.Thread(target=self._play, args=(playback,), daemon=True,
+                                               name=f"play-{control.session_id}")
+            playback.thread.start()
+        else:
+            self._status(control, "live", "relaying twohr/<robot>/camera")
+
+    def _stop(self, robot: str, session_id: str | None = None) -> None:
+        playback = self.playbacks.get(robot)
+        if playback and (session_id is None or playback.control.session_id == session_id):
+            playback.stop.set()
+            with playback.progress:
+                playback.progress.notify_all()
+            if playback.thread is not None:
+                playback.thread.join(timeout=5)
+            self.playbacks.pop(robot, None)
+
+    def _play(self, playback: Playback) -> None:
+        control = playback.control
+        try:
+            folder = resolve_under_roots(control.sequence, self.data_roots)
+            sequence = RGBDSequence(folder, camera=control.config.camera)
+        except TwohrError as exc:
+            self._status(control, "error", str(exc))
+            return
+        pacer = Pacer(control.rate)
+        frames_key = keys.key(control.robot_id, "frames")
+        self._status(control, "started", sequence.name, frames=len(sequence))
+
+        def pace(stamp: float) -> None:
+            if control.rate > 0:
+                pacer.wait(stamp, playback.stop)
+                return
+            with playback.progress:  # credit-based flow control
+                while playback.sent - playback.answered >= self.window and not playback.stop.is_set():
+                    playback.progress.wait(0.5)
+
+        for item in frame_payloads(sequence, control.session_id, control.robot_id,
+                                   max_frames=control.max_frames, pace=pace):
+            if playback.stop.is_set():
+                break
+            self.publish(frames_key, item.payload)
+            playback.sent += 1
+        state = "stopped" if playback.stop.is_set() else "finished"
+        self._status(control, state, sequence.name, frames=playback.sent, skipped=len(sequence.skipped))
+
+    def _relay(self, robot: str, payload: bytes) -> None:
+        playback = self.playbacks.get(robot)
+        if playback is None or playback.control.sequence:
+            return  # no live session for this robot
+        frame, arrays = decode(payload, FrameMsg)
+        control = playback.control
+        relayed = frame.model_copy(update={"session_id": control.session_id, "frame_index": playback.sent,
+                                           "sent_at": frame.sent_at or time.time()})
+        self.publish(keys.key(robot, "frames"), encode(relayed, arrays, {"rgb": "jpeg", "depth": "png"}))
+        playback.sent += 1
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m twohr_services.source", description=__doc__)
+    parser.add_argument("--router", default=None, help="Zenoh router endpoint (default $TWOHR_ZENOH_ROUTER)")
+    parser.add_argument("--data-root", action="append", default=None, help="folder sequences may come from")
+    parser.add_argument("--window", type=int, default=2, help="frames in flight at rate 0")
+    args = parser.parse_args(argv)
+    bus = BusConfig(connect=[args.router]) if args.router else BusConfig()
+    roots = [Path(r) for r in args.data_root] if args.data_root else None
+    SourceService(bus, roots, args.window).run_forever()

@@ -1,0 +1,35 @@
+"""Zenoh key expressions: ``twohr/<robot_id>/<stream>``."""
+
+from __future__ import annotations
+
+import re
+
+PREFIX = "twohr"
+#: Data streams every robot publishes.
+STREAMS = ("frames", "keypoints", "dynamics", "matches", "pose", "status")
+#: Control and request keys (not recorded as data streams).
+CONTROL = "control"
+MATCH_QUERY = "rpc/match"
+RAW_CAMERA = "camera"
+
+_ROBOT = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+
+
+def key(robot_id: str, stream: str) -> str:
+    """The key of one robot's stream, e.g. ``twohr/robot1/pose``."""
+    if not _ROBOT.match(robot_id):
+        raise ValueError(f"invalid robot id {robot_id!r}: use letters, digits, '_' or '-' (at most 64)")
+    return f"{PREFIX}/{robot_id}/{stream}"
+
+
+def all_robots(stream: str) -> str:
+    """The key expression matching one stream of every robot, e.g. ``twohr/*/pose``."""
+    return f"{PREFIX}/*/{stream}"
+
+
+def parse(key_expr: str) -> tuple[str, str]:
+    """``twohr/<robot>/<stream...>`` -> (robot, stream)."""
+    parts = str(key_expr).split("/", 2)
+    if len(parts) != 3 or parts[0] != PREFIX:
+        raise ValueError(f"not a twohr key: {key_expr}")
+    return parts[1], parts[2]

@@ -1,0 +1,254 @@
+"""Typed, versioned bus messages: a pydantic header plus a compact binary payload of arrays.
+
+Wire format (little-endian)::
+
+    b"2HR" | u8 wire version | u32 header length | header JSON (UTF-8) | array blobs, back to back
+
+The header names the schema and lists each array's dtype, shape, encoding and byte length.
+Images travel encoded (``jpeg``/``png``) or ``raw``; every other array is ``raw``. Every
+message carries session id, robot id, frame index and timestamp. :func:`decode` validates
+everything and raises :class:`MessageError` on any malformed payload, so a service can count
+and drop it instead of crashing.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from typing import Any, ClassVar, Literal
+
+import cv2
+import numpy as np
+from pydantic import BaseModel, Field, ValidationError
+
+from .config import PipelineConfig
+from .dataset import CameraIntrinsics
+from .errors import TwohrError
+
+MAGIC = b"2HR"
+WIRE_VERSION = 1
+_PREFIX = struct.Struct("<3sBI")
+_DTYPES = {"uint8", "uint16", "int32", "int64", "float32", "float64", "bool"}
+ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+
+
+class MessageError(TwohrError):
+    """A payload that is not a valid twohr message."""
+
+
+class ArraySpec(BaseModel):
+    name: str
+    dtype: str
+    shape: list[int]
+    encoding: Literal["raw", "jpeg", "png"] = "raw"
+    nbytes: int = Field(ge=0)
+
+
+class Message(BaseModel):
+    """Fields every message carries. Subclasses add metadata fields and name their arrays."""
+
+    schema_name: ClassVar[str] = "twohr.Message"
+    required_arrays: ClassVar[tuple[str, ...]] = ()
+
+    session_id: str = Field(pattern=ID_PATTERN)
+    robot_id: str = Field(pattern=ID_PATTERN)
+    frame_index: int = Field(ge=-1, description="-1 for messages about the session, not a frame")
+    stamp: float = Field(description="sensor time of the frame, seconds")
+
+
+class FrameMsg(Message):
+    """An RGB-D frame: ``rgb`` (H, W, 3) uint8 RGB, ``depth`` (H, W) uint16 in ``camera.depth_factor`` units."""
+
+    schema_name: ClassVar[str] = "twohr.Frame"
+    required_arrays: ClassVar[tuple[str, ...]] = ("rgb", "depth")
+    camera: CameraIntrinsics
+    sent_at: float = Field(0.0, description="wall-clock time the source published it, for latency")
+
+
+class KeypointsMsg(Message):
+    """Keypoints of a frame: ``xy``, ``descriptors``, ``scores`` (+ ``reliability``, ``repeatability``)."""
+
+    schema_name: ClassVar[str] = "twohr.Keypoints"
+    required_arrays: ClassVar[tuple[str, ...]] = ("xy", "descriptors", "scores")
+    width: int
+    height: int
+    elapsed_ms: float = 0.0
+    sent_at: float = 0.0
+
+
+class DynamicsMsg(Message):
+    """Dynamic-object detections and the mask of pixels to ignore: ``boxes``, ``scores``, ``class_ids``, ``mask``."""
+
+    schema_name: ClassVar[str] = "twohr.Dynamics"
+    required_arrays: ClassVar[tuple[str, ...]] = ("boxes", "scores", "class_ids", "mask")
+    names: list[str] = Field(default_factory=list)
+    levels: list[str] = Field(default_factory=list)
+    elapsed_ms: float = 0.0
+    sent_at: float = 0.0
+
+
+class MatchesMsg(Message):
+    """Correspondences between the frame's keypoints (A) and a reference set (B): ``idx_a``, ``idx_b``, ``scores``."""
+
+    schema_name: ClassVar[str] = "twohr.Matches"
+    required_arrays: ClassVar[tuple[str, ...]] = ("idx_a", "idx_b", "scores")
+    reference: str = Field("", description="what B is, e.g. 'keyframe 12' or 'local map'")
+    elapsed_ms: float = 0.0
+
+
+class MatchRequestMsg(Message):
+    """A matching query to the matcher service: descriptors ``desc_a`` and ``desc_b``."""
+
+    schema_name: ClassVar[str] = "twohr.MatchRequest"
+    required_arrays: ClassVar[tuple[str, ...]] = ("desc_a", "desc_b")
+    reference: str = ""
+
+
+class PoseMsg(Message):
+    """The tracker's camera-to-world pose of a frame, with tracking health."""
+
+    schema_name: ClassVar[str] = "twohr.Pose"
+    position: list[float] = Field(min_length=3, max_length=3)
+    orientation: list[float] = Field(min_length=4, max_length=4, description="quaternion x, y, z, w")
+    status: str
+    num_keypoints: int = 0
+    num_matches: int = 0
+    num_inliers: int = 0
+    is_keyframe: bool = False
+    frame_sent_at: float = Field(0.0, description="when the source published the frame, for latency")
+    elapsed_ms: dict[str, float] = Field(default_factory=dict)
+
+
+class StatusMsg(Message):
+    """Session lifecycle and service health: ``state`` is started, running, finished, stopped or error."""
+
+    schema_name: ClassVar[str] = "twohr.Status"
+    service: str
+    state: str
+    detail: str = ""
+    counters: dict[str, int] = Field(default_factory=dict)
+
+
+class ControlMsg(Message):
+    """Start or stop a session; ``config`` is the full validated pipeline configuration."""
+
+    schema_name: ClassVar[str] = "twohr.Control"
+    command: Literal["start", "stop"]
+    sequence: str = ""
+    rate: float = Field(0.0, ge=0, description="playback speed: 1 = real time, 0 = as fast as the pipeline keeps up")
+    max_frames: int | None = Field(None, ge=1)
+    record: bool = Field(True, description="write the session to MCAP")
+    config: PipelineConfig = Field(default_factory=PipelineConfig)
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.schema_name: cls
+    for cls in (FrameMsg, KeypointsMsg, DynamicsMsg, MatchesMsg, MatchRequestMsg, PoseMsg, StatusMsg, ControlMsg)
+}
+
+
+def _encode_array(name: str, array: np.ndarray, encoding: str) -> tuple[ArraySpec, bytes]:
+    array = np.ascontiguousarray(array)
+    if encoding == "raw":
+        blob = array.tobytes()
+    else:
+        image = cv2.cvtColor(array, cv2.COLOR_RGB2BGR) if array.ndim == 3 else array
+        params = [cv2.IMWRITE_JPEG_QUALITY, 95] if encoding == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1]
+        ok, buffer = cv2.imencode("." + ("jpg" if encoding == "jpeg" else "png"), image, params)
+        if not ok:
+            raise MessageError(f"cannot encode array {name} as {encoding}")
+        blob = buffer.tobytes()
+    return ArraySpec(name=name, dtype=str(array.dtype), shape=list(array.shape), encoding=encoding,
+                     nbytes=len(blob)), blob
+
+
+def encode(message: Message, arrays: dict[str, np.ndarray] | None = None,
+           encodings: dict[str, str] | None = None, blobs: dict[str, tuple[ArraySpec, bytes]] | None = None) -> bytes:
+    """Serialise a message and its arrays. ``encodings`` picks jpeg/png per array (default raw);
+    ``blobs`` passes already-encoded images through untouched (e.g. the JPEG bytes of a file)."""
+    specs, parts = [], []
+    for name, array in (arrays or {}).items():
+        spec, blob = _encode_array(name, array, (encodings or {}).get(name, "raw"))
+        specs.append(spec)
+        parts.append(blob)
+    for spec, blob in (blobs or {}).values():
+        specs.append(spec)
+        parts.append(blob)
+    header = {"schema": message.schema_name, "version": WIRE_VERSION, "body": message.model_dump(mode="json"),
+              "arrays": [s.model_dump() for s in specs]}
+    header_bytes = json.dumps(header, separators=(",", ":")).encode()
+    return _PREFIX.pack(MAGIC, WIRE_VERSION, len(header_bytes)) + header_bytes + b"".join(parts)
+
+
+def encoded_image(name: str, data: bytes, encoding: Literal["jpeg", "png"], dtype: str,
+                  shape: tuple[int, ...]) -> tuple[ArraySpec, bytes]:
+    """An already-encoded image blob for :func:`encode` (no re-encoding, so no extra loss)."""
+    return ArraySpec(name=name, dtype=dtype, shape=list(shape), encoding=encoding, nbytes=len(data)), data
+
+
+def _decode_array(spec: ArraySpec, blob: bytes) -> np.ndarray:
+    if spec.dtype not in _DTYPES:
+        raise MessageError(f"array {spec.name}: unsupported dtype {spec.dtype}")
+    if any(d < 0 for d in spec.shape):
+        raise MessageError(f"array {spec.name}: negative dimension in {spec.shape}")
+    if spec.encoding == "raw":
+        expected = int(np.prod(spec.shape, dtype=np.int64)) * np.dtype(spec.dtype).itemsize
+        if expected != len(blob):
+            raise MessageError(f"array {spec.name}: {len(blob)} bytes for shape {spec.shape} {spec.dtype}")
+        return np.frombuffer(blob, dtype=spec.dtype).reshape(spec.shape)
+    image = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise MessageError(f"array {spec.name}: corrupt {spec.encoding} data")
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    if list(image.shape) != spec.shape or str(image.dtype) != spec.dtype:
+        raise MessageError(
+            f"array {spec.name}: decoded {image.shape} {image.dtype}, header says {spec.shape} {spec.dtype}"
+        )
+    return image
+
+
+def split(payload: bytes | bytearray | memoryview, expect: type[Message] | None = None
+          ) -> tuple[Any, list[tuple[ArraySpec, bytes]]]:
+    """Parse the header and cut out each array's blob, without decoding images.
+
+    Raises :class:`MessageError` if anything is off."""
+    payload = bytes(payload)
+    if len(payload) < _PREFIX.size:
+        raise MessageError(f"payload of {len(payload)} bytes is too short")
+    magic, version, header_len = _PREFIX.unpack_from(payload)
+    if magic != MAGIC:
+        raise MessageError("not a twohr message (bad magic)")
+    if version != WIRE_VERSION:
+        raise MessageError(f"wire version {version} is not supported (this build speaks {WIRE_VERSION})")
+    end = _PREFIX.size + header_len
+    if end > len(payload):
+        raise MessageError("truncated header")
+    try:
+        header = json.loads(payload[_PREFIX.size:end])
+        cls = MESSAGE_TYPES[header["schema"]]
+        message = cls.model_validate(header["body"])
+        specs = [ArraySpec.model_validate(s) for s in header["arrays"]]
+    except (ValueError, KeyError, TypeError, ValidationError) as exc:
+        raise MessageError(f"malformed header: {str(exc).splitlines()[0]}") from None
+    if expect is not None and cls is not expect:
+        raise MessageError(f"expected {expect.schema_name}, got {cls.schema_name}")
+    parts, offset = [], end
+    for spec in specs:
+        blob = payload[offset: offset + spec.nbytes]
+        if len(blob) != spec.nbytes:
+            raise MessageError(f"array {spec.name}: truncated payload")
+        parts.append((spec, blob))
+        offset += spec.nbytes
+    if offset != len(payload):
+        raise MessageError(f"{len(payload) - offset} trailing bytes")
+    missing = [name for name in cls.required_arrays if name not in {spec.name for spec, _ in parts}]
+    if missing:
+        raise MessageError(f"{cls.schema_name} lacks arrays {missing}")
+    return message, parts
+
+
+def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None = None) -> tuple[Any, dict]:
+    """Parse a payload into ``(message, arrays)``; raises :class:`MessageError` if anything is off."""
+    message, parts = split(payload, expect)
+    return message, {spec.name: _decode_array(spec, blob) for spec, blob in parts}

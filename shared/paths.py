@@ -1,0 +1,27 @@
+"""Safe resolution of user-supplied paths against configured roots."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .errors import TwohrError
+
+
+def resolve_under_roots(path: str, roots: list[Path]) -> Path:
+    """The real path of ``path`` if it lies inside one of ``roots``; otherwise a :class:`TwohrError`.
+
+    Relative paths are taken relative to each root in turn. ``..`` is refused outright, and symlinks
+    are resolved before the check, so nothing outside the roots can be reached."""
+    if not path or "\x00" in path:
+        raise TwohrError("empty or invalid path")
+    if ".." in Path(path).parts:
+        raise TwohrError(f"'..' is not allowed in a sequence path: {path}")
+    candidates = [Path(path)] if Path(path).is_absolute() else [root / path for root in roots]
+    for candidate in candidates:
+        real = candidate.resolve()
+        for root in roots:
+            if real == root.resolve() or root.resolve() in real.parents:
+                if not real.is_dir():
+                    raise TwohrError(f"sequence folder not found: {path}")
+                return real
+    raise TwohrError(f"{path} is not under the data roots {[str(r) for r in roots]}")

@@ -1,0 +1,190 @@
+"""The thin shell every service shares: subscribe, queue, call the core, publish.
+
+A :class:`Service` subscribes to key expressions, puts each sample into a bounded
+:class:`Inbox` (policy ``drop_oldest`` or ``backpressure``), and one worker thread hands the
+samples to :meth:`Service.handle`. A malformed payload is counted and logged, never fatal.
+Each service answers a health query on ``twohr/_health/<name>`` with its counters.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import zenoh
+
+from .bus import BusConfig, open_session
+from .messages import MessageError
+
+HEALTH_PREFIX = "twohr/_health"
+QueuePolicy = Literal["drop_oldest", "backpressure"]
+
+
+@dataclass
+class Counters:
+    """What a service has seen; read by the health query and the tests."""
+
+    received: int = 0
+    processed: int = 0
+    dropped: int = 0
+    malformed: int = 0
+    errors: int = 0
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def add(self, name: str, n: int = 1) -> None:
+        with self.lock:
+            setattr(self, name, getattr(self, name) + n)
+
+    def as_dict(self) -> dict[str, int]:
+        with self.lock:
+            return {k: getattr(self, k) for k in ("received", "processed", "dropped", "malformed", "errors")}
+
+
+class Inbox:
+    """A bounded FIFO. ``drop_oldest`` discards the oldest item when full (fresh data wins, for live
+    cameras); ``backpressure`` blocks the producer until there is room (nothing lost, for playback)."""
+
+    def __init__(self, maxsize: int, policy: QueuePolicy, counters: Counters) -> None:
+        self.items: collections.deque = collections.deque()
+        self.maxsize = maxsize
+        self.policy = policy
+        self.counters = counters
+        self.cond = threading.Condition()
+
+    def put(self, item) -> None:
+        with self.cond:
+            if self.policy == "backpressure":
+                while len(self.items) >= self.maxsize:
+                    self.cond.wait(0.1)
+            elif len(self.items) >= self.maxsize:
+                self.items.popleft()
+                self.counters.add("dropped")
+            self.items.append(item)
+            self.cond.notify_all()
+
+    def get(self, timeout: float):
+        with self.cond:
+            if not self.items:
+                self.cond.wait(timeout)
+            if not self.items:
+                return None
+            item = self.items.popleft()
+            self.cond.notify_all()
+            return item
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+
+class Service:
+    """Base class of the service adapters. Subclasses set ``name``, list ``subscriptions()`` and
+    implement ``handle(key, payload)``; they publish with ``self.publish(key, payload)``."""
+
+    name = "service"
+
+    def __init__(self, bus: BusConfig | None = None, queue_size: int = 8, policy: QueuePolicy = "backpressure") -> None:
+        self.bus = bus or BusConfig()
+        self.counters = Counters()
+        self.inbox = Inbox(queue_size, policy, self.counters)
+        self.log = logging.getLogger(f"twohr.{self.name}")
+        self.session: zenoh.Session | None = None
+        self.stopping = threading.Event()
+        self._publishers: dict[str, zenoh.Publisher] = {}
+
+    # -- to override
+    def subscriptions(self) -> list[str]:
+        return []
+
+    def handle(self, key: str, payload: bytes) -> None:
+        raise NotImplementedError
+
+    def on_start(self) -> None:
+        """Called once the bus session is open (declare queryables here)."""
+
+    def health(self) -> dict:
+        return {"service": self.name, "queue": len(self.inbox), **self.counters.as_dict()}
+
+    # -- the shell
+    def publish(self, key: str, payload: bytes) -> None:
+        if key not in self._publishers:
+            self._publishers[key] = self.session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK
+            )
+        self._publishers[key].put(payload)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        self.counters.add("received")
+        self.inbox.put((str(sample.key_expr), sample.payload.to_bytes()))
+
+    def _on_health(self, query: zenoh.Query) -> None:
+        query.reply(query.key_expr, json.dumps(self.health()))
+
+    def process_one(self, timeout: float = 0.2) -> bool:
+        """Handle one queued sample; False if none arrived within ``timeout``."""
+        item = self.inbox.get(timeout)
+        if item is None:
+            return False
+        key, payload = item
+        try:
+            self.handle(key, payload)
+            self.counters.add("processed")
+        except MessageError as exc:
+            self.counters.add("malformed")
+            self.log.warning("dropped malformed message on %s: %s", key, exc)
+        except Exception:  # a bad frame must not take the service down
+            self.counters.add("errors")
+            self.log.exception("error while handling %s", key)
+        return True
+
+    def run(self, stop: threading.Event | None = None) -> None:
+        """Serve until ``stop`` is set (or SIGINT/SIGTERM when run as a program)."""
+        stop = stop or self.stopping
+        self.session = open_session(self.bus)
+        subscribers = [self.session.declare_subscriber(k, self._on_sample) for k in self.subscriptions()]
+        queryable = self.session.declare_queryable(f"{HEALTH_PREFIX}/{self.name}", self._on_health)
+        self.on_start()
+        self.log.info("%s serving %s", self.name, ", ".join(self.subscriptions()) or "(no subscriptions)")
+        try:
+            while not stop.is_set():
+                self.process_one()
+        finally:
+            for sub in subscribers:
+                sub.undeclare()
+            queryable.undeclare()
+            self.session.close()
+
+    def run_forever(self) -> None:
+        """Entry point for ``python -m``: stop cleanly on SIGINT and SIGTERM."""
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: self.stopping.set())
+        self.run(self.stopping)
+
+
+def query_health(session: zenoh.Session, service: str, timeout: float = 1.0) -> dict | None:
+    """Ask one service for its health counters; None if it does not answer in time."""
+    for reply in session.get(f"{HEALTH_PREFIX}/{service}", timeout=timeout):
+        if reply.ok is not None:
+            return json.loads(reply.ok.payload.to_bytes())
+    return None
+
+
+def wait_for_services(session: zenoh.Session, names: list[str], timeout: float = 30.0) -> dict[str, dict]:
+    """Block until every named service answers its health query; raises TimeoutError naming the missing ones."""
+    deadline = time.monotonic() + timeout
+    healthy: dict[str, dict] = {}
+    while time.monotonic() < deadline:
+        for name in names:
+            if name not in healthy:
+                answer = query_health(session, name, timeout=0.5)
+                if answer is not None:
+                    healthy[name] = answer
+        if len(healthy) == len(names):
+            return healthy
+        time.sleep(0.2)
+    raise TimeoutError(f"services not healthy after {timeout:.0f} s: {sorted(set(names) - set(healthy))}")

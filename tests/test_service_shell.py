@@ -1,0 +1,114 @@
+"""The service shell on a real Zenoh router: queues, counters, health, malformed input."""
+
+import threading
+import time
+
+from twohr import keys
+from twohr.bus import open_session
+from twohr.messages import PoseMsg, decode, encode
+from twohr.service import Counters, Inbox, Service, query_health, wait_for_services
+
+
+class EchoService(Service):
+    """Republishes every pose on the 'status' stream with its frame index, slowly."""
+
+    name = "echo_test"
+
+    def __init__(self, bus, delay=0.0, **kwargs):
+        super().__init__(bus, **kwargs)
+        self.delay = delay
+        self.seen: list[int] = []
+
+    def subscriptions(self):
+        return [keys.all_robots("pose")]
+
+    def handle(self, key, payload):
+        pose, _ = decode(payload, PoseMsg)
+        time.sleep(self.delay)
+        self.seen.append(pose.frame_index)
+
+
+def pose_payload(i, robot="r1"):
+    return encode(PoseMsg(session_id="s", robot_id=robot, frame_index=i, stamp=float(i), position=[0, 0, 0],
+                          orientation=[0, 0, 0, 1], status="tracking"))
+
+
+def run_service(service):
+    stop = threading.Event()
+    thread = threading.Thread(target=service.run, args=(stop,), daemon=True)
+    thread.start()
+    return stop, thread
+
+
+def test_inbox_policies():
+    counters = Counters()
+    box = Inbox(3, "drop_oldest", counters)
+    for i in range(10):
+        box.put(i)
+    assert [box.get(0.01) for _ in range(3)] == [7, 8, 9] and counters.dropped == 7
+
+    box = Inbox(2, "backpressure", Counters())
+    got = []
+    consumer = threading.Thread(target=lambda: [got.append(box.get(1.0)) for _ in range(20)])
+    consumer.start()
+    for i in range(20):
+        box.put(i)  # blocks while full, never drops
+    consumer.join()
+    assert got == list(range(20))
+
+
+def test_service_survives_malformed_messages_and_reports_health(bus_config):
+    service = EchoService(bus_config)
+    stop, thread = run_service(service)
+    client = open_session(bus_config)
+    try:
+        wait_for_services(client, ["echo_test"], timeout=10)
+        pub = client.declare_publisher("twohr/r1/pose")
+        time.sleep(0.3)
+        for i in range(5):
+            pub.put(pose_payload(i))
+        for junk in (b"", b"garbage", pose_payload(99)[:-3], b"2HR\x01" + b"\xff" * 10):
+            pub.put(junk)
+        pub.put(pose_payload(5))
+        deadline = time.time() + 10
+        while len(service.seen) < 6 and time.time() < deadline:
+            time.sleep(0.05)
+        assert service.seen == [0, 1, 2, 3, 4, 5]
+        health = query_health(client, "echo_test")
+        assert health["malformed"] == 4 and health["processed"] == 6 and health["errors"] == 0
+        assert thread.is_alive()
+    finally:
+        stop.set()
+        thread.join(5)
+        client.close()
+
+
+def test_drop_oldest_under_overload_counts_drops(bus_config):
+    service = EchoService(bus_config, delay=0.05, queue_size=2, policy="drop_oldest")
+    service.name = "echo_drop_test"
+    stop, thread = run_service(service)
+    client = open_session(bus_config)
+    try:
+        wait_for_services(client, ["echo_drop_test"], timeout=10)
+        pub = client.declare_publisher("twohr/r2/pose")
+        time.sleep(0.3)
+        for i in range(40):
+            pub.put(pose_payload(i, "r2"))
+        time.sleep(1.5)
+        c = service.counters.as_dict()
+        assert c["received"] == 40
+        assert c["dropped"] > 0 and c["processed"] + c["dropped"] + len(service.inbox) == 40
+        assert service.seen == sorted(service.seen) and service.seen[-1] == 39  # freshest data wins
+    finally:
+        stop.set()
+        thread.join(5)
+        client.close()
+
+
+def test_health_of_absent_service_is_none(bus_config):
+    client = open_session(bus_config)
+    try:
+        assert query_health(client, "no_such_service", timeout=0.3) is None
+    finally:
+        client.close()
+
