@@ -82,3 +82,18 @@ class Matches:
     @classmethod
     def empty(cls) -> Matches:
         return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))
+
+
+def drop_masked(keypoints: Keypoints, mask: np.ndarray) -> Keypoints:
+    """The keypoints whose nearest pixel is outside ``mask`` (H, W) bool; positions are clamped to the image."""
+    if len(keypoints) == 0:
+        return keypoints
+    return keypoints.subset(~masked(keypoints.xy, mask))
+
+
+def masked(xy: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(N,) bool: True where the nearest pixel of each point is set in ``mask``."""
+    height, width = mask.shape
+    cols = np.clip(np.rint(xy[:, 0]).astype(np.int64), 0, width - 1)
+    rows = np.clip(np.rint(xy[:, 1]).astype(np.int64), 0, height - 1)
+    return mask[rows, cols]
