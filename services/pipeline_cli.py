@@ -1,43 +1,177 @@
-"""``twohr demo``: the main job end to end on one sequence, with a printed result.
-
-Until the full pipeline lands, the demo runs what exists (dataset loading, model
-verification, evaluation of the static-camera baseline) and says what is missing.
-"""
+"""``twohr run`` and ``twohr demo``: the main job, detector -> yolo -> matcher -> tracker in one process."""
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import csv
+import json
 from pathlib import Path
+
+
+def _load(args: argparse.Namespace):
+    from twohr.config import load_config
+    from twohr.dataset import RGBDSequence
+
+    config = load_config(args.config, args.set or [])
+    if args.camera:
+        config.camera = args.camera
+    sequence = RGBDSequence(args.sequence, camera=config.camera)
+    return config, sequence
+
+
+def write_run(out: Path, sequence, config, result) -> dict:
+    """Write trajectories, per-frame stats, the config and (with ground truth) the evaluation; return a summary."""
+    import yaml
+
+    from twohr.evaluation import evaluate
+    from twohr.plots import plot_trajectories
+    from twohr.trajectory import write_tum
+
+    from .pipeline import stats_rows
+
+    out.mkdir(parents=True, exist_ok=True)
+    write_tum(out / "trajectory.txt", result.trajectory, header=f"twohr {sequence.name}: refined, camera-to-world")
+    write_tum(out / "trajectory_online.txt", result.online, header=f"twohr {sequence.name}: online poses")
+    rows = stats_rows(result.stats)
+    if rows:
+        with open(out / "stats.csv", "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+    (out / "config.yaml").write_text(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
+    frames = len(result.stats)
+    summary = {
+        "sequence": str(sequence.root), "frames": frames, "skipped_frames": result.skipped,
+        "tracked_percent": round(result.tracked_percent, 2),
+        "lost_frames": [s.index for s in result.stats if s.status not in ("init", "tracking", "relocalised")],
+        "fps": round(frames / result.wall_s, 3) if result.wall_s > 0 else None,
+        "ms_per_frame_median": {k: round(float(_median([getattr(s, k) for s in result.stats])), 2)
+                                for k in ("ms_detector", "ms_yolo", "ms_tracker", "ms_total")} if frames else {},
+    }
+    if sequence.has_ground_truth() and len(result.trajectory) >= 3:
+        extrinsic = sequence.default_gt_extrinsic()
+        for name, gt_extrinsic in (("ate", extrinsic), ("ate_raw_gt", "none")):
+            for label, traj in (("", result.trajectory), ("_online", result.online)):
+                report, arrays = evaluate(sequence.ground_truth(gt_extrinsic), traj, gt_extrinsic=gt_extrinsic)
+                summary[f"{name}{label}"] = report.model_dump()
+                if name == "ate" and not label:
+                    plot_trajectories(out / "trajectory.png", arrays["gt"], arrays["est"], arrays["ate"],
+                                      title=f"twohr on {sequence.name}: ATE RMSE {report.ate.rmse:.3f} m")
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def _median(values):
+    import numpy as np
+
+    return np.median(values) if values else float("nan")
+
+
+def print_summary(summary: dict, out: Path) -> None:
+    print(f"frames {summary['frames']}  tracked {summary['tracked_percent']:.1f} %  fps {summary['fps']}  "
+          f"skipped {len(summary['skipped_frames'])}  per-frame ms {summary['ms_per_frame_median']}")
+    if "ate" in summary:
+        a, r = summary["ate"], summary["ate_raw_gt"]
+        print(f"ATE RMSE {a['ate']['rmse']:.4f} m (SE(3), max dt {a['max_dt']} s, camera-frame GT "
+              f"'{a['gt_extrinsic']}'); raw marker GT {r['ate']['rmse']:.4f} m; online poses "
+              f"{summary['ate_online']['ate']['rmse']:.4f} m; RPE 1 s {a['rpe_1s']['rmse']:.4f} m; "
+              f"GT coverage {a['gt_coverage']:.1f} %")
+    print(f"outputs in {out}/: trajectory.txt, trajectory_online.txt, stats.csv, summary.json"
+          + (", trajectory.png" if "ate" in summary else ""))
+
+
+def _run(args: argparse.Namespace) -> int:
+    from .pipeline import run_sequence
+
+    config, sequence = _load(args)
+    out = Path(args.out or f"runs/{sequence.name}")
+    result = run_sequence(sequence, config, start=args.start, stop=None if args.frames is None else
+                          args.start + args.frames * args.step, step=args.step, progress=not args.quiet)
+    summary = write_run(out, sequence, config, result)
+    print_summary(summary, out)
+    return 0
 
 
 def _demo(args: argparse.Namespace) -> int:
     from twohr import models
-    from twohr.dataset import RGBDSequence
-    from twohr.evaluation import evaluate, static_trajectory
-    from twohr.trajectory import write_tum
 
-    from .cli import format_report
+    args.config, args.set, args.camera, args.start, args.step, args.frames = None, [], None, 0, 1, None
+    config, sequence = _load(args)
+    print(f"twohr demo: {sequence.name}, {len(sequence)} RGB-D frames; models "
+          f"{config.detector.model} + {config.yolo.model} + {config.matcher.model}")
+    for name in (config.detector.model, config.yolo.model, config.matcher.model):
+        models.model_path(name)
+    args.quiet = False
+    return _run(args)
 
-    seq = RGBDSequence(args.sequence)
-    print(f"sequence {seq.name}: {len(seq)} RGB-D frames, camera fx={seq.camera.fx:.1f} fy={seq.camera.fy:.1f}")
-    for name in ("faster2d2_WASF_N16", "yolov8n_320"):
-        print(f"model {name}: {models.model_path(name)}")
-    out = Path(args.out)
-    if importlib.util.find_spec("twohr_services.tracker.core") is None:
-        print("MISSING: the tracker core (issue: tracker core and `twohr run`); showing the static-camera baseline")
-        est = static_trajectory(seq.stamps)
-        write_tum(out / "static_baseline.txt", est)
-        gt = seq.ground_truth(seq.default_gt_extrinsic())
-        report, _ = evaluate(gt, est, max_dt=0.02, gt_extrinsic=seq.default_gt_extrinsic())
-        print("static camera baseline:")
-        print(format_report(report))
-        return 0
-    raise NotImplementedError("the tracker core exists but the demo does not run it yet")
+
+def _bench(args: argparse.Namespace) -> int:
+    from . import bench
+
+    config, sequence = _load(args)
+    out = Path(args.out or "runs/bench")
+    out.mkdir(parents=True, exist_ok=True)
+    report: dict = {}
+    if args.ablations:
+        rows = bench.ablations(sequence, config, stop=args.frames, progress=not args.quiet)
+        rows.append(bench.static_camera_row(sequence))
+        report["ablations"] = {"sequence": sequence.name, "frames": args.frames or len(sequence),
+                               "ate": "RMSE after SE(3) Umeyama alignment, max dt 0.02 s, camera-frame GT",
+                               "rows": rows}
+        table = bench.format_table(rows)
+        (out / "ablations.md").write_text(table + "\n")
+        print(table)
+    else:
+        result = bench.throughput(sequence, config, frames=args.frames or 60, start=args.start, runs=args.runs,
+                                  progress=not args.quiet)
+        report["throughput"] = result
+        print(f"{result['frames']} frames x {result['runs']} runs: {result['fps_median']} FPS "
+              f"(ORB baseline {result['baseline_fps_median']} FPS, ratio {result['speed_ratio_to_baseline']}); "
+              f"peak RSS {result['peak_rss_mib']} MiB")
+        print(f"{'stage':10} {'median ms':>10} {'p90 ms':>8}")
+        for stage, v in result["stages_ms"].items():
+            print(f"{stage:10} {v['median']:10.1f} {v['p90']:8.1f}")
+    (out / "bench.json").write_text(json.dumps(report, indent=2))
+    print(f"written: {out / 'bench.json'}")
+    return 0
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--sequence", required=True, help="TUM-layout RGB-D folder (rgb.txt, depth.txt, images)")
+    p.add_argument("--out", default=None, help="output folder (default runs/<sequence name>)")
+    p.add_argument("--config", default=None, help="YAML pipeline config (see twohr.config.PipelineConfig)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a config value, e.g. --set detector.max_keypoints=1000 (repeatable)")
+    p.add_argument("--camera", default=None, help="camera preset (tum_fr1, tum_fr2, tum_fr3, bonn)")
+    p.add_argument("--start", type=int, default=0, help="first frame")
+    p.add_argument("--frames", type=int, default=None, help="process at most this many frames")
+    p.add_argument("--step", type=int, default=1, help="use every n-th frame")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="run the main job on one sequence and print the result")
+    p = sub.add_parser("run", help="run the full pipeline on a sequence; writes trajectory, stats and evaluation",
+                       description="detector (2HR) -> yolo mask -> matcher -> tracker, in one process. Writes the "
+                       "TUM trajectory (camera-to-world), per-frame stats and, with ground truth, the ATE report "
+                       "and plot.")
+    _add_run_options(p)
+    p.set_defaults(func=_run)
+
+    p = sub.add_parser("bench", help="throughput and per-stage latency (or --ablations: the accuracy table)",
+                       description="Without --ablations: FPS, per-stage ms (median, p90) and peak RSS of the pipeline "
+                       "over --frames frames, --runs times, each paired with an ORB baseline run for a ratio. With "
+                       "--ablations: ATE RMSE, S.D., %% tracked and ms/frame of ORB, R2D2, 2HR, 2HR+YOLO and the "
+                       "full pipeline on the same tracker.")
+    _add_run_options(p)
+    p.set_defaults(sequence="../shared/data/rgbd_bonn_crowd_dev")
+    for action in p._actions:
+        if action.dest == "sequence":
+            action.required = False
+    p.add_argument("--runs", type=int, default=3, help="repetitions for throughput (median reported)")
+    p.add_argument("--ablations", action="store_true", help="the ablation table instead of throughput")
+    p.set_defaults(func=_bench)
+
+    p = sub.add_parser("demo", help="the main job end to end on the dev sequence, with a printed result")
     p.add_argument("--sequence", default="../shared/data/rgbd_bonn_crowd_dev", help="TUM-layout RGB-D folder")
     p.add_argument("--out", default="runs/demo", help="output folder")
     p.set_defaults(func=_demo)

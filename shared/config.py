@@ -23,8 +23,9 @@ class Section(BaseModel):
 class DetectorConfig(Section):
     """2HR keypoints from an R2D2/L2-Net network (paper §3.1)."""
 
-    features: Literal["2hr", "r2d2", "orb"] = Field(
-        "2hr", description="2hr = R2D2 + K-means filter; r2d2 = raw R2D2; orb = OpenCV ORB baseline"
+    features: Literal["2hr", "r2d2", "orb", "fast", "sift"] = Field(
+        "2hr", description="2hr = R2D2 + K-means filter; r2d2 = raw R2D2; orb, fast (ORB descriptors), sift = OpenCV "
+        "baselines"
     )
     model: str = Field("faster2d2_WASF_N16", description="registered r2d2-kind model")
     input_scale: float = Field(1.0, gt=0, le=2, description="network input size relative to the image (even sizes)")
@@ -35,7 +36,9 @@ class DetectorConfig(Section):
     border: int = Field(4, ge=0, description="ignore maxima this close to the image border (px)")
     reliability_clusters: int = Field(3, ge=1, le=10, description="K-means k for reliability scores (paper: 3)")
     repeatability_clusters: int = Field(2, ge=1, le=10, description="K-means k for repeatability scores (paper: 2)")
-    score_threshold: float = Field(0.5, ge=0, le=1, description="T: keep keypoints with reliability*repeatability > T")
+    score_threshold: float = Field(0.5, ge=0, le=1, description="T: keep keypoints with reliability*repeatability > T "
+                                   "(a safety net: with the 0.7 floors the top clusters already score > ~0.8; "
+                                   "see services/detector/README.md)")
 
 
 class YoloConfig(Section):
@@ -69,7 +72,8 @@ class MatcherConfig(Section):
     method: Literal["siamese", "mutual_nn", "ratio"] = "siamese"
     model: str = Field("siamese_2hr", description="registered siamese-kind model")
     candidates: int = Field(3, ge=1, le=16, description="k nearest descriptors scored by the Siamese head")
-    threshold: float = Field(0.5, ge=0, le=1, description="tau: keep pairs with Siamese score >= tau")
+    threshold: float = Field(0.325, ge=0, le=1, description="tau: keep pairs with Siamese score >= tau (chosen on "
+                             "validation pairs by `twohr matcher train`, see services/matcher/MODEL_CARD.md)")
     ratio: float = Field(0.8, gt=0, le=1, description="Lowe ratio for method=ratio")
     threads: int = Field(1, ge=1, description="onnxruntime intra-op threads for the Siamese head (a tiny network)")
 
@@ -95,9 +99,11 @@ class TrackerConfig(Section):
                                      "latest plus the nearest in pose")
     keyframe_distance_per_rad: float = Field(0.5, gt=0, description="metres a radian of viewing-direction "
                                              "change counts as when ranking keyframes by nearness")
+    guided_search_px: float = Field(4.0, ge=0, description="after the pose, match unmatched local-map landmarks "
+                                    "to free keypoints within this distance of their projection (px); 0 = off")
     # pose estimation
     ransac_reprojection_px: float = Field(3.0, gt=0, description="RANSAC and final inlier threshold (px)")
-    ransac_iterations: int = Field(200, ge=10)
+    ransac_iterations: int = Field(200, ge=10, description="RANSAC PnP hypotheses (AP3P)")
     huber_px: float = Field(2.0, gt=0, description="Huber scale of pose refinement and BA (px)")
     motion_prior_m: float = Field(0.02, ge=0, description="sigma of the motion-model prior per frame (m); 0 = off")
     motion_prior_deg: float = Field(2.0, ge=0, description="sigma of the motion-model prior per frame (deg)")
@@ -105,26 +111,31 @@ class TrackerConfig(Section):
     max_jump_m: float = Field(0.08, gt=0, description="a tracked pose this far from the prediction (per frame "
                               "since the last good one) is rejected as implausible (m)")
     max_jump_deg: float = Field(8.0, gt=0, description="the same for rotation (deg)")
+    velocity_frames: int = Field(5, ge=1, description="motion-model velocity = mean motion of this many latest "
+                                 "tracked frames")
     coast_velocity_decay: float = Field(0.7, ge=0, le=1, description="while lost, the pose coasts on the "
                                         "motion model whose velocity decays by this factor per frame")
     # keyframes and map
     keyframe_min_inlier_ratio: float = Field(0.6, ge=0, le=1, description="new keyframe when inliers fall below "
                                              "this fraction of those at the latest keyframe")
     keyframe_max_translation: float = Field(0.10, gt=0, description="new keyframe when no keyframe lies within "
-                                            "this distance (m) ...")
-    keyframe_max_rotation_deg: float = Field(10.0, gt=0, description="... and this rotation (deg)")
+                                            "this distance (m) and keyframe_max_rotation_deg of the pose")
+    keyframe_max_rotation_deg: float = Field(10.0, gt=0, description="see keyframe_max_translation (deg)")
     init_min_points: int = Field(50, ge=6, description="keypoints with depth needed to start the map")
     landmark_max_outlier_ratio: float = Field(1.0, gt=0, description="drop a landmark once it has been "
                                               "rejected 3+ times and more often than this times accepted")
     # local bundle adjustment
-    bundle_adjustment: bool = True
+    bundle_adjustment: bool = Field(True, description="local BA after every new keyframe")
     ba_window_keyframes: int = Field(5, ge=2, description="latest keyframes optimised; others that see "
                                      "their landmarks are held fixed")
-    ba_max_evaluations: int = Field(15, ge=1)
+    ba_max_iterations: int = Field(10, ge=1, description="Levenberg-Marquardt iterations of local BA")
     # relocalisation
-    relocalisation: bool = True
-    relocalisation_candidates: int = Field(8, ge=1, description="keyframes tried, the nearest to the last good pose")
-    relocalisation_min_inliers: int = Field(30, ge=6)
+    relocalisation: bool = Field(True, description="when local-map tracking fails, try RANSAC PnP against "
+                                 "earlier keyframes")
+    relocalisation_candidates: int = Field(8, ge=1, description="keyframes tried: this many nearest to the last "
+                                           "tracked pose and this many nearest to the coasted prediction")
+    relocalisation_min_inliers: int = Field(30, ge=6, description="a relocalisation must find this many inliers "
+                                            "against one keyframe and again against the local map")
     reinit_after_lost_frames: int = Field(60, ge=1, description="lost this long with enough depth: start a new "
                                           "map at the coasted pose")
 

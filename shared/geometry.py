@@ -121,3 +121,34 @@ def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = False) ->
     scale = float(np.trace(np.diag(d) @ s_mat) / var_s) if with_scale else 1.0
     translation = mean_t - scale * rotation @ mean_s
     return rotation, translation, scale
+
+
+def backproject(xy: np.ndarray, depth: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Camera-frame 3-D points (N, 3) of pixels ``xy`` (N, 2) at depths ``depth`` (N,) along the optical axis.
+
+    ``k`` is the 3x3 pinhole matrix; pixel coordinates follow the pixel-centre convention of ``k``.
+    """
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    depth = np.asarray(depth, dtype=np.float64).reshape(-1)
+    if len(depth) != len(xy):
+        raise ValueError(f"backproject needs one depth per pixel, got {len(xy)} pixels and {len(depth)} depths")
+    x = (xy[:, 0] - k[0, 2]) / k[0, 0] * depth
+    y = (xy[:, 1] - k[1, 2]) / k[1, 1] * depth
+    return np.stack([x, y, depth], axis=1)
+
+
+def project(points: np.ndarray, k: np.ndarray, min_depth: float = 1e-6) -> np.ndarray:
+    """Pixels (N, 2) of camera-frame points (N, 3); points not in front of the camera (z <= min_depth) get NaN."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    z = points[:, 2]
+    in_front = z > min_depth
+    safe_z = np.where(in_front, z, 1.0)
+    u = np.where(in_front, k[0, 0] * points[:, 0] / safe_z + k[0, 2], np.nan)
+    v = np.where(in_front, k[1, 1] * points[:, 1] / safe_z + k[1, 2], np.nan)
+    return np.stack([u, v], axis=1)
+
+
+def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Points (N, 3) moved by a 4x4 rigid transform: ``R @ p + t`` for each row."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    return points @ pose[:3, :3].T + pose[:3, 3]

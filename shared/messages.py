@@ -248,7 +248,10 @@ def split(payload: bytes | bytearray | memoryview, expect: type[Message] | None 
     return message, parts
 
 
-def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None = None) -> tuple[Any, dict]:
-    """Parse a payload into ``(message, arrays)``; raises :class:`MessageError` if anything is off."""
+def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None = None,
+           only: tuple[str, ...] | None = None) -> tuple[Any, dict]:
+    """Parse a payload into ``(message, arrays)``, decoding only the arrays named in ``only`` if given.
+
+    Raises :class:`MessageError` if anything is off."""
     message, parts = split(payload, expect)
-    return message, {spec.name: _decode_array(spec, blob) for spec, blob in parts}
+    return message, {spec.name: _decode_array(spec, blob) for spec, blob in parts if only is None or spec.name in only}

@@ -11,6 +11,7 @@ from __future__ import annotations
 import collections
 import json
 import logging
+import os
 import signal
 import threading
 import time
@@ -19,8 +20,10 @@ from typing import Literal
 
 import zenoh
 
+from . import keys
 from .bus import BusConfig, open_session
-from .messages import MessageError
+from .config import PipelineConfig
+from .messages import ControlMsg, MessageError, decode
 
 HEALTH_PREFIX = "twohr/_health"
 QueuePolicy = Literal["drop_oldest", "backpressure"]
@@ -87,6 +90,8 @@ class Service:
     implement ``handle(key, payload)``; they publish with ``self.publish(key, payload)``."""
 
     name = "service"
+    #: subscribe to control messages and keep ``session_configs`` (the pipeline stages do)
+    follows_sessions = False
 
     def __init__(self, bus: BusConfig | None = None, queue_size: int = 8, policy: QueuePolicy = "backpressure") -> None:
         self.bus = bus or BusConfig()
@@ -96,10 +101,17 @@ class Service:
         self.session: zenoh.Session | None = None
         self.stopping = threading.Event()
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self.session_configs: dict[str, PipelineConfig] = {}
 
     # -- to override
     def subscriptions(self) -> list[str]:
         return []
+
+    def on_session_start(self, control: ControlMsg) -> None:
+        """A session starts: set up per-session state (its config is ``control.config``)."""
+
+    def on_session_stop(self, session_id: str) -> None:
+        """A session ends: drop its per-session state."""
 
     def handle(self, key: str, payload: bytes) -> None:
         raise NotImplementedError
@@ -113,14 +125,28 @@ class Service:
     # -- the shell
     def publish(self, key: str, payload: bytes) -> None:
         if key not in self._publishers:
-            self._publishers[key] = self.session.declare_publisher(
-                key, congestion_control=zenoh.CongestionControl.BLOCK
-            )
+            self._publishers[key] = declare_publisher(self.session, key)
         self._publishers[key].put(payload)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         self.counters.add("received")
         self.inbox.put((str(sample.key_expr), sample.payload.to_bytes()))
+
+    def config_for(self, session_id: str) -> PipelineConfig:
+        """The pipeline config of a session (the defaults if its start was never seen)."""
+        if session_id not in self.session_configs:
+            self.log.warning("no start message seen for session %s: using the default config", session_id)
+            self.session_configs[session_id] = PipelineConfig()
+        return self.session_configs[session_id]
+
+    def _handle_control(self, payload: bytes) -> None:
+        control, _ = decode(payload, ControlMsg)
+        if control.command == "start":
+            self.session_configs[control.session_id] = control.config
+            self.on_session_start(control)
+        else:
+            self.on_session_stop(control.session_id)
+            self.session_configs.pop(control.session_id, None)
 
     def _on_health(self, query: zenoh.Query) -> None:
         query.reply(query.key_expr, json.dumps(self.health()))
@@ -132,7 +158,10 @@ class Service:
             return False
         key, payload = item
         try:
-            self.handle(key, payload)
+            if self.follows_sessions and key.endswith("/" + keys.CONTROL):
+                self._handle_control(payload)
+            else:
+                self.handle(key, payload)
             self.counters.add("processed")
         except MessageError as exc:
             self.counters.add("malformed")
@@ -146,7 +175,8 @@ class Service:
         """Serve until ``stop`` is set (or SIGINT/SIGTERM when run as a program)."""
         stop = stop or self.stopping
         self.session = open_session(self.bus)
-        subscribers = [self.session.declare_subscriber(k, self._on_sample) for k in self.subscriptions()]
+        wanted = self.subscriptions() + ([keys.all_robots(keys.CONTROL)] if self.follows_sessions else [])
+        subscribers = [self.session.declare_subscriber(k, self._on_sample) for k in wanted]
         queryable = self.session.declare_queryable(f"{HEALTH_PREFIX}/{self.name}", self._on_health)
         self.on_start()
         self.log.info("%s serving %s", self.name, ", ".join(self.subscriptions()) or "(no subscriptions)")
@@ -161,9 +191,21 @@ class Service:
 
     def run_forever(self) -> None:
         """Entry point for ``python -m``: stop cleanly on SIGINT and SIGTERM."""
+        logging.basicConfig(level=os.environ.get("TWOHR_LOG_LEVEL", "INFO"),
+                            format="%(asctime)s %(levelname)s %(name)s: %(message)s")
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: self.stopping.set())
         self.run(self.stopping)
+
+
+def declare_publisher(session: zenoh.Session, key: str, wait_for_subscribers: float = 2.0) -> zenoh.Publisher:
+    """A reliable, blocking publisher; waits up to ``wait_for_subscribers`` s until the bus reports a matching
+    subscriber, so that the first messages on a new key are not dropped while routes are still being set up."""
+    publisher = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+    deadline = time.monotonic() + wait_for_subscribers
+    while not publisher.matching_status.matching and time.monotonic() < deadline:
+        time.sleep(0.02)
+    return publisher
 
 
 def query_health(session: zenoh.Session, service: str, timeout: float = 1.0) -> dict | None:
@@ -188,3 +230,15 @@ def wait_for_services(session: zenoh.Session, names: list[str], timeout: float =
             return healthy
         time.sleep(0.2)
     raise TimeoutError(f"services not healthy after {timeout:.0f} s: {sorted(set(names) - set(healthy))}")
+
+
+def serve(service_cls: type[Service], argv: list[str] | None = None, **kwargs) -> None:
+    """``python -m twohr_services.<name>``: parse ``--router`` and run the service until SIGINT/SIGTERM."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog=f"python -m twohr_services.{service_cls.name}",
+                                     description=(service_cls.__doc__ or "").strip())
+    parser.add_argument("--router", default=None, help="Zenoh router endpoint (default $TWOHR_ZENOH_ROUTER)")
+    args = parser.parse_args(argv)
+    bus = BusConfig(connect=[args.router]) if args.router else BusConfig()
+    service_cls(bus, **kwargs).run_forever()

@@ -6,7 +6,7 @@ import time
 from twohr import keys
 from twohr.bus import open_session
 from twohr.messages import PoseMsg, decode, encode
-from twohr.service import Counters, Inbox, Service, query_health, wait_for_services
+from twohr.service import Counters, Inbox, Service, declare_publisher, query_health, wait_for_services
 
 
 class EchoService(Service):
@@ -63,8 +63,7 @@ def test_service_survives_malformed_messages_and_reports_health(bus_config):
     client = open_session(bus_config)
     try:
         wait_for_services(client, ["echo_test"], timeout=10)
-        pub = client.declare_publisher("twohr/r1/pose")
-        time.sleep(0.3)
+        pub = declare_publisher(client, "twohr/r1/pose")
         for i in range(5):
             pub.put(pose_payload(i))
         for junk in (b"", b"garbage", pose_payload(99)[:-3], b"2HR\x01" + b"\xff" * 10):
@@ -90,8 +89,7 @@ def test_drop_oldest_under_overload_counts_drops(bus_config):
     client = open_session(bus_config)
     try:
         wait_for_services(client, ["echo_drop_test"], timeout=10)
-        pub = client.declare_publisher("twohr/r2/pose")
-        time.sleep(0.3)
+        pub = declare_publisher(client, "twohr/r2/pose")
         for i in range(40):
             pub.put(pose_payload(i, "r2"))
         time.sleep(1.5)

@@ -2,19 +2,22 @@
 
 Pipeline of :class:`R2D2Detector` (paper §3.1):
 
-1. the network gives a 128-D descriptor map plus reliability and repeatability maps;
+1. the network gives a 128-D feature map plus reliability and repeatability maps;
 2. candidates are local maxima of repeatability (3x3 NMS) above the score floors;
 3. the 2HR filter (:func:`twohr_filter`) clusters the candidates' reliability (k=3) and
    repeatability (k=2) with 1-D K-means, keeps the top cluster of each, intersects them and
    keeps composite scores ``s = reliability * repeatability > T``;
-4. the top ``max_keypoints`` by composite score are kept, in original-image pixels.
+4. the top ``max_keypoints`` by composite score are kept, in original-image pixels, and only
+   their descriptors are read from the feature map and L2-normalised.
 
-:class:`ORBDetector` is the OpenCV ORB baseline with the same interface.
+:class:`ORBDetector`, :class:`FASTDetector` and :class:`SIFTDetector` are the OpenCV baselines with
+the same interface.
 """
 
 from __future__ import annotations
 
 import threading
+from bisect import bisect_right
 from dataclasses import dataclass
 from functools import cache
 
@@ -28,42 +31,68 @@ from twohr.models import model_path
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+DESCRIPTOR_DIM = 128
 
 
 # ----------------------------------------------------------------------------- pure functions
 
 
-def kmeans_1d(values: np.ndarray, k: int, iterations: int = 50) -> tuple[np.ndarray, np.ndarray]:
-    """Deterministic 1-D K-means (Lloyd's algorithm, centres initialised at evenly spaced quantiles).
+def kmeans_1d(values: np.ndarray, k: int, iterations: int = 300) -> tuple[np.ndarray, np.ndarray]:
+    """Deterministic 1-D K-means. Returns ``(labels, centres)``, centres ascending, so the top cluster is ``k-1``.
 
-    Returns ``(labels, centres)`` with centres sorted ascending, so label ``k-1`` is the top cluster.
+    In 1-D every cluster is an interval of the sorted values, so one Lloyd step is k binary searches
+    and k differences of prefix sums: O(k log n), done on Python scalars because k is tiny. Two starts
+    (centres at quantiles, centres evenly spread over the range) are run to convergence and the one
+    with the lower sum of squared errors wins. Clusters may end up empty when there are fewer distinct
+    values than ``k``.
     """
     values = np.asarray(values, dtype=np.float64).ravel()
-    if values.size == 0:
+    n = values.size
+    if n == 0:
         return np.zeros(0, np.int64), np.zeros(0)
-    k = max(1, min(k, values.size))
-    order = np.sort(values)
-    centres = np.quantile(order, (np.arange(k) + 0.5) / k)
-    for _ in range(iterations):
-        # in 1-D the clusters are intervals: boundaries are midpoints between sorted centres
-        bounds = (centres[1:] + centres[:-1]) / 2
-        labels = np.searchsorted(bounds, order, side="right")
-        sums = np.bincount(labels, weights=order, minlength=k)
-        counts = np.bincount(labels, minlength=k)
-        new = np.where(counts > 0, sums / np.maximum(counts, 1), centres)
-        if np.allclose(new, centres, rtol=0, atol=1e-12):
-            break
-        centres = np.sort(new)
-    bounds = (centres[1:] + centres[:-1]) / 2
-    return np.searchsorted(bounds, values, side="right"), centres
+    k = max(1, min(int(k), n))
+    ordered = np.sort(values)
+    sorted_list = ordered.tolist()
+    prefix = [0.0, *np.cumsum(ordered).tolist()]
+    prefix_sq = [0.0, *np.cumsum(ordered * ordered).tolist()]
+    low, high = sorted_list[0], sorted_list[-1]
+    starts = [
+        [sorted_list[min(n - 1, int((i + 0.5) * n / k))] for i in range(k)],
+        [low + (high - low) * (i + 1) / (k + 1) for i in range(k)],
+    ]
+    best_sse, best_centres = np.inf, sorted(starts[0])
+    for centres in starts:
+        centres = sorted(centres)
+        edges: list[int] = []
+        for _ in range(iterations):
+            # values <= a midpoint go to the lower cluster
+            midpoints = [(a + b) / 2 for a, b in zip(centres, centres[1:], strict=False)]
+            new_edges = [0, *(bisect_right(sorted_list, m) for m in midpoints), n]
+            if new_edges == edges:
+                break
+            edges = new_edges
+            centres = sorted((prefix[e1] - prefix[e0]) / (e1 - e0) if e1 > e0 else c
+                             for e0, e1, c in zip(edges, edges[1:], centres, strict=False))
+        sse = sum(prefix_sq[e1] - prefix_sq[e0] - (prefix[e1] - prefix[e0]) ** 2 / (e1 - e0)
+                  for e0, e1 in zip(edges, edges[1:], strict=False) if e1 > e0)
+        if sse < best_sse - 1e-12:
+            best_sse, best_centres = sse, centres
+    centres_array = np.array(best_centres)
+    labels = np.searchsorted((centres_array[1:] + centres_array[:-1]) / 2, values, side="left")
+    return labels.astype(np.int64), centres_array
 
 
 def twohr_filter(reliability: np.ndarray, repeatability: np.ndarray, reliability_clusters: int = 3,
                  repeatability_clusters: int = 2, score_threshold: float = 0.5) -> np.ndarray:
     """The paper's 2HR selection: boolean mask of points in the top reliability cluster AND the top
-    repeatability cluster whose composite score ``reliability * repeatability`` exceeds the threshold."""
-    reliability = np.asarray(reliability, dtype=np.float64)
-    repeatability = np.asarray(repeatability, dtype=np.float64)
+    repeatability cluster whose composite score ``reliability * repeatability`` exceeds the threshold.
+
+    The top cluster is the non-empty cluster with the highest centre.
+    """
+    reliability = np.asarray(reliability, dtype=np.float64).ravel()
+    repeatability = np.asarray(repeatability, dtype=np.float64).ravel()
+    if reliability.shape != repeatability.shape:
+        raise ValueError(f"reliability and repeatability differ in length: {reliability.size} vs {repeatability.size}")
     if reliability.size == 0:
         return np.zeros(0, bool)
     rel_labels, _ = kmeans_1d(reliability, reliability_clusters)
@@ -84,6 +113,21 @@ def local_maxima(repeatability: np.ndarray, reliability: np.ndarray, min_repeata
     return np.nonzero(peak)
 
 
+def select_keypoints(reliability: np.ndarray, repeatability: np.ndarray, conf: DetectorConfig) -> np.ndarray:
+    """Indices of the candidates (already local maxima) that ``conf`` keeps, best composite score first.
+
+    Applies the score floors, the 2HR filter when ``conf.features == "2hr"`` and the top-N cut.
+    """
+    floors = (reliability >= conf.min_reliability) & (repeatability >= conf.min_repeatability)
+    index = np.flatnonzero(floors)
+    if conf.features == "2hr" and index.size:
+        keep = twohr_filter(reliability[index], repeatability[index], conf.reliability_clusters,
+                            conf.repeatability_clusters, conf.score_threshold)
+        index = index[keep]
+    scores = reliability[index] * repeatability[index]
+    return index[np.argsort(-scores, kind="stable")[: conf.max_keypoints]]
+
+
 def network_size(width: int, height: int, scale: float) -> tuple[int, int]:
     """Network input (width, height): the image scaled by ``scale`` and rounded to even numbers."""
     return max(2, int(round(width * scale / 2)) * 2), max(2, int(round(height * scale / 2)) * 2)
@@ -94,39 +138,169 @@ def network_size(width: int, height: int, scale: float) -> tuple[int, int]:
 
 @dataclass
 class R2D2Maps:
-    """Network outputs at network resolution: descriptors (128, h, w), reliability and repeatability (h, w).
+    """Network outputs for one image.
 
-    The arrays are views into reused buffers: copy them to keep them past the next call."""
+    ``reliability`` and ``repeatability`` are (h, w) at network resolution. ``features`` is the raw
+    (not yet normalised) 128-channel descriptor map at ``1 / feature_stride`` of that resolution;
+    :meth:`descriptors_at` turns it into unit descriptors at given pixels. The arrays are views into
+    reused buffers: copy them to keep them past the next call of the same network.
+    """
 
-    descriptors: np.ndarray
+    features: np.ndarray
     reliability: np.ndarray
     repeatability: np.ndarray
+    feature_stride: int = 1
+
+    def descriptors_at(self, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
+        """L2-normalised descriptors (N, 128) float32 at network pixels (ys, xs).
+
+        With stride 2 the feature map is the one the network upsamples bilinearly (half-pixel
+        centres), so sampling it bilinearly here gives the same values the dense output would have.
+        """
+        ys = np.asarray(ys)
+        xs = np.asarray(xs)
+        if self.feature_stride == 1:
+            raw = self.features[:, ys, xs].T
+        else:
+            raw = _bilinear_at(self.features, (ys + 0.5) / self.feature_stride - 0.5,
+                               (xs + 0.5) / self.feature_stride - 0.5)
+        raw = np.ascontiguousarray(raw, dtype=np.float32)
+        norms = np.linalg.norm(raw, axis=1, keepdims=True)
+        return raw / np.maximum(norms, 1e-12)
+
+
+def _bilinear_at(maps: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
+    """Samples (N, C) of a (C, h, w) map at float coordinates, clamped to the border (ONNX Resize semantics)."""
+    channels, height, width = maps.shape
+    ys = np.clip(ys, 0, height - 1)
+    xs = np.clip(xs, 0, width - 1)
+    y0 = np.floor(ys).astype(np.int64)
+    x0 = np.floor(xs).astype(np.int64)
+    y1 = np.minimum(y0 + 1, height - 1)
+    x1 = np.minimum(x0 + 1, width - 1)
+    fy = (ys - y0).astype(np.float32)
+    fx = (xs - x0).astype(np.float32)
+    # one gather of the four corners, then their weighted sum
+    corners = np.concatenate([y0 * width + x0, y0 * width + x1, y1 * width + x0, y1 * width + x1])
+    values = np.take(maps.reshape(channels, -1), corners, axis=1).reshape(channels, 4, -1)
+    weights = np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx])
+    return np.einsum("ckn,kn->nc", values, weights)
+
+
+@dataclass(frozen=True)
+class _PreparedModel:
+    model: bytes
+    feature_stride: int
 
 
 @cache
-def _session(path: str, threads: int) -> ort.InferenceSession:
+def _prepare_model(path: str, sparse_descriptors: bool) -> _PreparedModel:
+    """The ONNX graph to run, with the dense descriptor normalisation cut off when possible.
+
+    The exported graph ends in ``descriptors = x / max(||x||, eps)`` over the whole 128xHxW map,
+    and faster2d2 computes ``x`` by a 2x bilinear upsample. Both only matter at the few
+    keypoints, so the graph is made to output the tensor before them (``x``, or the tensor before
+    the upsample) and :meth:`R2D2Maps.descriptors_at` finishes the job per keypoint. Graphs of
+    another shape are run unchanged.
+    """
+    import onnx
+    from onnx import helper, numpy_helper
+
+    model = onnx.load(path)
+    if not sparse_descriptors:
+        return _PreparedModel(model.SerializeToString(), 1)
+    graph = model.graph
+    producers = {out: node for node in graph.node for out in node.output}
+    constants = {init.name: numpy_helper.to_array(init) for init in graph.initializer}
+    for node in graph.node:
+        if node.op_type == "Constant":
+            constants[node.output[0]] = numpy_helper.to_array(node.attribute[0].t)
+    div = producers.get("descriptors")
+    if div is None or not _is_l2_normalisation(div, producers):
+        return _PreparedModel(model.SerializeToString(), 1)
+    feature, stride = div.input[0], 1
+    resize = producers.get(feature)
+    if resize is not None and resize.op_type == "Resize" and _is_2x_bilinear(resize, constants):
+        feature, stride = resize.input[0], 2
+    nodes = [node for node in graph.node if node is not div]
+    nodes.append(helper.make_node("Identity", [feature], ["descriptors"], name="raw_descriptor_features"))
+    # drop the nodes that only fed the normalisation
+    needed = {output.name for output in graph.output}
+    alive = []
+    for node in reversed(nodes):
+        if any(out in needed for out in node.output):
+            alive.append(node)
+            needed.update(name for name in node.input if name)
+    del graph.node[:]
+    graph.node.extend(reversed(alive))
+    for output in graph.output:
+        if output.name == "descriptors":
+            output.type.tensor_type.ClearField("shape")
+    unused = [init for init in graph.initializer if init.name not in needed]
+    for init in unused:
+        graph.initializer.remove(init)
+    return _PreparedModel(model.SerializeToString(), stride)
+
+
+def _is_l2_normalisation(div, producers: dict) -> bool:
+    """True for ``Div(x, f(ReduceL2(x)))`` where f is a short chain of shape/clip ops (the R2D2 export)."""
+    if div.op_type != "Div":
+        return False
+    node = producers.get(div.input[1])
+    for _ in range(4):
+        if node is None:
+            return False
+        if node.op_type == "ReduceL2":
+            return node.input[0] == div.input[0]
+        if node.op_type not in ("Expand", "Clip", "Max", "Unsqueeze"):
+            return False
+        node = producers.get(node.input[0])
+    return False
+
+
+def _is_2x_bilinear(node, constants: dict[str, np.ndarray]) -> bool:
+    attrs = {a.name: (a.s.decode() if a.s else a.i) for a in node.attribute}
+    scales = constants.get(node.input[2]) if len(node.input) > 2 else None
+    return (attrs.get("mode") == "linear" and attrs.get("coordinate_transformation_mode", "half_pixel") == "half_pixel"
+            and scales is not None and np.allclose(scales, [1, 1, 2, 2]))
+
+
+@cache
+def _session(path: str, threads: int, sparse_descriptors: bool) -> tuple[ort.InferenceSession, _PreparedModel]:
+    prepared = _prepare_model(path, sparse_descriptors)
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    return ort.InferenceSession(path, options, providers=["CPUExecutionProvider"])
+    session = ort.InferenceSession(prepared.model, options, providers=["CPUExecutionProvider"])
+    return session, prepared
 
 
 class R2D2Network:
-    """One onnxruntime session per process and model; input and output buffers reused per size."""
+    """One onnxruntime session per process, model and thread count; input and output buffers reused per size.
 
-    def __init__(self, model: str = "faster2d2_WASF_N16", threads: int = 2) -> None:
+    ``sparse_descriptors=False`` runs the exported graph unchanged (dense, normalised descriptors):
+    slower, kept as the reference for tests and benchmarks.
+    """
+
+    def __init__(self, model: str = "faster2d2_WASF_N16", threads: int = 2, sparse_descriptors: bool = True) -> None:
         self.model = model
-        self.session = _session(str(model_path(model, kind="r2d2")), threads)
+        self.threads = threads
+        self.session, prepared = _session(str(model_path(model, kind="r2d2")), threads, sparse_descriptors)
+        self.feature_stride = prepared.feature_stride
         self._buffers: dict[tuple[int, int], tuple[np.ndarray, dict[str, np.ndarray], ort.IOBinding]] = {}
         self._lock = threading.Lock()
 
     def _binding(self, width: int, height: int):
         key = (width, height)
         if key not in self._buffers:
+            stride = self.feature_stride
+            if width % stride or height % stride:
+                raise ValueError(f"{self.model} needs an input size divisible by {stride}, got {width}x{height}")
             image = np.zeros((1, 3, height, width), np.float32)
             outputs = {
-                "descriptors": np.zeros((1, 128, height, width), np.float32),
+                "descriptors": np.zeros((1, DESCRIPTOR_DIM, height // stride, width // stride), np.float32),
                 "reliability": np.zeros((1, 1, height, width), np.float32),
                 "repeatability": np.zeros((1, 1, height, width), np.float32),
             }
@@ -142,21 +316,30 @@ class R2D2Network:
         width, height = size
         with self._lock:
             image, outputs, binding = self._binding(width, height)
-            resized = rgb if rgb.shape[1::-1] == (width, height) else cv2.resize(
-                rgb, (width, height), interpolation=cv2.INTER_AREA)
-            normalised = (resized.astype(np.float32) * np.float32(1 / 255) - IMAGENET_MEAN) / IMAGENET_STD
-            image[0] = normalised.transpose(2, 0, 1)
+            if rgb.shape[1::-1] != (width, height):
+                shrink = width < rgb.shape[1]
+                rgb = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+            for channel in range(3):  # (rgb / 255 - mean) / std, written straight into the bound input
+                plane = image[0, channel]
+                np.multiply(rgb[:, :, channel], np.float32(1 / (255 * IMAGENET_STD[channel])), out=plane,
+                            casting="unsafe")
+                plane -= IMAGENET_MEAN[channel] / IMAGENET_STD[channel]
             self.session.run_with_iobinding(binding)
-            return R2D2Maps(outputs["descriptors"][0], outputs["reliability"][0, 0], outputs["repeatability"][0, 0])
+            return R2D2Maps(outputs["descriptors"][0], outputs["reliability"][0, 0],
+                            outputs["repeatability"][0, 0], self.feature_stride)
 
 
 # ----------------------------------------------------------------------------- detectors
 
 
-def _check_image(rgb: np.ndarray) -> None:
-    if not isinstance(rgb, np.ndarray) or rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-        shape = getattr(rgb, "shape", None)
-        raise ValueError(f"expected an RGB uint8 image of shape (H, W, 3), got {shape} {getattr(rgb, 'dtype', '')}")
+def check_image(rgb: np.ndarray) -> None:
+    """Raise a clear ValueError unless ``rgb`` is an (H, W, 3) uint8 image of at least 16x16 pixels."""
+    if not isinstance(rgb, np.ndarray):
+        raise ValueError(f"expected an RGB uint8 numpy image of shape (H, W, 3), got {type(rgb).__name__}")
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"expected an RGB uint8 image of shape (H, W, 3), got shape {rgb.shape} dtype {rgb.dtype}")
+    if min(rgb.shape[:2]) < 16:
+        raise ValueError(f"image too small for keypoint detection: {rgb.shape[1]}x{rgb.shape[0]} (need 16x16)")
 
 
 class R2D2Detector:
@@ -166,29 +349,30 @@ class R2D2Detector:
 
     def __init__(self, conf: DetectorConfig | None = None) -> None:
         self.conf = conf or self.default_conf
+        if self.conf.features not in ("2hr", "r2d2"):
+            raise ValueError(f"R2D2Detector builds 2hr or r2d2 features, not {self.conf.features!r}")
         self.network = R2D2Network(self.conf.model, self.conf.threads)
 
     def detect(self, rgb: np.ndarray) -> Keypoints:
-        _check_image(rgb)
-        conf = self.conf
+        """Keypoints of an RGB uint8 image, in its pixel coordinates, best score first."""
+        check_image(rgb)
         height, width = rgb.shape[:2]
-        net_w, net_h = network_size(width, height, conf.input_scale)
-        maps = self.network(rgb, (net_w, net_h))
-        border = max(0, int(round(conf.border * net_w / width)))
-        ys, xs = local_maxima(maps.repeatability, maps.reliability, conf.min_repeatability,
-                              conf.min_reliability, border)
+        maps = self.network(rgb, network_size(width, height, self.conf.input_scale))
+        return self.keypoints_from_maps(maps, (width, height))
+
+    def keypoints_from_maps(self, maps: R2D2Maps, image_size: tuple[int, int]) -> Keypoints:
+        """Steps 2-4 of the pipeline on network outputs for an image of ``image_size`` = (width, height)."""
+        width, height = image_size
+        net_h, net_w = maps.repeatability.shape
+        border = max(0, int(round(self.conf.border * net_w / width)))
+        ys, xs = local_maxima(maps.repeatability, maps.reliability, self.conf.min_repeatability,
+                              self.conf.min_reliability, border)
         rel = maps.reliability[ys, xs]
         rep = maps.repeatability[ys, xs]
-        if conf.features == "2hr":
-            keep = twohr_filter(rel, rep, conf.reliability_clusters, conf.repeatability_clusters,
-                                conf.score_threshold)
-            ys, xs, rel, rep = ys[keep], xs[keep], rel[keep], rep[keep]
-        scores = rel * rep
-        top = np.argsort(-scores, kind="stable")[: conf.max_keypoints]
-        ys, xs, rel, rep, scores = ys[top], xs[top], rel[top], rep[top], scores[top]
-        descriptors = np.ascontiguousarray(maps.descriptors[:, ys, xs].T)
+        keep = select_keypoints(rel, rep, self.conf)
+        ys, xs, rel, rep = ys[keep], xs[keep], rel[keep], rep[keep]
         xy = np.stack([(xs + 0.5) * (width / net_w) - 0.5, (ys + 0.5) * (height / net_h) - 0.5], axis=1)
-        return Keypoints(xy.astype(np.float32), descriptors, scores.astype(np.float32),
+        return Keypoints(xy.astype(np.float32), maps.descriptors_at(ys, xs), (rel * rep).astype(np.float32),
                          rel.astype(np.float32), rep.astype(np.float32))
 
 
@@ -202,16 +386,63 @@ class ORBDetector:
         self.orb = cv2.ORB_create(nfeatures=self.conf.max_keypoints)
 
     def detect(self, rgb: np.ndarray) -> Keypoints:
-        _check_image(rgb)
+        """ORB keypoints and descriptors of an RGB uint8 image."""
+        check_image(rgb)
         gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
         kps, desc = self.orb.detectAndCompute(gray, None)
-        if desc is None or not kps:
-            return Keypoints.empty(dim=32, binary=True)
-        xy = np.array([k.pt for k in kps], np.float32)
-        scores = np.array([k.response for k in kps], np.float32)
-        return Keypoints(xy, desc, scores)
+        return _opencv_keypoints(kps, desc, dim=32, binary=True)
 
 
-def build_detector(conf: DetectorConfig) -> R2D2Detector | ORBDetector:
+class FASTDetector:
+    """OpenCV FAST corners (strongest ``max_keypoints`` after NMS) described by ORB, since FAST has no descriptor."""
+
+    default_conf = DetectorConfig(features="fast")
+
+    def __init__(self, conf: DetectorConfig | None = None) -> None:
+        self.conf = conf or self.default_conf
+        self.fast = cv2.FastFeatureDetector_create(threshold=20, nonmaxSuppression=True)
+        self.orb = cv2.ORB_create(nfeatures=self.conf.max_keypoints)
+
+    def detect(self, rgb: np.ndarray) -> Keypoints:
+        """FAST corners with ORB descriptors (corners too close to the border for ORB are dropped)."""
+        check_image(rgb)
+        gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+        kps = sorted(self.fast.detect(gray, None), key=lambda k: -k.response)[: self.conf.max_keypoints]
+        kps, desc = self.orb.compute(gray, kps)
+        return _opencv_keypoints(kps, desc, dim=32, binary=True)
+
+
+class SIFTDetector:
+    """OpenCV SIFT keypoints with 128-D descriptors, L2-normalised to float32 like R2D2's."""
+
+    default_conf = DetectorConfig(features="sift")
+
+    def __init__(self, conf: DetectorConfig | None = None) -> None:
+        self.conf = conf or self.default_conf
+        self.sift = cv2.SIFT_create(nfeatures=self.conf.max_keypoints)
+
+    def detect(self, rgb: np.ndarray) -> Keypoints:
+        """SIFT keypoints and unit descriptors of an RGB uint8 image."""
+        check_image(rgb)
+        gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+        kps, desc = self.sift.detectAndCompute(gray, None)
+        if desc is not None:
+            desc = desc / np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
+        return _opencv_keypoints(kps, desc, dim=128, binary=False)
+
+
+def _opencv_keypoints(kps, desc: np.ndarray | None, dim: int, binary: bool) -> Keypoints:
+    if desc is None or not kps:
+        return Keypoints.empty(dim=dim, binary=binary)
+    xy = np.array([k.pt for k in kps], np.float32)
+    scores = np.array([k.response for k in kps], np.float32)
+    return Keypoints(xy, desc.astype(np.uint8 if binary else np.float32), scores)
+
+
+Detector = R2D2Detector | ORBDetector | FASTDetector | SIFTDetector
+
+
+def build_detector(conf: DetectorConfig) -> Detector:
     """The detector that ``conf.features`` names."""
-    return ORBDetector(conf) if conf.features == "orb" else R2D2Detector(conf)
+    classical = {"orb": ORBDetector, "fast": FASTDetector, "sift": SIFTDetector}
+    return classical.get(conf.features, R2D2Detector)(conf)

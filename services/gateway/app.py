@@ -30,7 +30,7 @@ from twohr.evaluation import evaluate
 from twohr.messages import ControlMsg, MessageError, PoseMsg, StatusMsg, decode, encode
 from twohr.models import get_spec
 from twohr.paths import resolve_under_roots
-from twohr.service import query_health
+from twohr.service import declare_publisher, query_health
 from twohr.trajectory import tum_text
 
 from .sessions import PoseOut, Session, SessionInfo, SessionRequest, SessionTable
@@ -63,6 +63,19 @@ def validate_models(config: PipelineConfig) -> None:
         get_spec(config.matcher.model, "siamese")
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def _mcap_finalised(path: Path) -> bool:
+    """True once an MCAP file ends with its closing magic (the recorder has written summary and footer)."""
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(-len(MCAP_MAGIC), 2)
+            return fh.read() == MCAP_MAGIC
+    except OSError:
+        return False
+
+
 def create_app(settings: GatewaySettings) -> FastAPI:
     table = SessionTable()
     bus_state: dict = {}
@@ -86,7 +99,11 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         control = ControlMsg(session_id=session.id, robot_id=req.robot_id, frame_index=-1, stamp=time.time(),
                              command=command, sequence=str(session.folder), rate=req.rate,
                              max_frames=req.max_frames, record=req.record, config=config or PipelineConfig())
-        bus_state["session"].put(keys.key(req.robot_id, keys.CONTROL), encode(control))
+        key = keys.key(req.robot_id, keys.CONTROL)
+        publishers = bus_state.setdefault("publishers", {})
+        if key not in publishers:
+            publishers[key] = declare_publisher(bus_state["session"], key)
+        publishers[key].put(encode(control))
 
     def finish(session: Session) -> None:
         try:
@@ -97,6 +114,7 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         except (TwohrError, ValueError) as exc:
             session.detail = f"no ATE: {exc}"
         send_control(session, "stop")
+        session.state = "finished"
 
     def monitor(stop: threading.Event) -> None:
         while not stop.wait(0.25):
@@ -210,8 +228,13 @@ def create_app(settings: GatewaySettings) -> FastAPI:
             raise HTTPException(status.HTTP_404_NOT_FOUND, "this session was not recorded")
         if session.state in ("starting", "running"):
             raise HTTPException(status.HTTP_409_CONFLICT, "the recording is finalised when the session ends")
+        deadline = time.monotonic() + 10
+        while not _mcap_finalised(path) and time.monotonic() < deadline:
+            time.sleep(0.1)  # the recorder finalises the file when it sees the session's stop message
         if not path.is_file():
             raise HTTPException(status.HTTP_404_NOT_FOUND, "no recording found (is the recorder running?)")
+        if not _mcap_finalised(path):
+            raise HTTPException(status.HTTP_409_CONFLICT, "the recording is still being finalised; try again")
         return FileResponse(path, media_type="application/octet-stream", filename=path.name)
 
     return app

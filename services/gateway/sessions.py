@@ -75,6 +75,7 @@ class Session:
     last_pose_at: float | None = None
     source_done_at: float | None = None
     ate_rmse: float | None = None
+    finalising: bool = False
 
     def trajectory(self) -> Trajectory:
         ordered = sorted(self.poses, key=lambda p: p.frame_index)
@@ -143,7 +144,7 @@ class SessionTable:
                 if s.state not in ("starting", "running") or s.source_done_at is None:
                     continue
                 last = max(s.source_done_at, s.last_pose_at or 0)
-                if len(s.poses) >= (s.frames_sent or 0) or now - last > idle_timeout:
-                    s.state = "finished"
+                if (len(s.poses) >= (s.frames_sent or 0) or now - last > idle_timeout) and not s.finalising:
+                    s.finalising = True
                     done.append(s)
         return done

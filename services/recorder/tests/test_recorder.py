@@ -13,7 +13,7 @@ from twohr import keys
 from twohr.bus import open_session
 from twohr.dataset import RGBDSequence
 from twohr.messages import ControlMsg, PoseMsg, decode, encode
-from twohr.service import wait_for_services
+from twohr.service import declare_publisher, wait_for_services
 from twohr_services.recorder.core import SessionRecorder, read_messages, topic_counts
 from twohr_services.recorder.service import RecorderService
 from twohr_services.source.core import frame_payloads
@@ -53,15 +53,16 @@ def test_recorder_service_over_the_bus(bus_config, dev_sequence, tmp_path):
     client = open_session(bus_config)
     try:
         wait_for_services(client, ["recorder"], timeout=10)
-        time.sleep(0.3)
+        control, frames, poses = (declare_publisher(client, k) for k in
+                                  (keys.key("r1", keys.CONTROL), "twohr/r1/frames", "twohr/r1/pose"))
         start = ControlMsg(session_id="sess2", robot_id="r1", frame_index=-1, stamp=0, command="start")
-        client.put(keys.key("r1", keys.CONTROL), encode(start))
+        control.put(encode(start))
         for item in frame_payloads(RGBDSequence(dev_sequence), "sess2", "r1", max_frames=4):
-            client.put("twohr/r1/frames", item.payload)
-            client.put("twohr/r1/pose", pose(item.index, item.stamp, "sess2"))
-        client.put("twohr/r1/pose", pose(9, 0.0, "other_session"))  # not recorded into sess2
-        client.put("twohr/r1/pose", b"malformed")
-        client.put(keys.key("r1", keys.CONTROL), encode(start.model_copy(update={"command": "stop"})))
+            frames.put(item.payload)
+            poses.put(pose(item.index, item.stamp, "sess2"))
+        poses.put(pose(9, 0.0, "other_session"))  # not recorded into sess2
+        poses.put(b"malformed")
+        control.put(encode(start.model_copy(update={"command": "stop"})))
         deadline = time.time() + 15
         while "sess2" in service.open or service.counters.processed + service.counters.malformed < 12:
             assert time.time() < deadline, service.counters
@@ -82,11 +83,11 @@ def test_chunks_survive_a_kill(bus_config, zenoh_router, dev_sequence, tmp_path)
     client = open_session(bus_config)
     try:
         wait_for_services(client, ["recorder"], timeout=20)
-        time.sleep(0.3)
+        control, frames = (declare_publisher(client, k) for k in (keys.key("r1", keys.CONTROL), "twohr/r1/frames"))
         start = ControlMsg(session_id="sess3", robot_id="r1", frame_index=-1, stamp=0, command="start")
-        client.put(keys.key("r1", keys.CONTROL), encode(start))
+        control.put(encode(start))
         for item in frame_payloads(RGBDSequence(dev_sequence), "sess3", "r1", max_frames=12):
-            client.put("twohr/r1/frames", item.payload)
+            frames.put(item.payload)
         time.sleep(2.0)
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)

@@ -1,0 +1,169 @@
+"""``twohr bench``: throughput, per-stage latency and memory of the pipeline, and the ablation table.
+
+Composition root, like :mod:`twohr_services.pipeline`. Timings are medians over several runs,
+each against a baseline measured in the same process at the same time (this machine is shared).
+"""
+
+from __future__ import annotations
+
+import platform
+import resource
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from twohr.config import PipelineConfig, load_config
+from twohr.evaluation import evaluate
+
+from .pipeline import FrontEnd, StageOutput, run_sequence
+
+#: The ablation variants: name -> config overrides on top of the user's config.
+ABLATIONS: dict[str, dict[str, object]] = {
+    "ORB + mutual NN": {"detector.features": "orb", "yolo.enabled": False, "matcher.method": "mutual_nn"},
+    "R2D2 raw + mutual NN": {"detector.features": "r2d2", "yolo.enabled": False, "matcher.method": "mutual_nn"},
+    "2HR + mutual NN": {"detector.features": "2hr", "yolo.enabled": False, "matcher.method": "mutual_nn"},
+    "2HR + YOLO + mutual NN": {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "mutual_nn"},
+    "2HR + YOLO + Siamese (full)": {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "siamese"},
+}
+
+
+def peak_rss_mib() -> float:
+    """Peak resident memory of this process so far, MiB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _percentiles(values: list[float]) -> dict[str, float]:
+    arr = np.asarray(values, float)
+    return {"median": round(float(np.median(arr)), 2), "p90": round(float(np.percentile(arr, 90)), 2)}
+
+
+def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 0, runs: int = 3,
+               baseline: PipelineConfig | None = None, progress: bool = True) -> dict:
+    """Run the pipeline ``runs`` times over the same frames; each run is paired with a run of ``baseline``
+    (default: the ORB ablation) so that the ratio survives a noisy machine."""
+    baseline = baseline or load_config(None, ABLATIONS["ORB + mutual NN"])
+    stop = min(len(sequence), start + frames)
+    results = {"pipeline": [], "baseline": []}
+    stage_ms: dict[str, list[float]] = {"ms_detector": [], "ms_yolo": [], "ms_tracker": [], "ms_total": []}
+    for _ in range(runs):
+        for label, conf in (("pipeline", config), ("baseline", baseline)):
+            run = run_sequence(sequence, conf, start=start, stop=stop, progress=progress)
+            results[label].append(len(run.stats) / run.wall_s)
+            if label == "pipeline":
+                for key in stage_ms:
+                    stage_ms[key] += [getattr(s, key) for s in run.stats]
+    fps = float(np.median(results["pipeline"]))
+    base = float(np.median(results["baseline"]))
+    return {
+        "sequence": sequence.name, "frames": stop - start, "runs": runs,
+        "fps_median": round(fps, 3), "fps_runs": [round(f, 3) for f in results["pipeline"]],
+        "baseline_fps_median": round(base, 3), "baseline": "ORB + mutual NN on the same tracker",
+        "speed_ratio_to_baseline": round(fps / base, 4),
+        "stages_ms": {k.removeprefix("ms_"): _percentiles(v) for k, v in stage_ms.items()},
+        "peak_rss_mib": round(peak_rss_mib(), 1),
+        "machine": {"cpus": __import__("os").cpu_count(), "platform": platform.platform()},
+    }
+
+
+@dataclass
+class _FrontCache:
+    """Front-end outputs shared between variants: keypoints by detector config, masks by yolo config."""
+
+    keypoints: dict[str, dict[int, tuple]]
+    masks: dict[str, dict[int, tuple]]
+
+    def outputs(self, sequence, config: PipelineConfig, stop: int, progress: bool) -> dict[int, StageOutput]:
+        det_key = config.detector.model_dump_json()
+        yolo_key = config.yolo.model_dump_json() if config.yolo.enabled else None
+        need_det = det_key not in self.keypoints
+        need_yolo = yolo_key is not None and yolo_key not in self.masks
+        if need_det or need_yolo:
+            from tqdm import tqdm
+
+            front = FrontEnd(config)
+            det, masks = self.keypoints.setdefault(det_key, {}), self.masks.setdefault(yolo_key, {})
+            for frame in tqdm(sequence.frames(0, stop), total=stop, disable=not progress, unit="frame",
+                              desc=f"front end {config.detector.features}{' + yolo' if yolo_key else ''}"):
+                if need_det:
+                    t0 = time.perf_counter()
+                    det[frame.index] = (front.detector.detect(frame.rgb), (time.perf_counter() - t0) * 1000)
+                if need_yolo:
+                    t0 = time.perf_counter()
+                    regions = front.masker(frame.rgb, frame.depth)
+                    masks[frame.index] = (regions.mask, len(regions.dynamic), (time.perf_counter() - t0) * 1000)
+        out = {}
+        for index, (kp, ms_det) in self.keypoints[det_key].items():
+            mask, objects, ms_yolo = self.masks[yolo_key][index] if yolo_key else (None, 0, 0.0)
+            out[index] = StageOutput(kp, mask, objects, ms_det, ms_yolo)
+        return out
+
+
+def ablations(sequence, base: PipelineConfig, variants: dict[str, dict] | None = None, stop: int | None = None,
+              repeats: int = 3, progress: bool = True) -> list[dict]:
+    """ATE RMSE, S.D., % of frames tracked and ms/frame for each variant on one sequence.
+
+    The networks are deterministic, so each front end runs once; the tracker runs twice, and where
+    the two runs differ it runs ``repeats`` times and the median is reported."""
+    variants = variants or ABLATIONS
+    stop = len(sequence) if stop is None else min(stop, len(sequence))
+    gt = sequence.ground_truth(sequence.default_gt_extrinsic())
+    cache = _FrontCache({}, {})
+    rows = []
+    for name, overrides in variants.items():
+        config = load_config(None, {**base.model_dump(mode="json"), **_nested(overrides)})
+        fronts = cache.outputs(sequence, config, stop, progress)
+
+        def once(config=config, fronts=fronts):
+            run = run_sequence(sequence, config, stop=stop, progress=False, front_cache=fronts)
+            report, _ = evaluate(gt, run.trajectory, gt_extrinsic=sequence.default_gt_extrinsic())
+            return report.ate.rmse, report.ate.std, run
+
+        runs = [once(), once()]
+        deterministic = np.allclose(runs[0][2].trajectory.poses, runs[1][2].trajectory.poses)
+        if not deterministic:
+            runs += [once() for _ in range(repeats - 2)]
+        rmse = [r[0] for r in runs]
+        pick = runs[int(np.argsort(rmse)[len(rmse) // 2])]
+        run = pick[2]
+        rows.append({
+            "variant": name, "ate_rmse": round(float(np.median(rmse)), 4), "ate_std": round(pick[1], 4),
+            "runs": 1 if deterministic else len(runs), "deterministic": deterministic,
+            "tracked_percent": round(run.tracked_percent, 1),
+            "ms_per_frame": round(float(np.median([s.ms_total for s in run.stats])), 1),
+            "ms_detector": round(float(np.median([s.ms_detector for s in run.stats])), 1),
+            "ms_yolo": round(float(np.median([s.ms_yolo for s in run.stats])), 1),
+            "ms_tracker": round(float(np.median([s.ms_tracker for s in run.stats])), 1),
+        })
+    return rows
+
+
+def _nested(dotted: dict[str, object]) -> dict:
+    out: dict = {}
+    for key, value in dotted.items():
+        node = out
+        *parents, leaf = key.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = value
+    return out
+
+
+def static_camera_row(sequence) -> dict:
+    """The sanity baseline: a camera that never moves."""
+    from twohr.evaluation import static_trajectory
+
+    report, _ = evaluate(sequence.ground_truth(sequence.default_gt_extrinsic()), static_trajectory(sequence.stamps),
+                         gt_extrinsic=sequence.default_gt_extrinsic())
+    return {"variant": "static camera (sanity)", "ate_rmse": round(report.ate.rmse, 4),
+            "ate_std": round(report.ate.std, 4), "runs": 1, "deterministic": True, "tracked_percent": 100.0,
+            "ms_per_frame": 0.0}
+
+
+def format_table(rows: list[dict]) -> str:
+    lines = ["| variant | ATE RMSE (m) | S.D. (m) | tracked % | ms/frame | runs |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['variant']} | {r['ate_rmse']:.4f} | {r['ate_std']:.4f} | {r['tracked_percent']:.1f} | "
+                     f"{r['ms_per_frame']:.0f} | {r['runs']}{'' if r['deterministic'] else ' (median)'} |")
+    return "\n".join(lines)
+

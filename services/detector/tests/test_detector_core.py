@@ -1,0 +1,270 @@
+"""The detector core on crafted score sets and on real frames with the real ONNX networks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from twohr.config import DetectorConfig
+from twohr.dataset import RGBDSequence
+from twohr_services.detector.core import (
+    FASTDetector,
+    ORBDetector,
+    R2D2Detector,
+    R2D2Network,
+    SIFTDetector,
+    build_detector,
+    kmeans_1d,
+    local_maxima,
+    network_size,
+    select_keypoints,
+    twohr_filter,
+)
+from twohr_services.detector.evaluation import nearest_neighbours
+
+# ----------------------------------------------------------------------------- K-means and the 2HR filter
+
+
+def test_kmeans_finds_three_separated_clusters():
+    rng = np.random.default_rng(0)
+    truth = np.repeat([0, 1, 2], [50, 80, 30])
+    values = np.array([0.15, 0.55, 0.95])[truth] + rng.normal(0, 0.02, truth.size)
+    order = rng.permutation(truth.size)
+    labels, centres = kmeans_1d(values[order], 3)
+    assert np.allclose(centres, [0.15, 0.55, 0.95], atol=0.01)
+    assert np.array_equal(labels, truth[order])
+
+
+def test_kmeans_is_deterministic_and_order_free():
+    values = np.random.default_rng(1).uniform(0, 1, 3000)
+    labels, centres = kmeans_1d(values, 4)
+    shuffle = np.random.default_rng(2).permutation(values.size)
+    labels_shuffled, centres_shuffled = kmeans_1d(values[shuffle], 4)
+    assert np.array_equal(centres, centres_shuffled)
+    assert np.array_equal(labels[shuffle], labels_shuffled)
+    # uniform data: four equal-width intervals, so the centres sit near 1/8, 3/8, 5/8, 7/8
+    assert np.allclose(centres, [0.125, 0.375, 0.625, 0.875], atol=0.03)
+
+
+def test_kmeans_degenerate_inputs():
+    labels, centres = kmeans_1d(np.array([]), 3)
+    assert labels.size == 0 and centres.size == 0
+    labels, _ = kmeans_1d(np.full(20, 0.8), 3)
+    assert np.all(labels == labels[0])  # one distinct value: one non-empty cluster
+    labels, centres = kmeans_1d(np.array([0.2, 0.9]), 5)  # k larger than the number of points
+    assert labels.tolist() == [0, 1] and np.allclose(centres, [0.2, 0.9])
+
+
+def _crafted_scores():
+    """Reliability in three clusters (0.2, 0.6, 0.97) crossed with repeatability in two (0.3, 0.9)."""
+    rng = np.random.default_rng(3)
+    rel_cluster = np.tile([0, 1, 2], 40)
+    rep_cluster = np.repeat([0, 1], 60)
+    rel = np.array([0.2, 0.6, 0.97])[rel_cluster] + rng.uniform(-0.02, 0.02, 120)
+    rep = np.array([0.3, 0.9])[rep_cluster] + rng.uniform(-0.04, 0.04, 120)
+    return rel, rep, rel_cluster, rep_cluster
+
+
+def test_filter_keeps_the_intersection_of_the_top_clusters():
+    rel, rep, rel_cluster, rep_cluster = _crafted_scores()
+    keep = twohr_filter(rel, rep, 3, 2, score_threshold=0.0)
+    assert np.array_equal(keep, (rel_cluster == 2) & (rep_cluster == 1))
+    assert keep.sum() == 20
+    # a top-reliability point with low repeatability is out, and so is the reverse
+    assert not keep[(rel_cluster == 2) & (rep_cluster == 0)].any()
+    assert not keep[(rel_cluster == 1) & (rep_cluster == 1)].any()
+
+
+def test_filter_threshold_applies_to_the_composite_score():
+    rel, rep, rel_cluster, rep_cluster = _crafted_scores()
+    threshold = 0.87
+    keep = twohr_filter(rel, rep, 3, 2, score_threshold=threshold)
+    expected = (rel_cluster == 2) & (rep_cluster == 1) & (rel * rep > threshold)
+    assert np.array_equal(keep, expected)
+    assert 0 < keep.sum() < 20  # the threshold cuts inside the intersection
+
+
+def test_filter_cluster_counts_change_the_selection():
+    rel, rep, rel_cluster, _ = _crafted_scores()
+    # k=2 on reliability merges the 0.6 and 0.97 clusters... or splits them from 0.2: either way more survive
+    assert twohr_filter(rel, rep, 2, 2, 0.0).sum() > twohr_filter(rel, rep, 3, 2, 0.0).sum()
+    # k=1 means no clustering on that score: only the repeatability cluster and T remain
+    assert np.array_equal(twohr_filter(rel, rep, 1, 1, 0.5), rel * rep > 0.5)
+
+
+def test_filter_validates_and_handles_empty():
+    assert twohr_filter(np.array([]), np.array([])).size == 0
+    with pytest.raises(ValueError, match="differ in length"):
+        twohr_filter(np.ones(3), np.ones(4))
+
+
+def test_select_keypoints_floors_filter_and_top_n():
+    rel, rep, _, _ = _crafted_scores()
+    conf = DetectorConfig(features="r2d2", min_reliability=0.5, min_repeatability=0.5, max_keypoints=16)
+    index = select_keypoints(rel, rep, conf)
+    assert len(index) == 16
+    assert np.all(rel[index] >= 0.5) and np.all(rep[index] >= 0.5)
+    scores = rel[index] * rep[index]
+    assert np.all(np.diff(scores) <= 0)
+    assert scores.min() >= np.sort(rel * rep * (rel >= 0.5) * (rep >= 0.5))[-16]
+    conf_2hr = conf.model_copy(update={"features": "2hr", "max_keypoints": 1000, "score_threshold": 0.0})
+    floors = np.flatnonzero((rel >= 0.5) & (rep >= 0.5))
+    expected = floors[twohr_filter(rel[floors], rep[floors], 3, 2, 0.0)]
+    assert sorted(select_keypoints(rel, rep, conf_2hr).tolist()) == sorted(expected.tolist())
+    assert len(expected) > 0
+
+
+def test_local_maxima_finds_crafted_peaks_away_from_the_border():
+    rep = np.zeros((40, 50), np.float32)
+    rel = np.ones_like(rep)
+    peaks = [(10, 10, 0.9), (10, 12, 0.8), (30, 40, 0.75), (1, 1, 0.99), (20, 25, 0.5)]
+    for y, x, v in peaks:
+        rep[y, x] = v
+    ys, xs = local_maxima(rep, rel, min_repeatability=0.7, min_reliability=0.7, border=3)
+    assert sorted(zip(ys.tolist(), xs.tolist(), strict=True)) == [(10, 10), (10, 12), (30, 40)]
+    rel[30, 40] = 0.5
+    ys, xs = local_maxima(rep, rel, 0.7, 0.7, 3)
+    assert (30, 40) not in list(zip(ys.tolist(), xs.tolist(), strict=True))
+
+
+def test_network_size_is_even():
+    assert network_size(640, 480, 1.0) == (640, 480)
+    assert network_size(640, 480, 0.5) == (320, 240)
+    w, h = network_size(641, 479, 0.37)
+    assert w % 2 == 0 and h % 2 == 0
+
+
+# ----------------------------------------------------------------------------- real networks on real frames
+
+
+@pytest.fixture(scope="module")
+def real_frame(dev_sequence):
+    return RGBDSequence(dev_sequence).read(120).rgb
+
+
+@pytest.fixture(scope="module")
+def default_keypoints(real_frame):
+    return R2D2Detector().detect(real_frame)
+
+
+def test_2hr_on_a_real_frame(real_frame, default_keypoints):
+    kp = default_keypoints
+    conf = DetectorConfig()
+    height, width = real_frame.shape[:2]
+    assert 300 <= len(kp) <= conf.max_keypoints
+    assert kp.descriptors.shape == (len(kp), 128) and kp.descriptors.dtype == np.float32
+    assert np.allclose(np.linalg.norm(kp.descriptors, axis=1), 1, atol=1e-4)
+    assert np.all((kp.xy[:, 0] >= conf.border) & (kp.xy[:, 0] <= width - 1 - conf.border))
+    assert np.all((kp.xy[:, 1] >= conf.border) & (kp.xy[:, 1] <= height - 1 - conf.border))
+    assert np.all(np.diff(kp.scores) <= 0)
+    assert np.all(kp.reliability >= conf.min_reliability) and np.all(kp.repeatability >= conf.min_repeatability)
+    assert np.all(kp.scores > conf.score_threshold)
+    # keypoints spread over the image: every quadrant holds some
+    quadrant = (kp.xy[:, 0] > width / 2).astype(int) * 2 + (kp.xy[:, 1] > height / 2)
+    assert np.bincount(quadrant, minlength=4).min() >= 20
+
+
+def test_2hr_is_a_subset_of_raw_r2d2(real_frame):
+    twohr = R2D2Detector(DetectorConfig(input_scale=0.5))
+    raw = R2D2Detector(DetectorConfig(features="r2d2", input_scale=0.5, max_keypoints=5000))
+    maps = twohr.network(real_frame, (320, 240))
+    kp_2hr = twohr.keypoints_from_maps(maps, (640, 480))
+    kp_raw = raw.keypoints_from_maps(maps, (640, 480))
+    assert len(kp_raw) > len(kp_2hr) > 50
+    distance, nearest = nearest_neighbours(kp_2hr.xy, kp_raw.xy)
+    assert np.all(distance < 1e-3)
+    assert np.allclose(kp_2hr.descriptors, kp_raw.descriptors[nearest])
+
+
+def test_sparse_descriptors_equal_the_exported_graph(real_frame):
+    """The pruned graph + per-keypoint normalisation reproduces the dense exported output (faster2d2: stride 2)."""
+    sparse = R2D2Network("faster2d2_WASF_N16", 2)
+    dense = R2D2Network("faster2d2_WASF_N16", 2, sparse_descriptors=False)
+    assert sparse.feature_stride == 2 and dense.feature_stride == 1
+    maps = sparse(real_frame, (320, 240))
+    ys, xs = local_maxima(maps.repeatability, maps.reliability, 0.5, 0.5, 2)
+    # include the image corners, where the bilinear sampling clamps
+    ys, xs = np.r_[ys, 0, 239, 0, 239], np.r_[xs, 0, 0, 319, 319]
+    got, rel = maps.descriptors_at(ys, xs), maps.reliability.copy()
+    reference = dense(real_frame, (320, 240))
+    cosine = np.sum(got * reference.descriptors_at(ys, xs), axis=1)
+    assert len(ys) > 100
+    assert cosine.min() > 0.9999
+    assert np.array_equal(rel, reference.reliability)
+
+
+@pytest.mark.parametrize("model, stride", [("faster2d2_WASF_N16", 2), ("r2d2_WASF_N16", 1),
+                                           ("r2d2_WASF_N16_int8", 1)])
+def test_every_registered_network_gets_its_dense_normalisation_pruned(model, stride):
+    import onnx
+
+    from twohr.models import model_path
+    from twohr_services.detector.core import _prepare_model
+
+    prepared = _prepare_model(str(model_path(model, kind="r2d2")), True)
+    ops = {node.op_type for node in onnx.load_from_string(prepared.model).graph.node}
+    assert "ReduceL2" not in ops and prepared.feature_stride == stride
+    unchanged = _prepare_model(str(model_path(model, kind="r2d2")), False)
+    assert "ReduceL2" in {node.op_type for node in onnx.load_from_string(unchanged.model).graph.node}
+
+
+def test_int8_keypoints_agree_with_fp32(real_frame):
+    fp32 = R2D2Detector(DetectorConfig(model="r2d2_WASF_N16", input_scale=0.5)).detect(real_frame)
+    int8 = R2D2Detector(DetectorConfig(model="r2d2_WASF_N16_int8", input_scale=0.5)).detect(real_frame)
+    assert len(fp32) > 100 and 0.7 < len(int8) / len(fp32) < 1.3
+    distance, nearest = nearest_neighbours(int8.xy, fp32.xy)
+    close = distance <= 2.0  # one network pixel at half resolution
+    assert close.mean() > 0.8
+    cosine = np.sum(int8.descriptors[close] * fp32.descriptors[nearest[close]], axis=1)
+    assert np.median(cosine) > 0.95
+
+
+def test_half_scale_keypoints_are_in_original_pixels(real_frame, default_keypoints):
+    half = R2D2Detector(DetectorConfig(input_scale=0.5)).detect(real_frame)
+    assert 100 <= len(half) < len(default_keypoints)
+    assert half.xy[:, 0].max() > 480 and half.xy[:, 1].max() > 360  # not stuck in the 320x240 network frame
+    distance, _ = nearest_neighbours(half.xy, default_keypoints.xy)
+    assert np.median(distance) < 3.0
+
+
+@pytest.mark.parametrize("detector_class, dim, dtype", [(ORBDetector, 32, np.uint8), (FASTDetector, 32, np.uint8),
+                                                        (SIFTDetector, 128, np.float32)])
+def test_classical_baselines(real_frame, detector_class, dim, dtype):
+    kp = detector_class(DetectorConfig(max_keypoints=800)).detect(real_frame)
+    assert 100 <= len(kp) <= 800 + 20  # SIFT may return a few extra points at tied responses
+    assert kp.descriptors.shape == (len(kp), dim) and kp.descriptors.dtype == dtype
+    assert kp.binary == (dtype == np.uint8)
+
+
+def test_build_detector_follows_the_config():
+    assert isinstance(build_detector(DetectorConfig(features="orb")), ORBDetector)
+    assert isinstance(build_detector(DetectorConfig(features="fast")), FASTDetector)
+    assert isinstance(build_detector(DetectorConfig(features="sift")), SIFTDetector)
+    assert isinstance(build_detector(DetectorConfig(features="r2d2")), R2D2Detector)
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+@pytest.mark.parametrize("bad, message", [
+    (np.zeros((48, 64, 3), np.float32), "uint8"),
+    (np.zeros((48, 64), np.uint8), "shape"),
+    (np.zeros((48, 64, 4), np.uint8), "shape"),
+    (np.zeros((8, 8, 3), np.uint8), "too small"),
+    ([[1, 2, 3]], "numpy"),
+])
+@pytest.mark.parametrize("features", ["2hr", "orb", "sift"])
+def test_bad_images_raise_a_clear_value_error(bad, message, features):
+    detector = build_detector(DetectorConfig(features=features, input_scale=0.25))
+    with pytest.raises(ValueError, match=message):
+        detector.detect(bad)
+
+
+def test_bad_configuration_is_rejected():
+    with pytest.raises(ValidationError):
+        DetectorConfig(features="superpoint")
+    with pytest.raises(ValidationError):
+        DetectorConfig(input_scale=0)
+    with pytest.raises(ValueError, match="2hr or r2d2"):
+        R2D2Detector(DetectorConfig(features="orb"))

@@ -1,0 +1,418 @@
+"""Geometry and least squares of the tracker: projection, depth sampling, RANSAC PnP, pose refinement
+and local bundle adjustment. Pure functions on numpy arrays.
+
+Conventions: ``T_cw`` maps world points into the camera (x right, y down, z forward); ``T_wc`` is its
+inverse, the camera-to-world pose that the tracker reports. Every residual is expressed in units of
+one pixel of reprojection noise, so a single robust (Huber) scale applies to all of them:
+
+* reprojection ``(u - u_meas, v - v_meas)`` in pixels;
+* depth ``(1/z - 1/z_meas) / depth_noise`` where the sensor's depth noise grows as
+  ``depth_noise * z**2`` (structured light and ToF sensors behave so): an inverse-depth error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+# ----------------------------------------------------------------------------- SE(3) helpers
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices (..., 3, 3) of vectors (..., 3)."""
+    v = np.asarray(v, dtype=np.float64)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def so3_exp_batch(omega: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) from axis-angle vectors (..., 3) (Rodrigues, stable near zero)."""
+    omega = np.asarray(omega, dtype=np.float64)
+    theta = np.linalg.norm(omega, axis=-1)[..., None, None]
+    k = skew(omega)
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5, (1 - np.cos(safe)) / safe**2)
+    return np.eye(3) + a * k + b * (k @ k)
+
+
+def so3_log(r: np.ndarray) -> np.ndarray:
+    """Axis-angle vector of a rotation matrix (inverse of Rodrigues)."""
+    rvec, _ = cv2.Rodrigues(np.asarray(r, dtype=np.float64))
+    return rvec.reshape(3)
+
+
+def pose_from_vectors(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """A 4x4 transform from an OpenCV rotation vector and translation."""
+    pose = np.eye(4)
+    pose[:3, :3] = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))[0]
+    pose[:3, 3] = np.asarray(tvec, dtype=np.float64).reshape(3)
+    return pose
+
+
+def invert(pose: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform."""
+    inv = np.eye(4)
+    inv[:3, :3] = pose[:3, :3].T
+    inv[:3, 3] = -pose[:3, :3].T @ pose[:3, 3]
+    return inv
+
+
+def invert_poses(poses: np.ndarray) -> np.ndarray:
+    """Inverses of rigid 4x4 transforms (N, 4, 4)."""
+    rt = np.swapaxes(poses[:, :3, :3], 1, 2)
+    out = np.tile(np.eye(4), (len(poses), 1, 1))
+    out[:, :3, :3] = rt
+    out[:, :3, 3] = -(rt @ poses[:, :3, 3, None])[:, :, 0]
+    return out
+
+
+def pose_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """Translation (m) and rotation (deg) between two camera-to-world poses."""
+    rel = invert(a) @ b
+    cos = np.clip((np.trace(rel[:3, :3]) - 1) / 2, -1.0, 1.0)
+    return float(np.linalg.norm(rel[:3, 3])), float(np.degrees(np.arccos(cos)))
+
+
+def scale_motion(rel: np.ndarray, factor: float) -> np.ndarray:
+    """A relative motion scaled by ``factor`` (rotation angle and translation), for motion extrapolation."""
+    out = np.eye(4)
+    out[:3, :3] = so3_exp_batch(so3_log(rel[:3, :3]) * factor)
+    out[:3, 3] = rel[:3, 3] * factor
+    return out
+
+
+def apply_update(T_cw: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """Left update on the camera side: X_c = exp(omega) (R X + t) + upsilon, delta = (omega, upsilon)."""
+    out = np.eye(4)
+    rot = so3_exp_batch(delta[:3])
+    out[:3, :3] = rot @ T_cw[:3, :3]
+    out[:3, 3] = rot @ T_cw[:3, 3] + delta[3:6]
+    return out
+
+
+# ----------------------------------------------------------------------------- camera
+
+
+def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Points (N, 3) mapped by a 4x4 rigid transform."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def project(K: np.ndarray, points_cam: np.ndarray) -> np.ndarray:
+    """Pixel coordinates (N, 2) of camera-frame points (N, 3); points behind the camera give inf/nan."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_z = 1.0 / points_cam[:, 2]
+    return np.stack([K[0, 0] * points_cam[:, 0] * inv_z + K[0, 2], K[1, 1] * points_cam[:, 1] * inv_z + K[1, 2]], 1)
+
+
+def backproject(K: np.ndarray, xy: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Camera-frame points (N, 3) of pixels (N, 2) at depths (N,)."""
+    x = (xy[:, 0] - K[0, 2]) / K[0, 0] * z
+    y = (xy[:, 1] - K[1, 2]) / K[1, 1] * z
+    return np.stack([x, y, z], 1)
+
+
+def sample_depth(depth: np.ndarray, xy: np.ndarray, min_depth: float, max_depth: float,
+                 edge_ratio: float) -> np.ndarray:
+    """Depth (N,) at the nearest pixel of each keypoint, 0 where there is no trustworthy reading.
+
+    A reading is rejected outside [min_depth, max_depth] and on depth edges: where the valid readings
+    of the 3x3 neighbourhood spread by more than ``edge_ratio * z`` (colour and depth disagree there,
+    and a point on an object boundary jumps between foreground and background).
+    """
+    if len(xy) == 0:
+        return np.zeros(0)
+    height, width = depth.shape
+    u = np.clip(np.rint(xy[:, 0]).astype(np.int64), 0, width - 1)
+    v = np.clip(np.rint(xy[:, 1]).astype(np.int64), 0, height - 1)
+    offsets = np.array([-1, 0, 1])
+    rows = np.clip(v[:, None, None] + offsets[None, :, None], 0, height - 1)
+    cols = np.clip(u[:, None, None] + offsets[None, None, :], 0, width - 1)
+    patch = depth[rows, cols].reshape(len(xy), 9).astype(np.float64)
+    z = patch[:, 4]
+    valid = (z >= min_depth) & (z <= max_depth) & np.isfinite(z)
+    has = patch > 0
+    hi = np.where(has, patch, -np.inf).max(1)
+    lo = np.where(has, patch, np.inf).min(1)
+    valid &= (hi - lo) <= edge_ratio * z
+    return np.where(valid, z, 0.0)
+
+
+# ----------------------------------------------------------------------------- residuals
+
+
+def observation_residuals(K: np.ndarray, points_cam: np.ndarray, xy: np.ndarray, z_meas: np.ndarray,
+                          depth_noise: float) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (N, 3) of observations (u, v, inverse depth; the last is 0 without a depth reading) and
+    their Jacobians (N, 3, 3) with respect to the camera-frame point."""
+    x, y, z = points_cam[:, 0], points_cam[:, 1], points_cam[:, 2]
+    z = np.where(np.abs(z) < 1e-9, 1e-9, z)
+    fx, fy = K[0, 0], K[1, 1]
+    inv_z = 1.0 / z
+    res = np.empty((len(points_cam), 3))
+    res[:, 0] = fx * x * inv_z + K[0, 2] - xy[:, 0]
+    res[:, 1] = fy * y * inv_z + K[1, 2] - xy[:, 1]
+    has_depth = z_meas > 0
+    with np.errstate(divide="ignore"):
+        res[:, 2] = np.where(has_depth, (inv_z - 1.0 / np.where(has_depth, z_meas, 1.0)) / depth_noise, 0.0)
+    jac = np.zeros((len(points_cam), 3, 3))
+    jac[:, 0, 0] = fx * inv_z
+    jac[:, 0, 2] = -fx * x * inv_z**2
+    jac[:, 1, 1] = fy * inv_z
+    jac[:, 1, 2] = -fy * y * inv_z**2
+    jac[:, 2, 2] = np.where(has_depth, -(inv_z**2) / depth_noise, 0.0)
+    return res, jac
+
+
+def pose_jacobian(K: np.ndarray, points_cam: np.ndarray, has_depth: np.ndarray, depth_noise: float) -> np.ndarray:
+    """Jacobians (N, 3, 6) of the residuals of :func:`observation_residuals` with respect to a left pose update
+    ``delta = (omega, upsilon)`` (X_c -> exp(omega) X_c + upsilon), written out element by element."""
+    x, y, z = points_cam[:, 0], points_cam[:, 1], points_cam[:, 2]
+    z = np.where(np.abs(z) < 1e-9, 1e-9, z)
+    fx, fy = K[0, 0], K[1, 1]
+    xz, yz, inv_z = x / z, y / z, 1.0 / z
+    jac = np.zeros((len(points_cam), 3, 6))
+    jac[:, 0, 0] = -fx * xz * yz
+    jac[:, 0, 1] = fx * (1 + xz * xz)
+    jac[:, 0, 2] = -fx * yz
+    jac[:, 0, 3] = fx * inv_z
+    jac[:, 0, 5] = -fx * xz * inv_z
+    jac[:, 1, 0] = -fy * (1 + yz * yz)
+    jac[:, 1, 1] = fy * xz * yz
+    jac[:, 1, 2] = fy * xz
+    jac[:, 1, 4] = fy * inv_z
+    jac[:, 1, 5] = -fy * yz * inv_z
+    depth_term = np.where(has_depth, -(inv_z**2) / depth_noise, 0.0)
+    jac[:, 2, 0] = depth_term * y
+    jac[:, 2, 1] = -depth_term * x
+    jac[:, 2, 5] = depth_term
+    return jac
+
+
+def observation_errors(K: np.ndarray, T_cw: np.ndarray, points_w: np.ndarray, xy: np.ndarray,
+                       z_meas: np.ndarray, depth_noise: float) -> tuple[np.ndarray, np.ndarray]:
+    """Reprojection error (px) and absolute depth residual (pixel-noise units) of each observation."""
+    res, _ = observation_residuals(K, transform(T_cw, points_w), xy, z_meas, depth_noise)
+    behind = transform(T_cw, points_w)[:, 2] <= 0
+    reproj = np.where(behind, np.inf, np.hypot(res[:, 0], res[:, 1]))
+    return reproj, np.abs(res[:, 2])
+
+
+# ----------------------------------------------------------------------------- PnP and pose refinement
+
+
+def pnp_ransac(K: np.ndarray, points_w: np.ndarray, xy: np.ndarray, threshold_px: float, iterations: int,
+               confidence: float = 0.999) -> tuple[np.ndarray | None, np.ndarray]:
+    """RANSAC PnP (AP3P minimal solver): ``(T_cw or None, inlier mask)``. Deterministic for given inputs."""
+    inlier_mask = np.zeros(len(points_w), bool)
+    if len(points_w) < 4:
+        return None, inlier_mask
+    try:
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+            np.ascontiguousarray(points_w, np.float64), np.ascontiguousarray(xy, np.float64), K, None,
+            iterationsCount=iterations, reprojectionError=threshold_px, confidence=confidence,
+            flags=cv2.SOLVEPNP_AP3P)
+    except cv2.error:
+        return None, inlier_mask
+    if not ok or inliers is None or len(inliers) < 4:
+        return None, inlier_mask
+    inlier_mask[inliers.reshape(-1)] = True
+    return pose_from_vectors(rvec, tvec), inlier_mask
+
+
+@dataclass
+class MotionPrior:
+    """A Gaussian prior on the pose: the motion model's prediction with per-frame standard deviations."""
+
+    T_cw: np.ndarray
+    sigma_translation: float
+    sigma_rotation_rad: float
+
+
+def refine_pose(K: np.ndarray, T_cw: np.ndarray, points_w: np.ndarray, xy: np.ndarray, z_meas: np.ndarray,
+                depth_noise: float, huber: float, iterations: int = 8,
+                prior: MotionPrior | None = None) -> np.ndarray:
+    """Pose-only Gauss-Newton with Huber weights (IRLS) on reprojection + inverse-depth residuals.
+
+    The optional motion prior adds six residuals (rotation and translation away from the prediction,
+    divided by their sigmas), so a frame with few observations leans on the motion model.
+    """
+    T = T_cw.copy()
+    if len(points_w) == 0 and prior is None:
+        return T
+    for _ in range(iterations):
+        pc = transform(T, points_w)
+        res, _ = observation_residuals(K, pc, xy, z_meas, depth_noise)
+        jac = pose_jacobian(K, pc, z_meas > 0, depth_noise).reshape(-1, 6)
+        r = res.reshape(-1)
+        if prior is not None:
+            err = T @ invert(prior.T_cw)
+            r_prior = np.concatenate([so3_log(err[:3, :3]) / prior.sigma_rotation_rad,
+                                      err[:3, 3] / prior.sigma_translation])
+            j_prior = np.zeros((6, 6))
+            j_prior[:3, :3] = np.eye(3) / prior.sigma_rotation_rad
+            j_prior[3:, :3] = -skew(err[:3, 3]) / prior.sigma_translation
+            j_prior[3:, 3:] = np.eye(3) / prior.sigma_translation
+            r = np.concatenate([r, r_prior])
+            jac = np.concatenate([jac, j_prior])
+        abs_r = np.abs(r)
+        weights = np.where(abs_r <= huber, 1.0, huber / np.maximum(abs_r, 1e-12))
+        hessian = jac.T @ (jac * weights[:, None])
+        gradient = jac.T @ (weights * r)
+        try:
+            delta = -np.linalg.solve(hessian + 1e-9 * np.eye(6), gradient)
+        except np.linalg.LinAlgError:
+            break
+        T = apply_update(T, delta)
+        if np.abs(delta).max() < 1e-6:  # micro-radians and micrometres
+            break
+    return T
+
+
+# ----------------------------------------------------------------------------- bundle adjustment
+
+
+@dataclass
+class BundleAdjustmentResult:
+    """Refined poses and points, and the RMS reprojection error (px) of the inlier observations before/after."""
+
+    poses_cw: np.ndarray
+    points_w: np.ndarray
+    initial_rms_px: float
+    final_rms_px: float
+    outliers: np.ndarray
+    iterations: int
+
+
+def _huber_weights(res: np.ndarray, huber: float) -> np.ndarray:
+    abs_r = np.abs(res)
+    return np.where(abs_r <= huber, 1.0, huber / np.maximum(abs_r, 1e-12))
+
+
+def _huber_cost(res: np.ndarray, huber: float) -> float:
+    abs_r = np.abs(res)
+    return float(np.where(abs_r <= huber, 0.5 * abs_r**2, huber * (abs_r - 0.5 * huber)).sum())
+
+
+def _sum_by(index: np.ndarray, values: np.ndarray, count: int) -> np.ndarray:
+    """Sum rows of ``values`` (N, ...) into ``count`` bins given by ``index`` (N,)."""
+    out = np.zeros((count,) + values.shape[1:])
+    np.add.at(out, index, values)
+    return out
+
+
+def _same_point_pairs(obs_point: np.ndarray, members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """All ordered pairs (a, b) of observations in ``members`` that see the same point (a == b included)."""
+    members = members[np.argsort(obs_point[members], kind="stable")]
+    points, starts, counts = np.unique(obs_point[members], return_index=True, return_counts=True)
+    group = np.repeat(np.arange(len(points)), counts)
+    reps = counts[group]
+    first = np.repeat(np.arange(len(members)), reps)
+    offset = np.arange(reps.sum()) - np.repeat(np.cumsum(reps) - reps, reps)
+    second = np.repeat(starts[group], reps) + offset
+    return members[first], members[second]
+
+
+def bundle_adjust(K: np.ndarray, poses_cw: np.ndarray, points_w: np.ndarray, obs_pose: np.ndarray,
+                  obs_point: np.ndarray, obs_xy: np.ndarray, obs_depth: np.ndarray, fixed: np.ndarray,
+                  depth_noise: float, huber: float, max_iterations: int = 10,
+                  outlier_threshold: float = 4.0) -> BundleAdjustmentResult:
+    """Local bundle adjustment: Levenberg-Marquardt with Huber weights (IRLS) and the Schur complement.
+
+    ``poses_cw`` (P, 4, 4) world-to-camera; ``points_w`` (M, 3); observation ``o`` sees point
+    ``obs_point[o]`` from pose ``obs_pose[o]`` at pixel ``obs_xy[o]`` with depth ``obs_depth[o]`` (0 = none).
+    Poses with ``fixed`` set stay put (they fix the gauge). Each observation touches one pose and one
+    point, so the pose block and the point block of the normal equations are block-diagonal: the
+    points are eliminated per 3x3 block and only a small dense (6 x free poses) system is solved.
+    ``outliers`` flags observations whose reprojection or depth residual exceeds ``outlier_threshold``
+    after the adjustment.
+    """
+    poses = np.asarray(poses_cw, dtype=np.float64).copy()
+    points = np.asarray(points_w, dtype=np.float64).copy()
+    obs_pose = np.asarray(obs_pose, np.int64)
+    obs_point = np.asarray(obs_point, np.int64)
+    n_points = len(points)
+    free = ~np.asarray(fixed, bool)
+    slot = np.full(len(poses), -1)
+    slot[free] = np.arange(free.sum())
+    n_free = int(free.sum())
+    obs_slot = slot[obs_pose]
+    free_obs = np.flatnonzero(obs_slot >= 0)
+    pair_a, pair_b = _same_point_pairs(obs_point, free_obs)
+
+    def evaluate(poses: np.ndarray, points: np.ndarray):
+        rot = poses[obs_pose, :3, :3]
+        pc = (rot @ points[obs_point][:, :, None])[:, :, 0] + poses[obs_pose, :3, 3]
+        res, jac_pc = observation_residuals(K, pc, obs_xy, obs_depth, depth_noise)
+        return pc, rot, res, jac_pc
+
+    def reprojection_rms(res: np.ndarray, mask: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(np.sum(res[mask, :2] ** 2, 1)))) if mask.any() else 0.0
+
+    pc, rot, res, jac_pc = evaluate(poses, points)
+    inliers0 = (np.hypot(res[:, 0], res[:, 1]) < outlier_threshold) & (np.abs(res[:, 2]) < outlier_threshold)
+    initial_rms = reprojection_rms(res, inliers0)
+    cost = _huber_cost(res, huber)
+    damping = 1e-4
+    iterations = 0
+    for _ in range(max_iterations):
+        iterations += 1
+        weights = _huber_weights(res, huber)
+        jac_pose = pose_jacobian(K, pc, obs_depth > 0, depth_noise)
+        jac_point = jac_pc @ rot
+        w_jac_pose = jac_pose * weights[:, :, None]
+        w_jac_point = jac_point * weights[:, :, None]
+        w_jac_pose_t = np.swapaxes(w_jac_pose, 1, 2)
+        h_pose = _sum_by(obs_slot[free_obs], w_jac_pose_t[free_obs] @ jac_pose[free_obs], n_free)
+        g_pose = _sum_by(obs_slot[free_obs], (w_jac_pose_t[free_obs] @ res[free_obs, :, None])[:, :, 0], n_free)
+        w_jac_point_t = np.swapaxes(w_jac_point, 1, 2)
+        h_point = _sum_by(obs_point, w_jac_point_t @ jac_point, n_points)
+        g_point = _sum_by(obs_point, (w_jac_point_t @ res[:, :, None])[:, :, 0], n_points)
+        h_cross = w_jac_pose_t @ jac_point  # (O, 6, 3), used for free observations
+        improved = False
+        for _attempt in range(6):
+            hp = h_pose + damping * np.einsum("pii->pi", h_pose)[:, :, None] * np.eye(6) + 1e-9 * np.eye(6)
+            hl = h_point + damping * np.einsum("mii->mi", h_point)[:, :, None] * np.eye(3) + 1e-9 * np.eye(3)
+            hl_inv = np.linalg.inv(hl)
+            schur = np.zeros((n_free, n_free, 6, 6))
+            for k in range(n_free):
+                schur[k, k] = hp[k]
+            reduced = h_cross[pair_a] @ hl_inv[obs_point[pair_a]] @ np.swapaxes(h_cross[pair_b], 1, 2)
+            np.add.at(schur, (obs_slot[pair_a], obs_slot[pair_b]), -reduced)
+            rhs = -g_pose + _sum_by(obs_slot[free_obs], (h_cross[free_obs] @ hl_inv[obs_point[free_obs]] @ g_point[
+                obs_point[free_obs], :, None])[:, :, 0], n_free)
+            system = schur.transpose(0, 2, 1, 3).reshape(6 * n_free, 6 * n_free)
+            try:
+                step_pose = np.linalg.solve(system, rhs.reshape(-1)).reshape(n_free, 6) if n_free else np.zeros(
+                    (0, 6))
+            except np.linalg.LinAlgError:
+                damping *= 10
+                continue
+            coupling = _sum_by(obs_point[free_obs], (np.swapaxes(h_cross[free_obs], 1, 2) @ step_pose[
+                obs_slot[free_obs], :, None])[:, :, 0], n_points)
+            step_point = (hl_inv @ (-g_point - coupling)[:, :, None])[:, :, 0]
+            trial_poses = poses.copy()
+            for p in np.flatnonzero(free):
+                trial_poses[p] = apply_update(poses[p], step_pose[slot[p]])
+            trial_points = points + step_point
+            t_pc, t_rot, t_res, t_jac = evaluate(trial_poses, trial_points)
+            trial_cost = _huber_cost(t_res, huber)
+            if trial_cost < cost:
+                converged = cost - trial_cost < 1e-6 * cost
+                poses, points, pc, rot, res, jac_pc, cost = trial_poses, trial_points, t_pc, t_rot, t_res, t_jac, \
+                    trial_cost
+                damping = max(damping / 3, 1e-7)
+                improved = True
+                break
+            damping *= 5
+        if not improved or converged:
+            break
+    outliers = (np.hypot(res[:, 0], res[:, 1]) > outlier_threshold) | (np.abs(res[:, 2]) > outlier_threshold)
+    return BundleAdjustmentResult(poses, points, initial_rms, reprojection_rms(res, inliers0), outliers, iterations)

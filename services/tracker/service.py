@@ -1,0 +1,165 @@
+"""The tracker service: joins ``frames`` (depth), ``keypoints`` and ``dynamics`` of each frame, asks the
+matcher service for correspondences, and publishes the pose on ``twohr/<robot>/pose``."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import zenoh
+
+from twohr import keys
+from twohr.features import Keypoints, Matches, drop_masked
+from twohr.geometry import rot_to_quat
+from twohr.messages import (
+    ControlMsg,
+    DynamicsMsg,
+    FrameMsg,
+    KeypointsMsg,
+    MatchesMsg,
+    MatchRequestMsg,
+    MessageError,
+    PoseMsg,
+    decode,
+    encode,
+)
+from twohr.service import Service, serve
+
+from .core import Tracker
+
+
+class RemoteMatcher:
+    """A match function that asks the matcher service over Zenoh (query/reply)."""
+
+    def __init__(self, session: zenoh.Session, robot_id: str, session_id: str, timeout: float = 10.0) -> None:
+        self.session = session
+        self.key = keys.key(robot_id, keys.MATCH_QUERY)
+        self.robot_id, self.session_id = robot_id, session_id
+        self.timeout = timeout
+        self.frame_index, self.stamp = -1, 0.0
+
+    def __call__(self, desc_a: np.ndarray, desc_b: np.ndarray) -> Matches:
+        request = MatchRequestMsg(session_id=self.session_id, robot_id=self.robot_id, frame_index=self.frame_index,
+                                  stamp=self.stamp, reference="local map")
+        payload = encode(request, {"desc_a": desc_a, "desc_b": desc_b})
+        for reply in self.session.get(self.key, payload=payload, timeout=self.timeout):
+            if reply.ok is not None:
+                _, arrays = decode(reply.ok.payload.to_bytes(), MatchesMsg)
+                return Matches(arrays["idx_a"], arrays["idx_b"], arrays["scores"])
+            raise MessageError(f"matcher service error: {reply.err.payload.to_bytes().decode(errors='replace')}")
+        raise TimeoutError(f"no matcher service answered on {self.key} within {self.timeout} s")
+
+
+@dataclass
+class PendingFrame:
+    stamp: float = 0.0
+    depth: np.ndarray | None = None
+    sent_at: float = 0.0
+    keypoints: Keypoints | None = None
+    mask: np.ndarray | None = None
+    have_dynamics: bool = False
+    elapsed: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class SessionTrack:
+    tracker: Tracker
+    matcher: RemoteMatcher
+    needs_dynamics: bool
+    pending: dict[int, PendingFrame] = field(default_factory=dict)
+    last_index: int = -1
+
+
+class TrackerService(Service):
+    """One tracker per session; a frame is tracked once its depth, keypoints and (if enabled) mask arrived."""
+
+    name = "tracker"
+    follows_sessions = True
+
+    def __init__(self, bus=None) -> None:
+        super().__init__(bus, queue_size=64, policy="backpressure")
+        self.tracks: dict[str, SessionTrack] = {}
+
+    def subscriptions(self) -> list[str]:
+        return [keys.all_robots(s) for s in ("frames", "keypoints", "dynamics")]
+
+    def on_session_stop(self, session_id: str) -> None:
+        self.tracks.pop(session_id, None)
+
+    def _track_for(self, session_id: str, robot_id: str, frame: FrameMsg | None) -> SessionTrack | None:
+        if session_id not in self.tracks:
+            if frame is None:
+                return None  # the camera intrinsics come with the first frame
+            config = self.config_for(session_id)
+            matcher = RemoteMatcher(self.session, robot_id, session_id)
+            self.tracks[session_id] = SessionTrack(Tracker(frame.camera, config.tracker, match=matcher), matcher,
+                                                   config.yolo.enabled)
+        return self.tracks[session_id]
+
+    def handle(self, key: str, payload: bytes) -> None:
+        _, stream = keys.parse(key)
+        if stream == "frames":
+            frame, arrays = decode(payload, FrameMsg, only=("depth",))
+            track = self._track_for(frame.session_id, frame.robot_id, frame)
+            entry = track.pending.setdefault(frame.frame_index, PendingFrame())
+            entry.stamp, entry.sent_at = frame.stamp, frame.sent_at
+            entry.depth = arrays["depth"].astype(np.float32) / np.float32(frame.camera.depth_factor)
+            message = frame
+        elif stream == "keypoints":
+            message, arrays = decode(payload, KeypointsMsg)
+            track = self._track_for(message.session_id, message.robot_id, None)
+            if track is None:
+                return
+            entry = track.pending.setdefault(message.frame_index, PendingFrame())
+            entry.keypoints = Keypoints(arrays["xy"], arrays["descriptors"], arrays["scores"],
+                                        arrays.get("reliability"), arrays.get("repeatability"))
+            entry.elapsed["detector"] = message.elapsed_ms
+        elif stream == "dynamics":
+            message, arrays = decode(payload, DynamicsMsg, only=("mask",))
+            track = self._track_for(message.session_id, message.robot_id, None)
+            if track is None:
+                return
+            entry = track.pending.setdefault(message.frame_index, PendingFrame())
+            entry.mask, entry.have_dynamics = arrays["mask"].astype(bool), True
+            entry.elapsed["yolo"] = message.elapsed_ms
+        else:
+            return
+        self._track_ready(track, message)
+
+    def _track_ready(self, track: SessionTrack, message) -> None:
+        for index in sorted(track.pending):
+            entry = track.pending[index]
+            if index <= track.last_index:
+                del track.pending[index]  # late part of a frame already passed over
+                continue
+            complete = entry.depth is not None and entry.keypoints is not None and (
+                entry.have_dynamics or not track.needs_dynamics)
+            if not complete:
+                continue
+            for older in [i for i in track.pending if i < index]:
+                del track.pending[older]  # never completed (a stage dropped it): skip it
+            del track.pending[index]
+            track.last_index = index
+            self._track_frame(track, message.session_id, message.robot_id, index, entry)
+
+    def _track_frame(self, track: SessionTrack, session_id: str, robot_id: str, index: int,
+                     entry: PendingFrame) -> None:
+        kept = entry.keypoints if entry.mask is None else drop_masked(entry.keypoints, entry.mask)
+        track.matcher.frame_index, track.matcher.stamp = index, entry.stamp
+        t0 = time.perf_counter()
+        result = track.tracker.track(entry.stamp, kept, entry.depth)
+        elapsed = {**entry.elapsed, "tracker": (time.perf_counter() - t0) * 1000}
+        pose = PoseMsg(session_id=session_id, robot_id=robot_id, frame_index=index, stamp=entry.stamp,
+                       position=result.pose[:3, 3].tolist(), orientation=rot_to_quat(result.pose[:3, :3]).tolist(),
+                       status=result.status, num_keypoints=len(kept), num_matches=result.num_matches,
+                       num_inliers=result.num_inliers, is_keyframe=result.is_keyframe, frame_sent_at=entry.sent_at,
+                       elapsed_ms=elapsed)
+        self.publish(keys.key(robot_id, "pose"), encode(pose))
+
+    def on_session_start(self, control: ControlMsg) -> None:
+        self.tracks.pop(control.session_id, None)
+
+
+def main(argv: list[str] | None = None) -> None:
+    serve(TrackerService, argv)

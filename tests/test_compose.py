@@ -1,0 +1,66 @@
+"""Static checks of docker-compose.yml and the Dockerfiles: every command, module and path they name exists."""
+
+import importlib.util
+import re
+from pathlib import Path
+
+import yaml
+
+from conftest import REPO
+from twohr_services.cli import build_parser
+from twohr_services.launcher_cli import PIPELINE_SERVICES
+
+COMPOSE = yaml.safe_load((REPO / "docker-compose.yml").read_text())
+
+
+def _check_command(command: list[str]) -> None:
+    if command[:2] == ["python", "-m"]:
+        spec = importlib.util.find_spec(command[2])
+        assert spec is not None and spec.submodule_search_locations, command
+        assert (Path(spec.submodule_search_locations[0]) / "__main__.py").is_file(), command
+    elif command[:2] == ["python", "-c"]:
+        compile(command[2], "healthcheck", "exec")
+    elif command[0] == "twohr":
+        build_parser().parse_args(command[1:])  # exits (fails the test) on an unknown subcommand or flag
+    else:
+        raise AssertionError(f"unexpected command {command}")
+
+
+def test_compose_mirrors_the_topology():
+    services = COMPOSE["services"]
+    assert set(services) == {"router", *PIPELINE_SERVICES, "gateway"}
+    for name, svc in services.items():
+        _check_command(svc["command"])
+        assert svc["healthcheck"]["test"][0] == "CMD"
+        _check_command(svc["healthcheck"]["test"][1:])
+        if name != "router":
+            assert svc["environment"]["TWOHR_ZENOH_ROUTER"] == "tcp/router:7447"
+    assert services["router"]["build"]["context"] == "."
+    assert (REPO / "Dockerfile").is_file()
+
+
+def test_volumes_match_service_flags():
+    services = COMPOSE["services"]
+    mounts = {name: {re.sub(r"\$\{[^}]*\}", "HOST", v).split(":")[1] for v in svc.get("volumes", [])}
+              for name, svc in services.items()}
+    assert "/data" in mounts["source"] and "/data" in mounts["gateway"]
+    assert "/recordings" in mounts["recorder"] and "/recordings" in mounts["gateway"]
+    assert "/models" in mounts["detector"] and "/models" in mounts["yolo"] and "/models" in mounts["matcher"]
+    assert services["source"]["command"][-2:] == ["--data-root", "/data"]
+    assert services["recorder"]["command"][-2:] == ["--recordings", "/recordings"]
+
+
+def test_each_service_has_a_dockerfile_with_a_real_command():
+    for name in [*PIPELINE_SERVICES, "gateway"]:
+        dockerfile = REPO / "services" / name / "Dockerfile"
+        text = dockerfile.read_text()
+        cmd = yaml.safe_load(re.search(r"^CMD (\[.*\])$", text, re.M).group(1))
+        _check_command(cmd)
+        assert f"twohr_services.{name}" in cmd
+
+
+def test_project_dockerfile_copies_what_exists():
+    text = (REPO / "Dockerfile").read_text()
+    for src in re.findall(r"^COPY (\S+)", text, re.M):
+        assert Path(REPO / src).exists(), src
+    assert "USER twohr" in text

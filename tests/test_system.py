@@ -1,0 +1,175 @@
+"""The whole system as real processes on a real Zenoh router: gateway -> source -> cores -> tracker -> recorder.
+
+One module-scoped stack serves every test here (start-up loads every model once per service).
+"""
+
+import re
+import threading
+import time
+
+import httpx
+import numpy as np
+import pytest
+
+from conftest import free_port
+from twohr import keys
+from twohr.bus import BusConfig, open_session
+from twohr.config import load_config
+from twohr.dataset import RGBDSequence
+from twohr.messages import PoseMsg, decode
+from twohr.trajectory import read_tum
+from twohr_services.launcher_cli import start_system
+from twohr_services.pipeline import run_sequence
+from twohr_services.recorder.core import topic_counts
+
+FRAMES = 60
+# half-resolution R2D2 keeps this test quick; the same overrides go to `twohr run` below
+OVERRIDES = {"detector.input_scale": 0.5}
+
+
+@pytest.fixture(scope="module")
+def system(tmp_path_factory, dev_sequence):
+    recordings = tmp_path_factory.mktemp("recordings")
+    router = f"tcp/127.0.0.1:{free_port()}"
+    port = free_port()
+    router_session, group = start_system(router, [str(dev_sequence.parent)], str(recordings), "127.0.0.1", port,
+                                         timeout=180)
+    yield {"router": router, "url": f"http://127.0.0.1:{port}", "recordings": recordings}
+    group.stop()
+    router_session.close()
+
+
+class PoseListener:
+    """An independent Zenoh client subscribed to every robot's poses."""
+
+    def __init__(self, router: str) -> None:
+        self.session = open_session(BusConfig(connect=[router]))
+        self.poses: list[tuple[str, PoseMsg]] = []
+        self.lock = threading.Lock()
+        self.sub = self.session.declare_subscriber(keys.all_robots("pose"), self._on)
+
+    def _on(self, sample) -> None:
+        pose, _ = decode(sample.payload.to_bytes(), PoseMsg)
+        with self.lock:
+            self.poses.append((str(sample.key_expr), pose))
+
+    def close(self) -> None:
+        self.sub.undeclare()
+        self.session.close()
+
+
+def wait_finished(client: httpx.Client, session_id: str, timeout: float = 600) -> dict:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        info = client.get(f"/sessions/{session_id}").json()
+        if info["state"] in ("finished", "stopped", "error"):
+            return info
+        time.sleep(0.5)
+    raise AssertionError(f"session {session_id} did not finish: {info}")
+
+
+def test_post_session_streams_every_pose_and_matches_twohr_run(system, dev_sequence, tmp_path):
+    listener = PoseListener(system["router"])
+    try:
+        with httpx.Client(base_url=system["url"], timeout=30) as client:
+            response = client.post("/sessions", json={"sequence": dev_sequence.name, "robot_id": "robot_a",
+                                                      "max_frames": FRAMES, "config": OVERRIDES})
+            assert response.status_code == 201, response.text
+            session_id = response.json()["id"]
+            info = wait_finished(client, session_id)
+            assert info["state"] == "finished" and info["frames"] == FRAMES, info
+            assert info["ate_rmse"] is not None
+            trajectory_text = client.get(f"/sessions/{session_id}/trajectory").text
+            recording = client.get(f"/sessions/{session_id}/recording")
+            assert recording.status_code == 200
+    finally:
+        time.sleep(0.5)
+        listener.close()
+
+    received = [p for k, p in listener.poses if p.session_id == session_id]
+    assert sorted(p.frame_index for p in received) == list(range(FRAMES))
+    assert all(k == "twohr/robot_a/pose" for k, p in listener.poses if p.session_id == session_id)
+
+    # the same frames and config in one process give the same trajectory
+    local = run_sequence(RGBDSequence(dev_sequence), load_config(None, OVERRIDES), stop=FRAMES, progress=False)
+    (tmp_path / "served.txt").write_text(trajectory_text)
+    served = read_tum(tmp_path / "served.txt")
+    assert np.allclose(served.stamps, local.online.stamps)
+    assert np.abs(served.positions - local.online.positions).max() < 1e-6
+
+    (tmp_path / "rec.mcap").write_bytes(recording.content)
+    counts = topic_counts(tmp_path / "rec.mcap")
+    for stream in ("frames", "keypoints", "dynamics", "pose"):
+        assert counts[f"/twohr/robot_a/{stream}"] == FRAMES, (stream, counts)
+    assert counts["/twohr/robot_a/matches"] >= FRAMES - 1
+    assert counts["/robot_a/camera/rgb"] == FRAMES and counts["/tf"] == FRAMES
+
+
+def test_bad_requests_get_clear_4xx(system, dev_sequence):
+    with httpx.Client(base_url=system["url"], timeout=30) as client:
+        cases = [
+            ({"sequence": "/etc"}, 422, "not under the data roots"),
+            ({"sequence": f"{dev_sequence.name}/../../shared"}, 422, "'..' is not allowed"),
+            ({"robot_id": "r1"}, 422, "sequence: Field required"),
+            ({"sequence": dev_sequence.name, "config": {"detector.model": "nope"}}, 422, "unknown model 'nope'"),
+            ({"sequence": dev_sequence.name, "config": {"yolo.model": "r2d2_WASF_N16"}}, 422, "not a YOLO"),
+            ({"sequence": dev_sequence.name, "config": {"tracker.bogus": 1}}, 422, "tracker.bogus"),
+            ({"sequence": dev_sequence.name, "robot_id": "bad id!"}, 422, "robot_id"),
+            ({"sequence": dev_sequence.name, "rate": -1}, 422, "rate"),
+            ({"sequence": "missing_sequence"}, 422, "not found|not under"),
+        ]
+        for body, code, message in cases:
+            response = client.post("/sessions", json=body)
+            assert response.status_code == code, (body, response.text)
+            assert re.search(message, response.json()["detail"]), (body, response.text)
+        assert client.post("/sessions", content=b"{not json", headers={"content-type": "application/json"}
+                           ).status_code == 422
+        assert client.get("/sessions/nonexistent").status_code == 404
+        assert client.delete("/sessions/nonexistent").status_code == 404
+        assert client.get("/sessions/nonexistent/trajectory").status_code == 404
+        assert client.get("/openapi.json").json()["paths"]["/sessions"]["post"]
+
+
+def test_malformed_payloads_on_every_key_leave_services_alive(system):
+    session = open_session(BusConfig(connect=[system["router"]]))
+    try:
+        for stream in (*keys.STREAMS, keys.CONTROL, keys.RAW_CAMERA):
+            for junk in (b"", b"junk", b"2HR\x01\x00\x00\x00\x10{}"):
+                session.put(keys.key("robot_junk", stream), junk)
+        replies = list(session.get(keys.key("robot_junk", keys.MATCH_QUERY), payload=b"junk", timeout=5))
+        assert replies and replies[0].err is not None
+        time.sleep(1.0)
+        with httpx.Client(base_url=system["url"], timeout=30) as client:
+            services = client.get("/healthz").json()["services"]
+        for name, health in services.items():
+            assert health is not None, f"{name} stopped answering"
+            assert health["errors"] == 0, (name, health)
+        assert services["detector"]["malformed"] >= 3 and services["tracker"]["malformed"] >= 9
+        assert services["recorder"]["malformed"] >= 3 and services["matcher"]["malformed"] >= 1
+    finally:
+        session.close()
+
+
+def test_two_robots_at_once_without_cross_talk(system, dev_sequence):
+    listener = PoseListener(system["router"])
+    try:
+        with httpx.Client(base_url=system["url"], timeout=30) as client:
+            ids = {}
+            for robot, start_rate in (("robot_b", 0), ("robot_c", 0)):
+                response = client.post("/sessions", json={"sequence": dev_sequence.name, "robot_id": robot,
+                                                          "max_frames": 12, "rate": start_rate, "record": False,
+                                                          "config": OVERRIDES})
+                assert response.status_code == 201, response.text
+                ids[robot] = response.json()["id"]
+            busy = client.post("/sessions", json={"sequence": dev_sequence.name, "robot_id": "robot_b",
+                                                  "config": OVERRIDES})
+            assert busy.status_code == 409
+            infos = {robot: wait_finished(client, sid) for robot, sid in ids.items()}
+    finally:
+        time.sleep(0.5)
+        listener.close()
+    for robot, sid in ids.items():
+        assert infos[robot]["frames"] == 12
+        mine = [(k, p) for k, p in listener.poses if p.session_id == sid]
+        assert sorted(p.frame_index for _, p in mine) == list(range(12))
+        assert all(k == f"twohr/{robot}/pose" and p.robot_id == robot for k, p in mine)
