@@ -167,3 +167,67 @@ def format_table(rows: list[dict]) -> str:
                      f"{r['ms_per_frame']:.0f} | {r['runs']}{'' if r['deterministic'] else ' (median)'} |")
     return "\n".join(lines)
 
+
+
+def bus_latency(sequence_root, config_overrides: dict, frames: int = 60, rate: float = 0.0,
+                timeout: float = 600.0) -> dict:
+    """Frame -> pose latency (p50, p99) and throughput of the whole system over Zenoh (``twohr up`` as
+    local processes), for the same frames and config as an in-process run."""
+    import socket
+    import threading
+
+    import httpx
+
+    from twohr import keys
+    from twohr.bus import BusConfig, open_session
+    from twohr.messages import PoseMsg, decode
+
+    from .launcher_cli import start_system
+
+    def free_port() -> int:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            return s.getsockname()[1]
+
+    import tempfile
+
+    router, port = f"tcp/127.0.0.1:{free_port()}", free_port()
+    recordings = tempfile.mkdtemp(prefix="twohr_bench_")
+    t_start = time.time()
+    router_session, group = start_system(router, [str(sequence_root.parent)], recordings, "127.0.0.1", port)
+    startup_s = time.time() - t_start
+    received: list[tuple[float, PoseMsg]] = []
+    lock = threading.Lock()
+    listener = open_session(BusConfig(connect=[router]))
+
+    def on_pose(sample) -> None:
+        now = time.time()
+        pose, _ = decode(sample.payload.to_bytes(), PoseMsg)
+        with lock:
+            received.append((now, pose))
+
+    sub = listener.declare_subscriber(keys.all_robots("pose"), on_pose)
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30) as client:
+            response = client.post("/sessions", json={"sequence": sequence_root.name, "robot_id": "bench",
+                                                      "max_frames": frames, "rate": rate, "record": False,
+                                                      "config": config_overrides})
+            response.raise_for_status()
+            session_id = response.json()["id"]
+            deadline = time.time() + timeout
+            while client.get(f"/sessions/{session_id}").json()["state"] in ("starting", "running"):
+                if time.time() > deadline:
+                    raise TimeoutError("bench session did not finish")
+                time.sleep(0.2)
+    finally:
+        sub.undeclare()
+        listener.close()
+        group.stop()
+        router_session.close()
+    mine = sorted((t, p) for t, p in received if p.session_id == session_id)
+    latencies = [1000 * (t - p.frame_sent_at) for t, p in mine]
+    span = mine[-1][0] - min(p.frame_sent_at for _, p in mine) if mine else float("nan")
+    return {"frames": len(mine), "rate": rate, "startup_s": round(startup_s, 1),
+            "latency_ms": {"p50": round(float(np.percentile(latencies, 50)), 1),
+                           "p99": round(float(np.percentile(latencies, 99)), 1)},
+            "fps": round(len(mine) / span, 3)}

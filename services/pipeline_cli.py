@@ -112,7 +112,29 @@ def _bench(args: argparse.Namespace) -> int:
     out = Path(args.out or "runs/bench")
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {}
-    if args.ablations:
+    if args.bus:
+        import numpy as np
+
+        from twohr.config import merge_overrides
+
+        from .pipeline import run_sequence
+
+        overrides = merge_overrides({}, args.set or [])
+        frames = args.frames or 60
+        local = [run_sequence(sequence, config, stop=frames, progress=not args.quiet) for _ in range(args.runs)]
+        lat = np.concatenate([[s.ms_total for s in r.stats] for r in local])
+        bus_runs = [bench.bus_latency(sequence.root, overrides, frames) for _ in range(args.runs)]
+        report["bus"] = {
+            "in_process": {"fps_median": round(float(np.median([len(r.stats) / r.wall_s for r in local])), 3),
+                           "latency_ms": {"p50": round(float(np.percentile(lat, 50)), 1),
+                                          "p99": round(float(np.percentile(lat, 99)), 1)}},
+            "zenoh_runs": bus_runs,
+            "zenoh": {"fps_median": float(np.median([r["fps"] for r in bus_runs])),
+                      "latency_p50_median": float(np.median([r["latency_ms"]["p50"] for r in bus_runs])),
+                      "latency_p99_median": float(np.median([r["latency_ms"]["p99"] for r in bus_runs]))},
+        }
+        print(json.dumps(report["bus"], indent=2))
+    elif args.ablations:
         rows = bench.ablations(sequence, config, stop=args.frames, progress=not args.quiet)
         rows.append(bench.static_camera_row(sequence))
         report["ablations"] = {"sequence": sequence.name, "frames": args.frames or len(sequence),
@@ -169,6 +191,8 @@ def register(sub: argparse._SubParsersAction) -> None:
             action.required = False
     p.add_argument("--runs", type=int, default=3, help="repetitions for throughput (median reported)")
     p.add_argument("--ablations", action="store_true", help="the ablation table instead of throughput")
+    p.add_argument("--bus", action="store_true", help="frame->pose latency and FPS over Zenoh (twohr up as local "
+                   "processes) against in-process, same frames and config (--set overrides go to both)")
     p.set_defaults(func=_bench)
 
     p = sub.add_parser("demo", help="the main job end to end on the dev sequence, with a printed result")

@@ -62,9 +62,13 @@ def test_recorder_service_over_the_bus(bus_config, dev_sequence, tmp_path):
             poses.put(pose(item.index, item.stamp, "sess2"))
         poses.put(pose(9, 0.0, "other_session"))  # not recorded into sess2
         poses.put(b"malformed")
-        control.put(encode(start.model_copy(update={"command": "stop"})))
         deadline = time.time() + 15
-        while "sess2" in service.open or service.counters.processed + service.counters.malformed < 12:
+        # keys have no ordering between them: stop only once everything else has been handled
+        while service.counters.processed + service.counters.malformed < 11:
+            assert time.time() < deadline, service.counters
+            time.sleep(0.1)
+        control.put(encode(start.model_copy(update={"command": "stop"})))
+        while "sess2" in service.open:
             assert time.time() < deadline, service.counters
             time.sleep(0.1)
         counts = topic_counts(tmp_path / "sess2.mcap")
