@@ -21,10 +21,13 @@ from .core import SessionRecorder
 class RecorderService(Service):
     name = "recorder"
 
-    def __init__(self, bus: BusConfig | None = None, recordings: Path = Path("recordings")) -> None:
+    def __init__(self, bus: BusConfig | None = None, recordings: Path = Path("recordings"),
+                 grace: float = 1.0) -> None:
         super().__init__(bus, queue_size=256, policy="backpressure")
         self.recordings = recordings
+        self.grace = grace
         self.open: dict[str, SessionRecorder] = {}
+        self.closing: dict[str, float] = {}
 
     def subscriptions(self) -> list[str]:
         return [keys.all_robots(stream) for stream in (*keys.STREAMS, keys.CONTROL)]
@@ -41,14 +44,23 @@ class RecorderService(Service):
             if recorder is not None:
                 recorder.write(key, payload, now)
             if control.command == "stop":
-                self._close(control.session_id)
+                # messages on other keys may still be in flight (Zenoh orders per key, not across keys)
+                self.closing[control.session_id] = time.monotonic() + self.grace
             return
         message, _ = split(payload)
         recorder = self.open.get(message.session_id)
         if recorder is not None:
             recorder.write(key, payload, now)
 
+    def process_one(self, timeout: float = 0.2) -> bool:
+        handled = super().process_one(timeout)
+        now = time.monotonic()
+        for session_id in [s for s, due in self.closing.items() if due <= now]:
+            self._close(session_id)
+        return handled
+
     def _close(self, session_id: str) -> None:
+        self.closing.pop(session_id, None)
         recorder = self.open.pop(session_id, None)
         if recorder is not None:
             recorder.close()
