@@ -169,6 +169,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("twohr: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # e.g. `twohr eval … | head`
+        sys.stderr.close()
+        return 0
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ from twohr.trajectory import Trajectory
 
 from .detector.core import build_detector
 from .matcher.core import build_matcher
-from .tracker.core import Tracker, TrackResult
+from .tracker.core import TRACKED_STATUSES, Tracker, TrackResult
 from .yolo.masks import DynamicMasker
 
 
@@ -125,11 +125,9 @@ class RunResult:
 
     @property
     def tracked_percent(self) -> float:
-        ok = sum(s.status in TRACKED_STATES for s in self.stats)
+        ok = sum(s.status in TRACKED_STATUSES for s in self.stats)
         return 100.0 * ok / max(1, len(self.stats))
 
-
-TRACKED_STATES = ("init", "tracking", "relocalised")
 
 
 def run_sequence(sequence, config: PipelineConfig, start: int = 0, stop: int | None = None, step: int = 1,

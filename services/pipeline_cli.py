@@ -28,6 +28,7 @@ def write_run(out: Path, sequence, config, result) -> dict:
     from twohr.trajectory import write_tum
 
     from .pipeline import stats_rows
+    from .tracker.core import TRACKED_STATUSES
 
     out.mkdir(parents=True, exist_ok=True)
     write_tum(out / "trajectory.txt", result.trajectory, header=f"twohr {sequence.name}: refined, camera-to-world")
@@ -43,7 +44,7 @@ def write_run(out: Path, sequence, config, result) -> dict:
     summary = {
         "sequence": str(sequence.root), "frames": frames, "skipped_frames": result.skipped,
         "tracked_percent": round(result.tracked_percent, 2),
-        "lost_frames": [s.index for s in result.stats if s.status not in ("init", "tracking", "relocalised")],
+        "lost_frames": [s.index for s in result.stats if s.status not in TRACKED_STATUSES],
         "fps": round(frames / result.wall_s, 3) if result.wall_s > 0 else None,
         "ms_per_frame_median": {k: round(float(_median([getattr(s, k) for s in result.stats])), 2)
                                 for k in ("ms_detector", "ms_yolo", "ms_tracker", "ms_total")} if frames else {},

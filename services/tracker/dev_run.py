@@ -20,7 +20,6 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from twohr.config import DetectorConfig, TrackerConfig, load_config
@@ -34,64 +33,13 @@ DEFAULT_SEQUENCE = REPO.parent / "shared" / "data" / "rgbd_bonn_crowd_dev"
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-# ----------------------------------------------------------------------------- TEMPORARY person boxes
-# TEMPORARY: a minimal YOLOv8 person-box detector, the fallback where twohr_services.yolo.core is missing
-# (it did not exist when this script was written). Delete it once the yolo core is committed.
-
-
-class _TemporaryPersonBoxes:
-    """YOLOv8 (ONNX) person boxes: letterbox, one forward pass, class-0 scores, NMS."""
-
-    def __init__(self, model: str = "yolov8n_320", threads: int = 2) -> None:
-        import onnxruntime as ort
-
-        from twohr.models import model_path
-
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = threads
-        self.session = ort.InferenceSession(str(model_path(model)), options, providers=["CPUExecutionProvider"])
-        self.size = int(self.session.get_inputs()[0].shape[2])
-
-    def __call__(self, rgb: np.ndarray, min_score: float = 0.1, iou: float = 0.45) -> np.ndarray:
-        """(N, 5) boxes x1 y1 x2 y2 score in image pixels."""
-        height, width = rgb.shape[:2]
-        scale = self.size / max(height, width)
-        new_w, new_h = round(width * scale), round(height * scale)
-        pad_x, pad_y = (self.size - new_w) // 2, (self.size - new_h) // 2
-        canvas = np.full((self.size, self.size, 3), 114, np.uint8)
-        canvas[pad_y:pad_y + new_h, pad_x:pad_x + new_w] = cv2.resize(rgb, (new_w, new_h),
-                                                                     interpolation=cv2.INTER_LINEAR)
-        blob = (canvas.astype(np.float32) / 255.0).transpose(2, 0, 1)[None]
-        out = self.session.run(None, {self.session.get_inputs()[0].name: blob})[0][0]
-        scores = out[4]  # class 0 = person
-        keep = scores >= min_score
-        if not keep.any():
-            return np.zeros((0, 5), np.float32)
-        cx, cy, w, h = out[:4, keep]
-        boxes = np.stack([cx - w / 2, cy - h / 2, w, h], 1)
-        picked = cv2.dnn.NMSBoxes(boxes.tolist(), scores[keep].tolist(), min_score, iou)
-        picked = np.asarray(picked, int).reshape(-1)
-        b = boxes[picked]
-        x1 = (b[:, 0] - pad_x) / scale
-        y1 = (b[:, 1] - pad_y) / scale
-        x2 = x1 + b[:, 2] / scale
-        y2 = y1 + b[:, 3] / scale
-        result = np.stack([x1, y1, x2, y2, scores[keep][picked]], 1)
-        result[:, [0, 2]] = result[:, [0, 2]].clip(0, width)
-        result[:, [1, 3]] = result[:, [1, 3]].clip(0, height)
-        return result.astype(np.float32)
-
-
 def person_box_detector():
-    """Person boxes (N, 5: x1 y1 x2 y2 score) from the yolo core when it is installed, else the temporary one.
+    """Person boxes (N, 5: x1 y1 x2 y2 score) from the yolo core.
 
-    Boxes are kept down to score 0.1 in the cache; ``--box-score`` picks at run time. (On the dev sequence
-    both give identical boxes: same model, letterbox and NMS.)"""
-    try:
-        from twohr.config import YoloConfig
-        from twohr_services.yolo.core import YoloDetector
-    except ImportError:
-        return _TemporaryPersonBoxes()
+    Boxes are kept down to score 0.1 in the cache; ``--box-score`` picks at run time."""
+    from twohr.config import YoloConfig
+    from twohr_services.yolo.core import YoloDetector
+
     detector = YoloDetector(YoloConfig(conf_threshold=0.1))
 
     def detect(rgb: np.ndarray) -> np.ndarray:
