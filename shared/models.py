@@ -157,3 +157,22 @@ def model_path(name: str, kind: str | None = None) -> Path:
     """Path of a verified model file, fetching it on first use. This is what the cores call."""
     get_spec(name, kind)
     return fetch(name)
+
+
+def session_options(threads: int):
+    """onnxruntime options every twohr network uses: ``threads`` intra-op threads, sequential, fully optimised."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    return options
+
+
+def cpu_session(model: str | bytes, threads: int):
+    """An onnxruntime CPU session for a model file path or serialised model bytes."""
+    import onnxruntime as ort
+
+    return ort.InferenceSession(model, session_options(threads), providers=["CPUExecutionProvider"])

@@ -27,7 +27,7 @@ import onnxruntime as ort
 
 from twohr.config import DetectorConfig
 from twohr.features import Keypoints
-from twohr.models import model_path
+from twohr.models import cpu_session, model_path
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
@@ -268,12 +268,7 @@ def _is_2x_bilinear(node, constants: dict[str, np.ndarray]) -> bool:
 @cache
 def _session(path: str, threads: int, sparse_descriptors: bool) -> tuple[ort.InferenceSession, _PreparedModel]:
     prepared = _prepare_model(path, sparse_descriptors)
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    session = ort.InferenceSession(prepared.model, options, providers=["CPUExecutionProvider"])
+    session = cpu_session(prepared.model, threads)
     return session, prepared
 
 

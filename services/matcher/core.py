@@ -19,7 +19,7 @@ import onnxruntime as ort
 from twohr.config import MatcherConfig
 from twohr.errors import ModelError
 from twohr.features import Matches
-from twohr.models import model_path
+from twohr.models import cpu_session, model_path
 
 log = logging.getLogger(__name__)
 
@@ -83,11 +83,7 @@ def _check_descriptors(desc_a: np.ndarray, desc_b: np.ndarray) -> None:
 
 @cache
 def _session(path: str, threads: int) -> ort.InferenceSession:
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    return ort.InferenceSession(path, options, providers=["CPUExecutionProvider"])
+    return cpu_session(path, threads)
 
 
 def knn_candidates(desc_a: np.ndarray, desc_b: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:

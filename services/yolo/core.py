@@ -25,7 +25,7 @@ import onnxruntime as ort
 from twohr.config import YoloConfig
 from twohr.errors import ModelError
 from twohr.features import Detections
-from twohr.models import get_spec, model_path
+from twohr.models import cpu_session, get_spec, model_path
 
 PAD_VALUE = 114
 YOLO_KINDS = ("yolov8", "yolov5")
@@ -168,11 +168,7 @@ def parse_class_names(metadata: dict[str, str]) -> list[str]:
 
 @cache
 def _session(path: str, threads: int) -> ort.InferenceSession:
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    return ort.InferenceSession(path, options, providers=["CPUExecutionProvider"])
+    return cpu_session(path, threads)
 
 
 def check_image(rgb: np.ndarray) -> None:
