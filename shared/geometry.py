@@ -152,3 +152,21 @@ def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Points (N, 3) moved by a 4x4 rigid transform: ``R @ p + t`` for each row."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     return points @ pose[:3, :3].T + pose[:3, 3]
+
+
+def depth_at_pixels(depth: np.ndarray, xy: np.ndarray, min_depth: float = 0.1, max_depth: float = 8.0) -> np.ndarray:
+    """Depth (N,) at the nearest pixel of each point; NaN outside the image or outside [min_depth, max_depth].
+
+    Nearest, not bilinear: interpolating across a depth edge invents a surface between a person and the wall."""
+    depth = np.asarray(depth)
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    height, width = depth.shape
+    out = np.full(len(xy), np.nan)
+    with np.errstate(invalid="ignore"):
+        col = np.round(xy[:, 0])
+        row = np.round(xy[:, 1])
+        inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    values = depth[row[inside].astype(np.int64), col[inside].astype(np.int64)].astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        out[inside] = np.where((values >= min_depth) & (values <= max_depth), values, np.nan)
+    return out

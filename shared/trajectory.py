@@ -95,3 +95,42 @@ def tum_text(trajectory: Trajectory) -> str:
     """The TUM text of a trajectory (as written by :func:`write_tum`)."""
     rows = [f"{r[0]:.6f} " + " ".join(f"{v:.9f}" for v in r[1:]) for r in trajectory.to_tum_array()]
     return "# timestamp tx ty tz qx qy qz qw\n" + "".join(line + "\n" for line in rows)
+
+
+def interpolate_poses(trajectory: Trajectory, stamps: np.ndarray,
+                      max_gap: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """Poses (N, 4, 4) interpolated at ``stamps`` (linear translation, slerp rotation) and a validity mask.
+
+    A stamp is valid when it lies between two trajectory poses at most ``max_gap`` seconds apart.
+    Ground truth and camera run at similar rates but not in sync, and 20 ms of hand-held rotation
+    is several pixels, so taking the nearest pose is not good enough for a 3 px criterion.
+    """
+    stamps = np.asarray(stamps, dtype=np.float64).reshape(-1)
+    times = trajectory.stamps
+    upper = np.clip(np.searchsorted(times, stamps, side="left"), 1, max(len(times) - 1, 1))
+    lower = upper - 1
+    poses = np.tile(np.eye(4), (len(stamps), 1, 1))
+    if len(times) < 2:
+        return poses, np.zeros(len(stamps), bool)
+    span = times[upper] - times[lower]
+    valid = (stamps >= times[lower]) & (stamps <= times[upper]) & (span <= max_gap) & (span > 0)
+    alpha = np.where(valid, (stamps - times[lower]) / np.where(span > 0, span, 1.0), 0.0)
+    q0 = rot_to_quat(trajectory.poses[lower, :3, :3])
+    q1 = rot_to_quat(trajectory.poses[upper, :3, :3])
+    poses[:, :3, :3] = quat_to_rot(_slerp(q0, q1, alpha))
+    t0, t1 = trajectory.poses[lower, :3, 3], trajectory.poses[upper, :3, 3]
+    poses[:, :3, 3] = (1 - alpha[:, None]) * t0 + alpha[:, None] * t1
+    return poses, valid
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    dot = np.sum(q0 * q1, axis=1)
+    q1 = np.where(dot[:, None] < 0, -q1, q1)
+    dot = np.abs(dot)
+    theta = np.arccos(np.clip(dot, -1.0, 1.0))
+    small = theta < 1e-8
+    sin = np.where(small, 1.0, np.sin(theta))
+    w0 = np.where(small, 1 - alpha, np.sin((1 - alpha) * theta) / sin)
+    w1 = np.where(small, alpha, np.sin(alpha * theta) / sin)
+    q = w0[:, None] * q0 + w1[:, None] * q1
+    return q / np.linalg.norm(q, axis=1, keepdims=True)

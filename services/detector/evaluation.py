@@ -22,27 +22,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from twohr.geometry import backproject, invert_pose, project, quat_to_rot, rot_to_quat, transform_points
-from twohr.trajectory import Trajectory
-
-#: Depth readings outside this range (metres) are treated as missing.
-MIN_DEPTH, MAX_DEPTH = 0.1, 8.0
-
-
-def sample_depth(depth: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Depth (N,) at the nearest pixel of each point; NaN outside the image or without a valid reading."""
-    depth = np.asarray(depth)
-    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    height, width = depth.shape
-    out = np.full(len(xy), np.nan)
-    with np.errstate(invalid="ignore"):
-        col = np.round(xy[:, 0])
-        row = np.round(xy[:, 1])
-        inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
-    values = depth[row[inside].astype(np.int64), col[inside].astype(np.int64)].astype(np.float64)
-    with np.errstate(invalid="ignore"):
-        out[inside] = np.where((values >= MIN_DEPTH) & (values <= MAX_DEPTH), values, np.nan)
-    return out
+from twohr.geometry import backproject, depth_at_pixels, invert_pose, project, transform_points
 
 
 def reproject(xy_a: np.ndarray, depth_a: np.ndarray, k: np.ndarray, t_b_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -59,7 +39,7 @@ def reproject(xy_a: np.ndarray, depth_a: np.ndarray, k: np.ndarray, t_b_a: np.nd
 def _reproject_with_depth(xy_a: np.ndarray, depth_a: np.ndarray, k: np.ndarray,
                           t_b_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     xy_a = np.asarray(xy_a, dtype=np.float64).reshape(-1, 2)
-    z_a = sample_depth(depth_a, xy_a)
+    z_a = depth_at_pixels(depth_a, xy_a)
     points_b = transform_points(t_b_a, backproject(xy_a, np.nan_to_num(z_a, nan=0.0), k))
     points_b[~np.isfinite(z_a)] = np.nan
     with np.errstate(invalid="ignore"):
@@ -82,7 +62,7 @@ def shared_view(xy_a: np.ndarray, depth_a: np.ndarray, k: np.ndarray, t_b_a: np.
         visible = (np.isfinite(xy_b).all(axis=1) & (z_b > 0) & (xy_b[:, 0] >= -0.5) & (xy_b[:, 0] <= width - 0.5)
                    & (xy_b[:, 1] >= -0.5) & (xy_b[:, 1] <= height - 0.5))
         if depth_b is not None:
-            seen = sample_depth(depth_b, xy_b)
+            seen = depth_at_pixels(depth_b, xy_b)
             visible &= np.abs(seen - z_b) <= depth_tolerance * z_b
     return xy_b, visible
 
@@ -209,44 +189,6 @@ def match_precision(xy_a: np.ndarray, desc_a: np.ndarray, xy_b: np.ndarray, desc
     idx_a, idx_b = mutual_nn_matches(desc_a, desc_b)
     correct, verifiable = correct_matches(xy_a, xy_b, idx_a, idx_b, depth_a, depth_b, k, t_b_a, threshold)
     return PrecisionResult(len(idx_a), int(verifiable.sum()), int(correct.sum()))
-
-
-def poses_at(trajectory: Trajectory, stamps: np.ndarray, max_gap: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
-    """Poses (N, 4, 4) interpolated at ``stamps`` (linear translation, slerp rotation) and a validity mask.
-
-    A stamp is valid when it lies between two trajectory poses at most ``max_gap`` seconds apart.
-    Ground truth and camera run at similar rates but not in sync, and 20 ms of hand-held rotation
-    is several pixels, so taking the nearest pose is not good enough for a 3 px criterion.
-    """
-    stamps = np.asarray(stamps, dtype=np.float64).reshape(-1)
-    times = trajectory.stamps
-    upper = np.clip(np.searchsorted(times, stamps, side="left"), 1, max(len(times) - 1, 1))
-    lower = upper - 1
-    poses = np.tile(np.eye(4), (len(stamps), 1, 1))
-    if len(times) < 2:
-        return poses, np.zeros(len(stamps), bool)
-    span = times[upper] - times[lower]
-    valid = (stamps >= times[lower]) & (stamps <= times[upper]) & (span <= max_gap) & (span > 0)
-    alpha = np.where(valid, (stamps - times[lower]) / np.where(span > 0, span, 1.0), 0.0)
-    q0 = rot_to_quat(trajectory.poses[lower, :3, :3])
-    q1 = rot_to_quat(trajectory.poses[upper, :3, :3])
-    poses[:, :3, :3] = quat_to_rot(_slerp(q0, q1, alpha))
-    t0, t1 = trajectory.poses[lower, :3, 3], trajectory.poses[upper, :3, 3]
-    poses[:, :3, 3] = (1 - alpha[:, None]) * t0 + alpha[:, None] * t1
-    return poses, valid
-
-
-def _slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    dot = np.sum(q0 * q1, axis=1)
-    q1 = np.where(dot[:, None] < 0, -q1, q1)
-    dot = np.abs(dot)
-    theta = np.arccos(np.clip(dot, -1.0, 1.0))
-    small = theta < 1e-8
-    sin = np.where(small, 1.0, np.sin(theta))
-    w0 = np.where(small, 1 - alpha, np.sin((1 - alpha) * theta) / sin)
-    w1 = np.where(small, alpha, np.sin(alpha * theta) / sin)
-    q = w0[:, None] * q0 + w1[:, None] * q1
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def relative_pose(t_w_a: np.ndarray, t_w_b: np.ndarray) -> np.ndarray:

@@ -21,9 +21,10 @@ from twohr.config import DetectorConfig
 from twohr.dataset import Frame, RGBDSequence
 from twohr.errors import DatasetError
 from twohr.features import Keypoints
+from twohr.trajectory import interpolate_poses
 
 from .core import R2D2Detector, R2D2Network, build_detector, local_maxima, network_size, select_keypoints
-from .evaluation import clustered_fraction, match_precision, poses_at, relative_pose, repeatability
+from .evaluation import clustered_fraction, match_precision, relative_pose, repeatability
 
 #: Table 2 rows: name -> (features, descriptor as printed).
 METHODS: dict[str, tuple[str, str]] = {
@@ -62,7 +63,7 @@ class SequenceGeometry:
         if not sequence.has_ground_truth():
             raise DatasetError(f"{sequence.root} has no groundtruth.txt: feature evaluation needs ground-truth poses")
         extrinsic = sequence.default_gt_extrinsic()
-        poses, valid = poses_at(sequence.ground_truth(extrinsic), sequence.stamps)
+        poses, valid = interpolate_poses(sequence.ground_truth(extrinsic), sequence.stamps)
         return cls(sequence.camera.matrix, poses, valid, extrinsic)
 
     def t_b_a(self, a: int, b: int) -> np.ndarray:

@@ -26,65 +26,14 @@ from twohr.config import DetectorConfig
 from twohr.dataset import RGBDSequence
 from twohr.errors import DatasetError
 from twohr.features import Keypoints
-from twohr.geometry import backproject, invert_pose, project, quat_to_rot, rot_to_quat, transform_points
+from twohr.geometry import backproject, depth_at_pixels, invert_pose, project, transform_points
+from twohr.trajectory import interpolate_poses
 
 #: Depth readings outside this range (metres) are treated as missing.
-MIN_DEPTH, MAX_DEPTH = 0.1, 8.0
 
 
 class Detector(Protocol):
     def detect(self, rgb: np.ndarray) -> Keypoints: ...
-
-
-def sample_depth(depth: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Depth at the nearest pixel of each point (NaN outside the image or without a valid reading).
-
-    Nearest, not bilinear: interpolating across a depth edge invents a surface between person and wall."""
-    height, width = depth.shape
-    out = np.full(len(xy), np.nan, np.float32)
-    with np.errstate(invalid="ignore"):
-        col = np.round(xy[:, 0])
-        row = np.round(xy[:, 1])
-        inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
-    values = depth[row[inside].astype(int), col[inside].astype(int)]
-    out[inside] = np.where((values >= MIN_DEPTH) & (values <= MAX_DEPTH), values, np.nan)
-    return out
-
-
-def interpolate_poses(stamps_gt: np.ndarray, poses_gt: np.ndarray, stamps: np.ndarray,
-                      max_gap: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
-    """Ground-truth poses at ``stamps``: linear in translation, slerp in rotation between the two
-    bracketing GT poses. Returns ``(poses (N, 4, 4), valid (N,))``; a stamp is invalid outside the GT span
-    or when its bracketing GT poses are more than ``max_gap`` seconds apart."""
-    stamps = np.asarray(stamps, np.float64)
-    poses = np.tile(np.eye(4), (len(stamps), 1, 1))
-    upper = np.searchsorted(stamps_gt, stamps, side="left")
-    valid = (upper > 0) & (upper < len(stamps_gt))
-    exact = (upper < len(stamps_gt)) & (stamps_gt[np.minimum(upper, len(stamps_gt) - 1)] == stamps)
-    valid |= exact
-    quats = rot_to_quat(poses_gt[:, :3, :3])
-    for i in np.flatnonzero(valid):
-        hi = upper[i]
-        if stamps_gt[hi] == stamps[i]:
-            poses[i] = poses_gt[hi]
-            continue
-        lo = hi - 1
-        gap = stamps_gt[hi] - stamps_gt[lo]
-        if gap > max_gap:
-            valid[i] = False
-            continue
-        t = (stamps[i] - stamps_gt[lo]) / gap
-        q0, q1 = quats[lo], quats[hi]
-        if np.dot(q0, q1) < 0:
-            q1 = -q1
-        angle = np.arccos(np.clip(np.dot(q0, q1), -1.0, 1.0))
-        if angle < 1e-9:
-            q = q0
-        else:
-            q = (np.sin((1 - t) * angle) * q0 + np.sin(t * angle) * q1) / np.sin(angle)
-        poses[i, :3, :3] = quat_to_rot(q)
-        poses[i, :3, 3] = (1 - t) * poses_gt[lo, :3, 3] + t * poses_gt[hi, :3, 3]
-    return poses, valid
 
 
 # ----------------------------------------------------------------------------- keypoint cache
@@ -118,7 +67,7 @@ class KeypointCache:
         if not sequence.has_ground_truth():
             raise DatasetError(f"{sequence.root} has no groundtruth.txt: matcher pairs need ground-truth poses")
         gt = sequence.ground_truth(sequence.default_gt_extrinsic())
-        self.poses, self.pose_valid = interpolate_poses(gt.stamps, gt.poses, sequence.stamps)
+        self.poses, self.pose_valid = interpolate_poses(gt, sequence.stamps)
 
     def path(self, index: int) -> Path:
         return self.folder / f"{index:06d}.npz"
@@ -142,7 +91,7 @@ class KeypointCache:
             target = self.path(index)
             tmp = target.with_suffix(".tmp.npz")
             np.savez(tmp, xy=kp.xy.astype(np.float32), descriptors=kp.descriptors.astype(np.float16),
-                     scores=kp.scores.astype(np.float32), depth=sample_depth(frame.depth, kp.xy))
+                     scores=kp.scores.astype(np.float32), depth=depth_at_pixels(frame.depth, kp.xy).astype(np.float32))
             tmp.replace(target)
 
     def load(self, index: int) -> CachedFrame:
@@ -214,7 +163,7 @@ def pair_geometry(frame_a: CachedFrame, frame_b: CachedFrame, camera_matrix: np.
     xy_ba, _, in_b = into(frame_b.keypoints.xy, frame_b.depth_at_keypoints, invert_pose(t_b_a))
     visibility = None
     if depth_map_b is not None:
-        measured = sample_depth(depth_map_b, xy_ab)
+        measured = depth_at_pixels(depth_map_b, xy_ab).astype(np.float32)
         visibility = np.full(len(xy_ab), OUT_OF_VIEW, np.int8)
         with np.errstate(invalid="ignore"):
             visibility[in_a] = MOVED

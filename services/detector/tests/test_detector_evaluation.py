@@ -7,18 +7,17 @@ import pytest
 
 from twohr.config import DetectorConfig
 from twohr.dataset import RGBDSequence
-from twohr.geometry import backproject, invert_pose, make_pose, project, so3_exp, transform_points
+from twohr.geometry import backproject, depth_at_pixels, invert_pose, make_pose, project, so3_exp, transform_points
+from twohr.trajectory import interpolate_poses
 from twohr_services.detector.core import R2D2Detector
 from twohr_services.detector.evaluation import (
     clustered_fraction,
     correct_matches,
     match_precision,
     mutual_nn_matches,
-    poses_at,
     relative_pose,
     repeatability,
     reproject,
-    sample_depth,
     shared_view,
 )
 
@@ -53,7 +52,7 @@ def test_reproject_known_translation():
 def test_sample_depth_is_nearest_and_rejects_missing():
     depth = np.zeros((4, 4), np.float32)
     depth[1, 2] = 3.0
-    values = sample_depth(depth, np.array([[2.2, 0.8], [0.0, 0.0], [9.0, 1.0], [np.nan, 1.0]]))
+    values = depth_at_pixels(depth, np.array([[2.2, 0.8], [0.0, 0.0], [9.0, 1.0], [np.nan, 1.0]]))
     assert values[0] == 3.0
     assert np.isnan(values[1:]).all()
 
@@ -62,7 +61,7 @@ def test_sample_depth_is_nearest_and_rejects_missing():
 def synthetic(synthetic_sequence):
     sequence = RGBDSequence(synthetic_sequence)
     gt = sequence.ground_truth()
-    poses, valid = poses_at(gt, sequence.stamps)
+    poses, valid = interpolate_poses(gt, sequence.stamps)
     return sequence, poses, valid
 
 
@@ -72,10 +71,10 @@ def test_poses_at_reproduces_and_interpolates_the_trajectory(synthetic):
     inner = valid.copy()
     assert inner[1:-1].all()
     assert np.allclose(poses[inner], gt.poses[inner], atol=1e-9)
-    middle, ok = poses_at(gt, (gt.stamps[10:11] + gt.stamps[11:12]) / 2)
+    middle, ok = interpolate_poses(gt, (gt.stamps[10:11] + gt.stamps[11:12]) / 2)
     assert ok.all()
     assert np.allclose(middle[0, :3, 3], (gt.poses[10, :3, 3] + gt.poses[11, :3, 3]) / 2)
-    outside, ok = poses_at(gt, gt.stamps[:1] - 1.0)
+    outside, ok = interpolate_poses(gt, gt.stamps[:1] - 1.0)
     assert not ok.any()
 
 
@@ -163,7 +162,7 @@ def test_mutual_nearest_neighbours():
 def test_real_2hr_detections_on_a_static_synthetic_pair(static_synthetic_sequence):
     """The real detector on rendered frames of a static room: high repeatability and precision."""
     sequence = RGBDSequence(static_synthetic_sequence)
-    poses, _ = poses_at(sequence.ground_truth(), sequence.stamps)
+    poses, _ = interpolate_poses(sequence.ground_truth(), sequence.stamps)
     detector = R2D2Detector(DetectorConfig())
     a, b = 10, 12
     frame_a, frame_b = sequence.read(a), sequence.read(b)

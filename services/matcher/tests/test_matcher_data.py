@@ -8,7 +8,8 @@ import pytest
 
 from twohr.dataset import RGBDSequence
 from twohr.features import Keypoints
-from twohr.geometry import make_pose, rotation_angle, so3_exp
+from twohr.geometry import depth_at_pixels, make_pose, rotation_angle, so3_exp
+from twohr.trajectory import Trajectory, interpolate_poses
 from twohr_services.matcher.data import (
     MOVED,
     OCCLUDED,
@@ -18,11 +19,9 @@ from twohr_services.matcher.data import (
     LabelConfig,
     SplitConfig,
     frame_pairs,
-    interpolate_poses,
     keypoint_repeatability,
     label_pairs,
     pair_geometry,
-    sample_depth,
     split_frames,
 )
 
@@ -36,11 +35,12 @@ def unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
 
 def load(seq: RGBDSequence, index: int, xy: np.ndarray, desc: np.ndarray) -> tuple[CachedFrame, np.ndarray]:
     gt = seq.ground_truth()
-    poses, valid = interpolate_poses(gt.stamps, gt.poses, seq.stamps)
+    poses, valid = interpolate_poses(gt, seq.stamps)
     assert valid[index]
     frame = seq.read(index)
     kp = Keypoints(xy.astype(np.float32), desc, np.ones(len(xy), np.float32))
-    return CachedFrame(index, frame.stamp, kp, sample_depth(frame.depth, xy), poses[index]), frame.depth
+    depth = depth_at_pixels(frame.depth, xy).astype(np.float32)
+    return CachedFrame(index, frame.stamp, kp, depth, poses[index]), frame.depth
 
 
 def dynamic_mask(seq: RGBDSequence, index: int) -> np.ndarray:
@@ -76,9 +76,10 @@ def synthetic_pair(synthetic_sequence):
 def test_interpolated_poses_are_exact_at_stamps_and_halfway_between():
     stamps = np.array([0.0, 1.0])
     poses = np.stack([np.eye(4), make_pose(so3_exp(np.array([0, 0, 0.4])), [1.0, 2.0, 0.0])])
-    out, valid = interpolate_poses(stamps, poses, np.array([-0.1, 0.0, 0.5, 1.0, 1.1]), max_gap=2.0)
+    gt = Trajectory(stamps, poses)
+    out, valid = interpolate_poses(gt, np.array([-0.1, 0.0, 0.5, 1.0, 1.1]), max_gap=2.0)
     np.testing.assert_array_equal(valid, [False, True, True, True, False])
-    assert not interpolate_poses(stamps, poses, np.array([0.5]), max_gap=0.1)[1][0]  # a gap in the ground truth
+    assert not interpolate_poses(gt, np.array([0.5]), max_gap=0.1)[1][0]  # a gap in the ground truth
     np.testing.assert_allclose(out[1], poses[0], atol=1e-12)
     np.testing.assert_allclose(out[3], poses[1], atol=1e-12)
     np.testing.assert_allclose(out[2, :3, 3], [0.5, 1.0, 0.0])
