@@ -22,11 +22,12 @@ import numpy as np
 from twohr.config import TrackerConfig
 from twohr.errors import TwohrError
 from twohr.evaluation import evaluate
+from twohr.geometry import backproject, invert_pose
 from twohr.trajectory import Trajectory
 
 from .dev_run import RESULTS, load_inputs, mutual_nn_match, outside_boxes
 from .dev_run import build_parser as dev_parser
-from .optim import backproject, invert, pnp_ransac, sample_depth
+from .optim import pnp_ransac, sample_depth
 
 
 def frame_to_frame_vo(camera, frames, conf: TrackerConfig) -> tuple[np.ndarray, list[float]]:
@@ -42,10 +43,11 @@ def frame_to_frame_vo(camera, frames, conf: TrackerConfig) -> tuple[np.ndarray, 
             matches = mutual_nn_match(prev_kps.descriptors, kps.descriptors)
             has_depth = prev_z[matches.idx_a] > 0
             a, b = matches.idx_a[has_depth], matches.idx_b[has_depth]
-            points = backproject(K, prev_kps.xy[a].astype(np.float64), prev_z[a])
+            points = backproject(prev_kps.xy[a].astype(np.float64), prev_z[a], K)
             T_cw, inliers = pnp_ransac(K, points, kps.xy[b].astype(np.float64), conf.ransac_reprojection_px,
                                        conf.ransac_iterations)
-            pose = poses[-1] @ invert(T_cw) if T_cw is not None and inliers.sum() >= conf.min_inliers else poses[-1]
+            tracked = T_cw is not None and inliers.sum() >= conf.min_inliers
+            pose = poses[-1] @ invert_pose(T_cw) if tracked else poses[-1]
             poses.append(pose)
         previous = (kps, z)
         times.append((time.perf_counter() - start) * 1000)

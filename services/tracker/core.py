@@ -31,24 +31,20 @@ from twohr.config import TrackerConfig
 from twohr.dataset import CameraIntrinsics
 from twohr.errors import TwohrError
 from twohr.features import Keypoints, Matches
+from twohr.geometry import backproject, invert_pose, project, transform_points
 from twohr.trajectory import Trajectory
 
 from .optim import (
     MotionPrior,
-    backproject,
     bundle_adjust,
-    invert,
-    invert_poses,
     observation_errors,
     pnp_ransac,
     pose_difference,
-    project,
     refine_pose,
     sample_depth,
     scale_motion,
     so3_exp_batch,
     so3_log,
-    transform,
 )
 
 MatchFn = Callable[[np.ndarray, np.ndarray], Matches]
@@ -219,7 +215,7 @@ class Tracker:
         anchor = len(self.keyframes) - 1
         self._frame_stamps.append(stamp)
         self._frame_anchor.append(anchor)
-        self._frame_relative.append(result.pose if anchor < 0 else invert(self._kf_poses[anchor]) @ result.pose)
+        self._frame_relative.append(result.pose if anchor < 0 else invert_pose(self._kf_poses[anchor]) @ result.pose)
         result.timings = {**timings, **result.timings, "total": _ms(start)}
         result.num_landmarks = self.map.num_good
         return result
@@ -278,7 +274,7 @@ class Tracker:
             return self._coast(stamp, estimate.reason, {**counts, "num_matches": estimate.num_matches,
                                                         "num_inliers": estimate.num_inliers})
 
-        pose = invert(estimate.T_cw)
+        pose = invert_pose(estimate.T_cw)
         self._update_motion(stamp, pose)
         t0 = time.perf_counter()
         # a keyframe needs depth: its new landmarks come from back-projected keypoints
@@ -322,7 +318,7 @@ class Tracker:
         elif self._good_pose is not None and stamp > self._good_stamp:
             elapsed = stamp - self._good_stamp
             self._frame_dt = min(max(elapsed, 1e-3), 1.0)
-            motion = invert(self._good_pose) @ pose
+            motion = invert_pose(self._good_pose) @ pose
             twist = np.concatenate([so3_log(motion[:3, :3]), motion[:3, 3]])
             self._recent_motions = [*self._recent_motions, twist][-self.conf.velocity_frames:]
         # the mean of the last few frame-to-frame motions: one frame's motion is as noisy as two poses
@@ -338,7 +334,7 @@ class Tracker:
 
     def _local_keyframes(self, pose: np.ndarray, count: int) -> np.ndarray:
         """Indices of the latest keyframe and the keyframes nearest to ``pose`` (translation + weighted angle)."""
-        rel = np.einsum("ij,njk->nik", invert(pose), self._kf_poses)
+        rel = np.einsum("ij,njk->nik", invert_pose(pose), self._kf_poses)
         cos = np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)
         distance = np.linalg.norm(rel[:, :3, 3], axis=1) + self.conf.keyframe_distance_per_rad * np.arccos(cos)
         distance[-1] = -1.0  # always keep the latest keyframe
@@ -351,9 +347,9 @@ class Tracker:
         ids = np.unique(np.concatenate([self.keyframes[i].landmark_ids for i in kf_idx]))
         ids = ids[ids >= 0]
         ids = ids[~self.map.bad[ids]]
-        T_guess = invert(pose_guess)
-        points_cam = transform(T_guess, self.map.positions[ids])
-        uv = project(self.K, points_cam)
+        T_guess = invert_pose(pose_guess)
+        points_cam = transform_points(T_guess, self.map.positions[ids])
+        uv = project(points_cam, self.K)
         margin = radius
         visible = (points_cam[:, 2] > conf.min_depth) & (uv[:, 0] > -margin) & (uv[:, 1] > -margin) & (
             uv[:, 0] < self.camera.width + margin) & (uv[:, 1] < self.camera.height + margin)
@@ -386,8 +382,8 @@ class Tracker:
         todo = np.setdiff1d(candidates, matched_lm)
         if len(free_kp) == 0 or len(todo) == 0:
             return estimate
-        points_cam = transform(estimate.T_cw, self.map.positions[todo])
-        uv = project(self.K, points_cam)
+        points_cam = transform_points(estimate.T_cw, self.map.positions[todo])
+        uv = project(points_cam, self.K)
         in_front = points_cam[:, 2] > conf.min_depth
         todo, uv = todo[in_front], uv[in_front]
         dist, nearest = cKDTree(xy[free_kp]).query(uv, k=3, distance_upper_bound=conf.guided_search_px)
@@ -456,7 +452,7 @@ class Tracker:
             return _Estimate(False, f"too few inliers after refinement ({num_inliers} < {conf.min_inliers})",
                              num_matches=num_matches, num_inliers=num_inliers)
         if check_jump:
-            moved, turned = pose_difference(pose_guess, invert(T_cw))
+            moved, turned = pose_difference(pose_guess, invert_pose(T_cw))
             allowed = 1.0 + self._lost_frames
             if moved > conf.max_jump_m * allowed or turned > conf.max_jump_deg * allowed:
                 self.map.vote(np.zeros(0, np.int64), landmark[inliers], conf.landmark_max_outlier_ratio)
@@ -495,7 +491,8 @@ class Tracker:
         if best is None or best.num_inliers < conf.relocalisation_min_inliers:
             found = 0 if best is None else best.num_inliers
             return _Estimate(False, f"relocalisation failed (best {found} inliers < {conf.relocalisation_min_inliers})")
-        verified = self._track_local_map(invert(best.T_cw), keypoints, xy, z, conf.match_radius_px, check_jump=False)
+        verified = self._track_local_map(invert_pose(best.T_cw), keypoints, xy, z, conf.match_radius_px,
+                                         check_jump=False)
         if not verified.ok or verified.num_inliers < conf.relocalisation_min_inliers:
             return _Estimate(False, f"relocalisation against {best.reason} not confirmed by the local map "
                              f"({verified.num_inliers} inliers)")
@@ -510,7 +507,7 @@ class Tracker:
             return True
         if num_inliers < conf.keyframe_min_inlier_ratio * self._inliers_at_keyframe:
             return True
-        rel = np.einsum("ij,njk->nik", invert(pose), self._kf_poses)
+        rel = np.einsum("ij,njk->nik", invert_pose(pose), self._kf_poses)
         moved = np.linalg.norm(rel[:, :3, 3], axis=1)
         turned = np.degrees(np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
         near = (moved < conf.keyframe_max_translation) & (turned < conf.keyframe_max_rotation_deg)
@@ -522,7 +519,7 @@ class Tracker:
         landmark_ids = keypoint_landmarks.copy()
         new = (landmark_ids < 0) & (z > 0) & ~suspect
         if new.any():
-            points_w = transform(pose, backproject(self.K, xy[new], z[new]))
+            points_w = transform_points(pose, backproject(xy[new], z[new], self.K))
             landmark_ids[new] = self.map.add(points_w, keypoints.descriptors[new])
         kf = Keyframe(len(self.keyframes), stamp, pose.copy(), xy, z, keypoints.descriptors, landmark_ids)
         self.keyframes.append(kf)
@@ -567,7 +564,7 @@ class Tracker:
         order = np.argsort(obs_frame, kind="stable")  # xy and depth were gathered frame by frame
         obs_pose, obs_point, obs_frame, obs_keypoint = obs_pose[order], obs_point[order], obs_frame[order], \
             obs_keypoint[order]
-        poses_cw = invert_poses(self._kf_poses[used_frames])
+        poses_cw = invert_pose(self._kf_poses[used_frames])
         result = bundle_adjust(self.K, poses_cw, self.map.positions[landmark_ids], obs_pose, obs_point, xy, depth,
                                fixed, conf.depth_noise, conf.huber_px, conf.ba_max_iterations,
                                outlier_threshold=2 * conf.ransac_reprojection_px)
@@ -576,10 +573,10 @@ class Tracker:
             if fixed[j]:
                 continue
             kf = self.keyframes[f]
-            new_pose = invert(result.poses_cw[j])
+            new_pose = invert_pose(result.poses_cw[j])
             alone = kf.landmark_ids[(kf.landmark_ids >= 0)]
             alone = alone[~shared[alone]]
-            self.map.positions[alone] = transform(new_pose @ invert(kf.pose), self.map.positions[alone])
+            self.map.positions[alone] = transform_points(new_pose @ invert_pose(kf.pose), self.map.positions[alone])
             kf.pose = new_pose
             self._kf_poses[f] = new_pose
         for f in np.unique(obs_frame[result.outliers]):

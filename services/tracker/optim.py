@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from twohr.geometry import invert_pose, transform_points
+
 # ----------------------------------------------------------------------------- SE(3) helpers
 
 
@@ -56,26 +58,9 @@ def pose_from_vectors(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     return pose
 
 
-def invert(pose: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 transform."""
-    inv = np.eye(4)
-    inv[:3, :3] = pose[:3, :3].T
-    inv[:3, 3] = -pose[:3, :3].T @ pose[:3, 3]
-    return inv
-
-
-def invert_poses(poses: np.ndarray) -> np.ndarray:
-    """Inverses of rigid 4x4 transforms (N, 4, 4)."""
-    rt = np.swapaxes(poses[:, :3, :3], 1, 2)
-    out = np.tile(np.eye(4), (len(poses), 1, 1))
-    out[:, :3, :3] = rt
-    out[:, :3, 3] = -(rt @ poses[:, :3, 3, None])[:, :, 0]
-    return out
-
-
 def pose_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """Translation (m) and rotation (deg) between two camera-to-world poses."""
-    rel = invert(a) @ b
+    rel = invert_pose(a) @ b
     cos = np.clip((np.trace(rel[:3, :3]) - 1) / 2, -1.0, 1.0)
     return float(np.linalg.norm(rel[:3, 3])), float(np.degrees(np.arccos(cos)))
 
@@ -98,25 +83,6 @@ def apply_update(T_cw: np.ndarray, delta: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- camera
-
-
-def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Points (N, 3) mapped by a 4x4 rigid transform."""
-    return points @ T[:3, :3].T + T[:3, 3]
-
-
-def project(K: np.ndarray, points_cam: np.ndarray) -> np.ndarray:
-    """Pixel coordinates (N, 2) of camera-frame points (N, 3); points behind the camera give inf/nan."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv_z = 1.0 / points_cam[:, 2]
-    return np.stack([K[0, 0] * points_cam[:, 0] * inv_z + K[0, 2], K[1, 1] * points_cam[:, 1] * inv_z + K[1, 2]], 1)
-
-
-def backproject(K: np.ndarray, xy: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Camera-frame points (N, 3) of pixels (N, 2) at depths (N,)."""
-    x = (xy[:, 0] - K[0, 2]) / K[0, 0] * z
-    y = (xy[:, 1] - K[1, 2]) / K[1, 1] * z
-    return np.stack([x, y, z], 1)
 
 
 def sample_depth(depth: np.ndarray, xy: np.ndarray, min_depth: float, max_depth: float,
@@ -199,8 +165,8 @@ def pose_jacobian(K: np.ndarray, points_cam: np.ndarray, has_depth: np.ndarray, 
 def observation_errors(K: np.ndarray, T_cw: np.ndarray, points_w: np.ndarray, xy: np.ndarray,
                        z_meas: np.ndarray, depth_noise: float) -> tuple[np.ndarray, np.ndarray]:
     """Reprojection error (px) and absolute depth residual (pixel-noise units) of each observation."""
-    res, _ = observation_residuals(K, transform(T_cw, points_w), xy, z_meas, depth_noise)
-    behind = transform(T_cw, points_w)[:, 2] <= 0
+    res, _ = observation_residuals(K, transform_points(T_cw, points_w), xy, z_meas, depth_noise)
+    behind = transform_points(T_cw, points_w)[:, 2] <= 0
     reproj = np.where(behind, np.inf, np.hypot(res[:, 0], res[:, 1]))
     return reproj, np.abs(res[:, 2])
 
@@ -248,12 +214,12 @@ def refine_pose(K: np.ndarray, T_cw: np.ndarray, points_w: np.ndarray, xy: np.nd
     if len(points_w) == 0 and prior is None:
         return T
     for _ in range(iterations):
-        pc = transform(T, points_w)
+        pc = transform_points(T, points_w)
         res, _ = observation_residuals(K, pc, xy, z_meas, depth_noise)
         jac = pose_jacobian(K, pc, z_meas > 0, depth_noise).reshape(-1, 6)
         r = res.reshape(-1)
         if prior is not None:
-            err = T @ invert(prior.T_cw)
+            err = T @ invert_pose(prior.T_cw)
             r_prior = np.concatenate([so3_log(err[:3, :3]) / prior.sigma_rotation_rad,
                                       err[:3, 3] / prior.sigma_translation])
             j_prior = np.zeros((6, 6))

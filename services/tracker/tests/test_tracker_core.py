@@ -10,9 +10,10 @@ from twohr.config import TrackerConfig
 from twohr.errors import TwohrError
 from twohr.evaluation import evaluate
 from twohr.features import Keypoints
+from twohr.geometry import invert_pose
 from twohr.trajectory import Trajectory
 from twohr_services.tracker.core import Tracker, TrackerInputError, TrackResult
-from twohr_services.tracker.optim import invert, pose_difference
+from twohr_services.tracker.optim import pose_difference
 
 # The synthetic depth is exact (0.2 mm quantisation), so the tracker is told its sensor is precise.
 SYNTHETIC = TrackerConfig(depth_noise=0.001)
@@ -33,7 +34,7 @@ def feed(tracker: Tracker, data, indices) -> list[TrackResult]:
 
 def truth_in_first_camera(data, index: int) -> np.ndarray:
     """The true pose of frame ``index`` in the tracker's world (the first frame's camera)."""
-    return invert(data.ground_truth.poses[0]) @ data.ground_truth.poses[index]
+    return invert_pose(data.ground_truth.poses[0]) @ data.ground_truth.poses[index]
 
 
 def test_recovers_the_synthetic_trajectory_within_1cm(orb_synthetic):
@@ -121,8 +122,8 @@ def test_starts_a_new_map_after_a_long_loss_without_relocalisation(orb_synthetic
     # the new map hangs off the coasted pose, so compare motion relative to the restart frame
     first = 40 + restart - 12
     for index, result in zip(range(first + 1, 50), results[restart + 1:], strict=True):
-        truth = invert(orb_synthetic.ground_truth.poses[first]) @ orb_synthetic.ground_truth.poses[index]
-        moved, turned = pose_difference(truth, invert(results[restart].pose) @ result.pose)
+        truth = invert_pose(orb_synthetic.ground_truth.poses[first]) @ orb_synthetic.ground_truth.poses[index]
+        moved, turned = pose_difference(truth, invert_pose(results[restart].pose) @ result.pose)
         assert moved < 0.01 and turned < 0.5, f"frame {index}: {moved:.4f} m, {turned:.2f} deg"
 
 

@@ -5,18 +5,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from twohr.geometry import invert_pose, project, transform_points
 from twohr_services.tracker.optim import (
     MotionPrior,
     bundle_adjust,
-    invert,
     pnp_ransac,
     pose_difference,
-    project,
     refine_pose,
     sample_depth,
     so3_exp_batch,
     so3_log,
-    transform,
 )
 
 K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
@@ -53,15 +51,15 @@ def test_pnp_ransac_and_refinement_recover_the_pose_despite_outliers():
     rng = np.random.default_rng(1)
     points = scene_points(rng, 300)
     truth = random_pose(rng, 0.05, 0.1)
-    camera_points = transform(truth, points)
-    xy = project(K, camera_points) + rng.normal(0, 0.3, (300, 2))
+    camera_points = transform_points(truth, points)
+    xy = project(camera_points, K) + rng.normal(0, 0.3, (300, 2))
     xy[:90] = rng.uniform([0, 0], [640, 480], (90, 2))  # 30 % gross outliers
     T_cw, inliers = pnp_ransac(K, points, xy, threshold_px=2.0, iterations=200)
     assert T_cw is not None
     assert inliers[90:].mean() > 0.95 and inliers[:90].mean() < 0.1
     refined = refine_pose(K, T_cw, points[inliers], xy[inliers], camera_points[inliers, 2], depth_noise=0.002,
                           huber=2.0)
-    moved, turned = pose_difference(invert(truth), invert(refined))
+    moved, turned = pose_difference(invert_pose(truth), invert_pose(refined))
     assert moved < 0.003 and turned < 0.05
 
 
@@ -81,12 +79,12 @@ def make_ba_problem(seed: int = 3, poses: int = 5, points: int = 800, outliers: 
     for k in range(poses):
         pose_wc = random_pose(rng, 0.03, 0.01)
         pose_wc[:3, 3] += [0.08 * k, 0.02 * k, 0.0]
-        truth_cw.append(invert(pose_wc))
+        truth_cw.append(invert_pose(pose_wc))
     truth_cw = np.array(truth_cw)
     obs_pose, obs_point, obs_xy, obs_depth = [], [], [], []
     for k in range(poses):
-        camera_points = transform(truth_cw[k], world)
-        uv = project(K, camera_points)
+        camera_points = transform_points(truth_cw[k], world)
+        uv = project(camera_points, K)
         seen = np.flatnonzero((uv[:, 0] > 0) & (uv[:, 0] < 640) & (uv[:, 1] > 0) & (uv[:, 1] < 480)
                               & (rng.random(points) < 0.8))
         obs_pose.append(np.full(len(seen), k))
@@ -112,8 +110,11 @@ def test_bundle_adjustment_reduces_reprojection_error_and_flags_outliers():
     assert result.final_rms_px < 0.25 * result.initial_rms_px
     assert result.final_rms_px < 1.0  # the observation noise is 0.5 px per axis
     assert np.array_equal(result.poses_cw[0], start_cw[0])  # the gauge stays put
-    before = [pose_difference(invert(t), invert(s))[0] for t, s in zip(truth_cw[1:], start_cw[1:], strict=True)]
-    after = [pose_difference(invert(t), invert(r))[0] for t, r in zip(truth_cw[1:], result.poses_cw[1:], strict=True)]
+    def error(a, b):
+        return pose_difference(invert_pose(a), invert_pose(b))[0]
+
+    before = [error(t, s) for t, s in zip(truth_cw[1:], start_cw[1:], strict=True)]
+    after = [error(t, r) for t, r in zip(truth_cw[1:], result.poses_cw[1:], strict=True)]
     assert min(before) > 0.01 and max(after) < 0.003
     assert np.median(np.linalg.norm(result.points_w - world, axis=1)) < 0.01
     flagged = np.flatnonzero(result.outliers)
