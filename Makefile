@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | sha256sum | cut -c1-12)
 DEMO_SEQUENCE ?= ../shared/data/rgbd_bonn_crowd_dev
 DEMO_OUT ?= runs/demo
 
-.PHONY: demo test venv models lint clean
+.PHONY: demo test compose-test venv models lint clean
 
 venv: $(STAMP)
 
@@ -27,6 +27,11 @@ lint: venv
 
 test: venv models lint
 	$(BIN)/python -m pytest -q
+
+# The whole system in containers (docker compose), with an engine started here if none answers;
+# prints a SKIP line and succeeds where no engine can be started. See scripts/docker-here.sh.
+compose-test: venv models
+	scripts/docker-here.sh run $(BIN)/python -m pytest -q tests/test_compose_stack.py
 
 demo: venv models
 	$(BIN)/twohr demo --sequence $(DEMO_SEQUENCE) --out $(DEMO_OUT)

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import pytest
 
+from twohr.bus import free_port
+
 REPO = Path(__file__).resolve().parent
 SHARED = REPO.parent / "shared"
 DEV_SEQUENCE = SHARED / "data" / "rgbd_bonn_crowd_dev"
@@ -41,14 +43,6 @@ def static_synthetic_sequence(tmp_path_factory) -> Path:
 
     return generate(tmp_path_factory.mktemp("synth_static") / "synthetic_static",
                     SyntheticSpec(frames=30, occluders=0, seed=3))
-
-
-def free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="session")

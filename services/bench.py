@@ -169,11 +169,13 @@ def format_table(rows: list[dict]) -> str:
 
 
 
-def bus_latency(sequence_root, config_overrides: dict, frames: int = 60, rate: float = 0.0,
-                timeout: float = 600.0) -> dict:
-    """Frame -> pose latency (p50, p99) and throughput of the whole system over Zenoh (``twohr up`` as
-    local processes), for the same frames and config as an in-process run."""
-    import socket
+def session_latency(router: str, gateway_url: str, sequence_name: str, frames: int = 60, rate: float = 0.0,
+                    config_overrides: dict | None = None, record: bool = False, robot_id: str = "bench",
+                    timeout: float = 600.0) -> dict:
+    """Run one session on an already-running system (``twohr up`` or the compose stack) and measure it
+    from outside: an independent Zenoh client of ``router`` receives the poses while ``POST /sessions``
+    on ``gateway_url`` drives the run. Frame -> pose latency is pose arrival minus the source's send
+    time (same host clock)."""
     import threading
 
     import httpx
@@ -182,23 +184,8 @@ def bus_latency(sequence_root, config_overrides: dict, frames: int = 60, rate: f
     from twohr.bus import BusConfig, open_session
     from twohr.messages import PoseMsg, decode
 
-    from .launcher_cli import start_system
-
-    def free_port() -> int:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            return s.getsockname()[1]
-
-    import tempfile
-
-    router, port = f"tcp/127.0.0.1:{free_port()}", free_port()
-    recordings = tempfile.mkdtemp(prefix="twohr_bench_")
-    t_start = time.time()
-    router_session, group = start_system(router, [str(sequence_root.parent)], recordings, "127.0.0.1", port)
-    startup_s = time.time() - t_start
     received: list[tuple[float, PoseMsg]] = []
     lock = threading.Lock()
-    listener = open_session(BusConfig(connect=[router]))
 
     def on_pose(sample) -> None:
         now = time.time()
@@ -206,28 +193,59 @@ def bus_latency(sequence_root, config_overrides: dict, frames: int = 60, rate: f
         with lock:
             received.append((now, pose))
 
+    listener = open_session(BusConfig(connect=[router]))
     sub = listener.declare_subscriber(keys.all_robots("pose"), on_pose)
     try:
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30) as client:
-            response = client.post("/sessions", json={"sequence": sequence_root.name, "robot_id": "bench",
-                                                      "max_frames": frames, "rate": rate, "record": False,
-                                                      "config": config_overrides})
+        with httpx.Client(base_url=gateway_url, timeout=30) as client:
+            response = client.post("/sessions", json={"sequence": sequence_name, "robot_id": robot_id,
+                                                      "max_frames": frames, "rate": rate, "record": record,
+                                                      "config": config_overrides or {}})
             response.raise_for_status()
             session_id = response.json()["id"]
             deadline = time.time() + timeout
-            while client.get(f"/sessions/{session_id}").json()["state"] in ("starting", "running"):
+            while (info := client.get(f"/sessions/{session_id}").json())["state"] in ("starting", "running"):
                 if time.time() > deadline:
-                    raise TimeoutError("bench session did not finish")
+                    raise TimeoutError(f"session {session_id} did not finish within {timeout:.0f} s")
                 time.sleep(0.2)
+            time.sleep(0.5)  # the listener's last samples may still be in flight
     finally:
         sub.undeclare()
         listener.close()
-        group.stop()
-        router_session.close()
-    mine = sorted((t, p) for t, p in received if p.session_id == session_id)
+    with lock:
+        mine = sorted(((t, p) for t, p in received if p.session_id == session_id), key=lambda tp: tp[0])
     latencies = [1000 * (t - p.frame_sent_at) for t, p in mine]
     span = mine[-1][0] - min(p.frame_sent_at for _, p in mine) if mine else float("nan")
-    return {"frames": len(mine), "rate": rate, "startup_s": round(startup_s, 1),
-            "latency_ms": {"p50": round(float(np.percentile(latencies, 50)), 1),
-                           "p99": round(float(np.percentile(latencies, 99)), 1)},
-            "fps": round(len(mine) / span, 3)}
+    return {"session": info, "frames": len(mine), "frame_indices": [p.frame_index for _, p in mine],
+            "rate": rate,
+            "latency_ms": {"p50": round(float(np.percentile(latencies, 50)), 1) if mine else None,
+                           "p99": round(float(np.percentile(latencies, 99)), 1) if mine else None},
+            "fps": round(len(mine) / span, 3) if mine else 0.0}
+
+
+def bus_latency(sequence_root, config_overrides: dict, frames: int = 60, rate: float = 0.0,
+                timeout: float = 600.0) -> dict:
+    """Frame -> pose latency (p50, p99) and throughput of the whole system over Zenoh (``twohr up`` as
+    local processes), for the same frames and config as an in-process run."""
+    import tempfile
+
+    from twohr.bus import free_port
+
+    from .launcher_cli import start_system
+
+    router, port = f"tcp/127.0.0.1:{free_port()}", free_port()
+    recordings = tempfile.mkdtemp(prefix="twohr_bench_")
+    t_start = time.time()
+    router_session, group = start_system(router, [str(sequence_root.parent)], recordings, "127.0.0.1", port)
+    startup_s = time.time() - t_start
+    try:
+        result = session_latency(router, f"http://127.0.0.1:{port}", sequence_root.name, frames, rate,
+                                 config_overrides, timeout=timeout)
+    finally:
+        group.stop()
+        router_session.close()
+    return {"startup_s": round(startup_s, 1), **latency_summary(result)}
+
+
+def latency_summary(result: dict) -> dict:
+    """The numbers of a :func:`session_latency` result, without the per-frame detail."""
+    return {k: result[k] for k in ("frames", "rate", "latency_ms", "fps")}

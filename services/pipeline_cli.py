@@ -124,12 +124,17 @@ def _bench(args: argparse.Namespace) -> int:
         frames = args.frames or 60
         local = [run_sequence(sequence, config, stop=frames, progress=not args.quiet) for _ in range(args.runs)]
         lat = np.concatenate([[s.ms_total for s in r.stats] for r in local])
-        bus_runs = [bench.bus_latency(sequence.root, overrides, frames) for _ in range(args.runs)]
+        if args.gateway:  # an already-running stack, e.g. the compose containers
+            bus_runs = [bench.latency_summary(bench.session_latency(args.router, args.gateway, sequence.root.name,
+                                                                    frames, config_overrides=overrides))
+                        for _ in range(args.runs)]
+        else:
+            bus_runs = [bench.bus_latency(sequence.root, overrides, frames) for _ in range(args.runs)]
         report["bus"] = {
             "in_process": {"fps_median": round(float(np.median([len(r.stats) / r.wall_s for r in local])), 3),
                            "latency_ms": {"p50": round(float(np.percentile(lat, 50)), 1),
                                           "p99": round(float(np.percentile(lat, 99)), 1)}},
-            "zenoh_runs": bus_runs,
+            "zenoh_runs": bus_runs, "zenoh_system": args.gateway or "twohr up (local processes)",
             "zenoh": {"fps_median": float(np.median([r["fps"] for r in bus_runs])),
                       "latency_p50_median": float(np.median([r["latency_ms"]["p50"] for r in bus_runs])),
                       "latency_p99_median": float(np.median([r["latency_ms"]["p99"] for r in bus_runs]))},
@@ -194,6 +199,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ablations", action="store_true", help="the ablation table instead of throughput")
     p.add_argument("--bus", action="store_true", help="frame->pose latency and FPS over Zenoh (twohr up as local "
                    "processes) against in-process, same frames and config (--set overrides go to both)")
+    p.add_argument("--gateway", default=None, metavar="URL",
+                   help="with --bus: measure the system already running behind this gateway (e.g. the compose "
+                   "stack, http://127.0.0.1:8080) instead of starting twohr up; its data root must hold --sequence")
+    p.add_argument("--router", default="tcp/127.0.0.1:7447", help="with --gateway: that system's Zenoh router")
     p.set_defaults(func=_bench)
 
     p = sub.add_parser("demo", help="the main job end to end on the dev sequence, with a printed result")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 from typing import Literal
 
 import zenoh
@@ -35,6 +36,13 @@ class BusConfig(BaseModel):
 def open_session(conf: BusConfig | None = None) -> zenoh.Session:
     """A Zenoh session as ``conf`` says (default: a client of the router at $TWOHR_ZENOH_ROUTER)."""
     return zenoh.open((conf or BusConfig()).zenoh_config())
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that is free on ``host`` right now (for routers, gateways and tests)."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
 
 
 def start_router(listen: list[str] | None = None) -> zenoh.Session:

@@ -61,6 +61,34 @@ def test_each_service_has_a_dockerfile_with_a_real_command():
 
 def test_project_dockerfile_copies_what_exists():
     text = (REPO / "Dockerfile").read_text()
-    for src in re.findall(r"^COPY (\S+)", text, re.M):
-        assert Path(REPO / src).exists(), src
+    for line in re.findall(r"^COPY (?!--from)(.+)$", text, re.M):
+        for src in line.split()[:-1]:
+            assert Path(REPO / src).exists(), src
     assert "USER twohr" in text
+    # the build context keeps only what the image needs (no .venv, runs or recordings)
+    ignore = (REPO / ".dockerignore").read_text().split()
+    assert ignore[ignore.index("*") + 1:][:4] == ["!pyproject.toml", "!README.md", "!shared/", "!services/"]
+
+
+def test_override_files_publish_ports_or_use_the_host_network():
+    """Ports live in the override file that `docker compose up` reads by itself; the host file replaces it,
+    because compose cannot publish ports under network_mode: host."""
+    ports = yaml.safe_load((REPO / "docker-compose.override.yml").read_text())["services"]
+    assert ports == {"router": {"ports": ["${TWOHR_ROUTER_PORT:-7447}:7447"]},
+                     "gateway": {"ports": ["${TWOHR_GATEWAY_PORT:-8080}:8080"]}}
+    assert all("ports" not in svc and "networks" not in svc for svc in COMPOSE["services"].values())
+
+    host = yaml.safe_load((REPO / "docker-compose.host.yml").read_text())["services"]
+    assert set(host) == set(COMPOSE["services"])
+    router_endpoint = "tcp/127.0.0.1:${TWOHR_ROUTER_PORT:-7447}"
+    for name, svc in host.items():
+        assert svc["network_mode"] == "host", name
+        assert svc["environment"]["TWOHR_ZENOH_ROUTER"] == router_endpoint, name
+    assert host["router"]["build"] == {"network": "host"}
+    assert host["router"]["command"][-1].endswith(":${TWOHR_ROUTER_PORT:-7447}")
+    assert host["router"]["healthcheck"]["test"][-2] == router_endpoint
+    assert host["gateway"]["command"][host["gateway"]["command"].index("--port") + 1] == "${TWOHR_GATEWAY_PORT:-8080}"
+    for svc in host.values():
+        for command in (svc.get("command"), svc.get("healthcheck", {}).get("test", [None])[1:]):
+            if command:
+                _check_command(command)

@@ -11,9 +11,8 @@ import httpx
 import numpy as np
 import pytest
 
-from conftest import free_port
 from twohr import keys
-from twohr.bus import BusConfig, open_session
+from twohr.bus import BusConfig, free_port, open_session
 from twohr.config import load_config
 from twohr.dataset import RGBDSequence
 from twohr.messages import PoseMsg, decode

@@ -1,0 +1,104 @@
+"""The real compose stack in containers: up, healthy, a session on 60 real frames, every pose seen
+from outside, the MCAP read back from the mounted folder, then down with nothing left running.
+
+Run by ``make compose-test`` (scripts/docker-here.sh provides the engine, the image and
+$TWOHR_COMPOSE); skipped in ``make test``.
+"""
+
+import json
+import os
+import shlex
+import subprocess
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from conftest import REPO
+from twohr.bus import free_port
+from twohr_services.bench import latency_summary, session_latency
+from twohr_services.launcher_cli import PIPELINE_SERVICES
+from twohr_services.recorder.core import topic_counts
+
+COMPOSE = os.environ.get("TWOHR_COMPOSE")
+pytestmark = pytest.mark.skipif(not COMPOSE, reason="needs a Docker engine: run `make compose-test`")
+
+FRAMES = 60
+PROJECT = f"twohr-test-{os.getpid()}"
+SERVICES = ["router", *PIPELINE_SERVICES, "gateway"]
+
+
+def compose(*args: str, env: dict, timeout: float = 600) -> subprocess.CompletedProcess:
+    command = [*shlex.split(COMPOSE), "-p", PROJECT, *args]
+    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
+    assert result.returncode == 0, f"{' '.join(command)} failed:\n{result.stdout}\n{result.stderr}"
+    return result
+
+
+def project_containers() -> list[str]:
+    result = subprocess.run(["docker", "ps", "-a", "-q", "--filter", f"label=com.docker.compose.project={PROJECT}"],
+                            capture_output=True, text=True, check=True)
+    return result.stdout.split()
+
+
+def health(container: str) -> str:
+    result = subprocess.run(["docker", "inspect", "--format", "{{.State.Health.Status}}", container],
+                            capture_output=True, text=True)
+    return result.stdout.strip() or result.stderr.strip()
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory, dev_sequence, model_mirror):
+    recordings = tmp_path_factory.mktemp("compose_recordings")
+    if os.geteuid() == 0:
+        os.chown(recordings, 10001, 10001)  # the image's non-root user writes the recordings
+    else:
+        recordings.chmod(0o777)
+    router_port, gateway_port = free_port(), free_port()
+    env = {**os.environ, "TWOHR_DATA": str(dev_sequence.parent), "TWOHR_MODELS": str(model_mirror),
+           "TWOHR_RECORDINGS": str(recordings), "TWOHR_ROUTER_PORT": str(router_port),
+           "TWOHR_GATEWAY_PORT": str(gateway_port)}
+    t0 = time.time()
+    try:
+        compose("up", "-d", "--no-build", env=env)
+        containers = {s: f"{PROJECT}_{s}_1" for s in SERVICES}
+        deadline = time.time() + 300
+        while (states := {s: health(c) for s, c in containers.items()}) and set(states.values()) != {"healthy"}:
+            assert time.time() < deadline, f"not healthy after 300 s: {states}"
+            assert "unhealthy" not in states.values(), states
+            time.sleep(1)
+        started_s = time.time() - t0
+        yield {"router": f"tcp/127.0.0.1:{router_port}", "gateway": f"http://127.0.0.1:{gateway_port}",
+               "recordings": recordings, "startup_s": started_s}
+    finally:
+        if any(s != "healthy" for s in locals().get("states", {}).values()):
+            print(compose("logs", "--tail", "40", env=env).stdout)
+        compose("down", "-v", "--remove-orphans", env=env)
+        assert project_containers() == [], "containers left after down"
+
+
+def test_session_in_containers_streams_every_pose_and_records_mcap(stack, dev_sequence):
+    result = session_latency(stack["router"], stack["gateway"], dev_sequence.name, FRAMES, record=True,
+                             robot_id="compose", timeout=900)
+    info = result["session"]
+    assert info["state"] == "finished" and info["frames"] == FRAMES, info
+    # the independent subscriber outside the containers saw every frame's pose, once
+    assert sorted(result["frame_indices"]) == list(range(FRAMES))
+    assert info["ate_rmse"] is not None and info["ate_rmse"] < 0.05, info  # a real trajectory, not a stub
+
+    # the gateway serves the file once the recorder has finalised it; the same bytes are in the mounted folder
+    served = httpx.get(f"{stack['gateway']}/sessions/{info['id']}/recording", timeout=60)
+    assert served.status_code == 200, served.text
+    mcap = stack["recordings"] / f"{info['id']}.mcap"
+    assert mcap.is_file(), sorted(p.name for p in Path(stack["recordings"]).iterdir())
+    assert mcap.read_bytes() == served.content
+    counts = topic_counts(mcap)
+    for stream in ("frames", "keypoints", "dynamics", "pose"):
+        assert counts[f"/twohr/compose/{stream}"] == FRAMES, (stream, counts)
+
+    out = REPO / "runs" / "compose"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "session.json").write_text(json.dumps(
+        {"startup_s": round(stack["startup_s"], 1), **latency_summary(result), "ate_rmse": info["ate_rmse"]},
+        indent=2))
