@@ -42,7 +42,7 @@ start_engine() {
     log "starting dockerd (vfs storage, no bridge); log in $STATE/dockerd.log"
     dockerd --storage-driver=vfs --iptables=false --bridge=none >"$STATE/dockerd.log" 2>&1 &
     echo $! >"$STATE/dockerd.pid"
-    for _ in $(seq 60); do engine_answers && { log "engine up"; return; }; sleep 1; done
+    for i in $(seq 60); do engine_answers && { log "engine up after ${i} s"; return; }; sleep 1; done
     stop_engine
     skip "dockerd did not answer within 60 s (see $STATE/dockerd.log)"
 }
@@ -79,7 +79,7 @@ base_image() {
         echo "$official"; return
     fi
     if ! docker image inspect "$local" >/dev/null 2>&1; then
-        local rootfs="$STATE/rootfs" mirror; mirror=$(apt_mirror)
+        local rootfs="$STATE/rootfs" mirror t0=$SECONDS; mirror=$(apt_mirror)
         log "cannot pull $official; building $local with debootstrap from $mirror (about 40 s)"
         rm -rf "$rootfs"
         debootstrap --variant=minbase --include=python3,python3-venv,python3-pip,ca-certificates \
@@ -89,6 +89,7 @@ base_image() {
                "$rootfs"/usr/share/man "$rootfs"/usr/share/locale "$rootfs"/var/cache/apt/*.bin
         tar -C "$rootfs" -c . | docker import - "$local" >/dev/null
         rm -rf "$rootfs"
+        log "built $local in $((SECONDS - t0)) s"
     fi
     echo "$local"
 }
