@@ -12,8 +12,8 @@
 #      debootstrap from the apt mirror and `docker import` it;
 #   3. build twohr:latest from the Dockerfile (with the host's pip CA bundle, when the host's pip
 #      has one, for hosts that reach PyPI through a TLS proxy).
-# CMD sees TWOHR_COMPOSE (the compose command, with -f files: docker-compose.host.yml is added
-# when the engine has no bridge network) and TWOHR_BASE_IMAGE.
+# CMD sees TWOHR_COMPOSE (the compose command with its -f files: docker-compose.host.yml in place
+# of docker-compose.override.yml when the engine has no bridge network) and TWOHR_BASE_IMAGE.
 # When no engine can be started the script prints one "SKIP" line and exits 0, so CI stays green
 # on hosts without Docker; any later failure is an error.
 set -euo pipefail
@@ -58,8 +58,8 @@ stop_engine() {
 }
 
 compose_command() {
-    local files="-f docker-compose.yml"
-    docker network inspect bridge >/dev/null 2>&1 || files="$files -f docker-compose.host.yml"
+    local files="-f docker-compose.yml -f docker-compose.override.yml"
+    docker network inspect bridge >/dev/null 2>&1 || files="-f docker-compose.yml -f docker-compose.host.yml"
     if docker compose version >/dev/null 2>&1; then echo "docker compose $files"
     elif command -v docker-compose >/dev/null; then echo "docker-compose $files"
     else echo "no compose command: install docker-compose or the compose plugin" >&2; return 1; fi
@@ -126,5 +126,5 @@ case "${1:-}" in
         trap stop_engine EXIT
         up
         "$@" ;;
-    *) sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//'; [ "${1:-}" = -h ] || [ "${1:-}" = --help ]; exit ;;
+    *) sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//'; [ "${1:-}" = -h ] || [ "${1:-}" = --help ]; exit ;;
 esac

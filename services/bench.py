@@ -168,7 +168,6 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-
 def session_latency(router: str, gateway_url: str, sequence_name: str, frames: int = 60, rate: float = 0.0,
                     config_overrides: dict | None = None, record: bool = False, robot_id: str = "bench",
                     timeout: float = 600.0) -> dict:

@@ -63,8 +63,7 @@ def _wait_http(url: str, timeout: float) -> None:
 def start_system(router: str, data_roots: list[str], recordings: str, host: str, port: int,
                  api_token: str | None = None, timeout: float = 120.0, log_level: str = "INFO"):
     """Start the router, the services and the gateway; returns (router session, ProcessGroup) once healthy."""
-    from twohr.bus import BusConfig, open_session, start_router
-    from twohr.service import wait_for_services
+    from twohr.bus import BusConfig, open_session, start_router, wait_for_services
 
     router_session = start_router([router])
     env = dict(os.environ, TWOHR_ZENOH_ROUTER=router, TWOHR_LOG_LEVEL=log_level)
@@ -135,8 +134,7 @@ def _router(args: argparse.Namespace) -> int:
 
 
 def _health(args: argparse.Namespace) -> int:
-    from twohr.bus import BusConfig, open_session
-    from twohr.service import query_health
+    from twohr.bus import BusConfig, open_session, query_health
 
     session = open_session(BusConfig(connect=[args.router]) if args.router else BusConfig())
     try:

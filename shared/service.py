@@ -21,11 +21,10 @@ from typing import Literal
 import zenoh
 
 from . import keys
-from .bus import BusConfig, open_session
+from .bus import HEALTH_PREFIX, BusConfig, open_session
 from .config import PipelineConfig
 from .messages import ControlMsg, MessageError, decode
 
-HEALTH_PREFIX = "twohr/_health"
 QueuePolicy = Literal["drop_oldest", "backpressure"]
 
 
@@ -206,30 +205,6 @@ def declare_publisher(session: zenoh.Session, key: str, wait_for_subscribers: fl
     while not publisher.matching_status.matching and time.monotonic() < deadline:
         time.sleep(0.02)
     return publisher
-
-
-def query_health(session: zenoh.Session, service: str, timeout: float = 1.0) -> dict | None:
-    """Ask one service for its health counters; None if it does not answer in time."""
-    for reply in session.get(f"{HEALTH_PREFIX}/{service}", timeout=timeout):
-        if reply.ok is not None:
-            return json.loads(reply.ok.payload.to_bytes())
-    return None
-
-
-def wait_for_services(session: zenoh.Session, names: list[str], timeout: float = 30.0) -> dict[str, dict]:
-    """Block until every named service answers its health query; raises TimeoutError naming the missing ones."""
-    deadline = time.monotonic() + timeout
-    healthy: dict[str, dict] = {}
-    while time.monotonic() < deadline:
-        for name in names:
-            if name not in healthy:
-                answer = query_health(session, name, timeout=0.5)
-                if answer is not None:
-                    healthy[name] = answer
-        if len(healthy) == len(names):
-            return healthy
-        time.sleep(0.2)
-    raise TimeoutError(f"services not healthy after {timeout:.0f} s: {sorted(set(names) - set(healthy))}")
 
 
 def serve(service_cls: type[Service], argv: list[str] | None = None, **kwargs) -> None:

@@ -60,19 +60,20 @@ def stack(tmp_path_factory, dev_sequence, model_mirror):
            "TWOHR_RECORDINGS": str(recordings), "TWOHR_ROUTER_PORT": str(router_port),
            "TWOHR_GATEWAY_PORT": str(gateway_port)}
     t0 = time.time()
+    healthy = False
     try:
         compose("up", "-d", "--no-build", env=env)
-        containers = {s: f"{PROJECT}_{s}_1" for s in SERVICES}
+        containers = {s: compose("ps", "-q", s, env=env).stdout.strip() for s in SERVICES}
         deadline = time.time() + 300
-        while (states := {s: health(c) for s, c in containers.items()}) and set(states.values()) != {"healthy"}:
-            assert time.time() < deadline, f"not healthy after 300 s: {states}"
+        while set((states := {s: health(c) for s, c in containers.items()}).values()) != {"healthy"}:
             assert "unhealthy" not in states.values(), states
+            assert time.time() < deadline, f"not healthy after 300 s: {states}"
             time.sleep(1)
-        started_s = time.time() - t0
+        healthy = True
         yield {"router": f"tcp/127.0.0.1:{router_port}", "gateway": f"http://127.0.0.1:{gateway_port}",
-               "recordings": recordings, "startup_s": started_s}
+               "recordings": recordings, "startup_s": time.time() - t0}
     finally:
-        if any(s != "healthy" for s in locals().get("states", {}).values()):
+        if not healthy:
             print(compose("logs", "--tail", "40", env=env).stdout)
         compose("down", "-v", "--remove-orphans", env=env)
         assert project_containers() == [], "containers left after down"

@@ -4,9 +4,9 @@ import threading
 import time
 
 from twohr import keys
-from twohr.bus import open_session
+from twohr.bus import open_session, query_health, wait_for_services
 from twohr.messages import PoseMsg, decode, encode
-from twohr.service import Counters, Inbox, Service, declare_publisher, query_health, wait_for_services
+from twohr.service import Counters, Inbox, Service, declare_publisher
 
 
 class EchoService(Service):

@@ -22,7 +22,7 @@ from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 from pydantic import BaseModel, Field
 
 from twohr import keys
-from twohr.bus import BusConfig, open_session
+from twohr.bus import BusConfig, open_session, query_health
 from twohr.config import PipelineConfig, load_config
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
@@ -30,7 +30,7 @@ from twohr.evaluation import evaluate
 from twohr.messages import ControlMsg, MessageError, PoseMsg, StatusMsg, decode, encode
 from twohr.models import get_spec
 from twohr.paths import resolve_under_roots
-from twohr.service import declare_publisher, query_health
+from twohr.service import declare_publisher
 from twohr.trajectory import tum_text
 
 from .sessions import PoseOut, Session, SessionInfo, SessionRequest, SessionTable

@@ -10,10 +10,10 @@ import time
 from mcap.reader import make_reader
 
 from twohr import keys
-from twohr.bus import open_session
+from twohr.bus import open_session, wait_for_services
 from twohr.dataset import RGBDSequence
 from twohr.messages import ControlMsg, PoseMsg, decode, encode
-from twohr.service import declare_publisher, wait_for_services
+from twohr.service import declare_publisher
 from twohr_services.recorder.core import SessionRecorder, read_messages, topic_counts
 from twohr_services.recorder.service import RecorderService
 from twohr_services.source.core import frame_payloads
