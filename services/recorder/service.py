@@ -7,6 +7,7 @@ finalised on ``stop``. Files of sessions still open when the service exits are f
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 
@@ -79,5 +80,21 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--router", default=None, help="Zenoh router endpoint (default $TWOHR_ZENOH_ROUTER)")
     parser.add_argument("--recordings", default="recordings", help="folder for the MCAP files")
     args = parser.parse_args(argv)
+    recordings = Path(args.recordings)
+    if problem := unwritable(recordings):
+        parser.exit(2, f"recorder: error: {problem}\n")
     bus = BusConfig(connect=[args.router]) if args.router else BusConfig()
-    RecorderService(bus, Path(args.recordings)).run_forever()
+    RecorderService(bus, recordings).run_forever()
+
+
+def unwritable(folder: Path) -> str | None:
+    """Why the recorder could not write MCAP files into ``folder`` (None if it can). Checked at start,
+    so that a wrongly owned volume is one clear line in the log, not a failed session later."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"cannot create the recordings folder {folder}: {exc.strerror}"
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return (f"the recordings folder {folder} is not writable by uid {os.getuid()} "
+                f"(owner uid {folder.stat().st_uid}); chown it, or in docker compose set TWOHR_UID=$(id -u)")
+    return None

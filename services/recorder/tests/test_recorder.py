@@ -102,3 +102,12 @@ def test_chunks_survive_a_kill(bus_config, zenoh_router, dev_sequence, tmp_path)
     finally:
         proc.kill()
         client.close()
+
+
+def test_recorder_refuses_to_start_on_a_folder_it_cannot_write(tmp_path):
+    blocker = tmp_path / "not_a_folder"
+    blocker.write_text("a file where the recordings folder should be")
+    result = subprocess.run([sys.executable, "-m", "twohr_services.recorder", "--recordings", str(blocker)],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    assert result.stderr.strip().startswith(f"recorder: error: cannot create the recordings folder {blocker}")
