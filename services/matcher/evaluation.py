@@ -90,22 +90,27 @@ def summarize(method: str, results: list[PairResult], min_gt_repeatability: floa
     )
 
 
+def _pairs_with_poses(cache: KeypointCache, pairs: list[tuple[int, int]], desc: str, progress: bool):
+    """(a, b, frame_a, frame_b) for every pair whose two frames have a ground-truth pose; each frame loads once."""
+    from tqdm import tqdm
+
+    loaded = {}
+    for a, b in tqdm(pairs, desc=desc, unit="pair", disable=not progress):
+        for i in (a, b):
+            if i not in loaded:
+                loaded[i] = cache.load(i)
+        if loaded[a].pose is not None and loaded[b].pose is not None:
+            yield a, b, loaded[a], loaded[b]
+
+
 def evaluate_matchers(cache: KeypointCache, pairs: list[tuple[int, int]], matchers: dict[str, MatchFunction],
                       thresholds: Sequence[float] = THRESHOLDS, min_gt_repeatability: float | None = None,
                       progress: bool = True) -> tuple[dict[str, MethodSummary], dict[str, list[PairResult]]]:
     """Run every matcher on every cached frame pair; frame pairs without ground-truth poses are skipped."""
-    from tqdm import tqdm
-
     camera = cache.sequence.camera
     results: dict[str, list[PairResult]] = {name: [] for name in matchers}
-    loaded, depth_maps = {}, {}
-    for a, b in tqdm(pairs, desc="matching", unit="pair", disable=not progress):
-        for i in (a, b):
-            if i not in loaded:
-                loaded[i] = cache.load(i)
-        frame_a, frame_b = loaded[a], loaded[b]
-        if frame_a.pose is None or frame_b.pose is None:
-            continue
+    depth_maps = {}
+    for a, b, frame_a, frame_b in _pairs_with_poses(cache, pairs, "matching", progress):
         if b not in depth_maps:
             depth_maps[b] = cache.sequence.read(b).depth
         geometry = pair_geometry(frame_a, frame_b, camera.matrix, camera.width, camera.height, depth_maps[b])
@@ -125,22 +130,13 @@ def threshold_sweep(cache: KeypointCache, pairs: list[tuple[int, int]], matcher,
 
     Candidates and scores are computed once per frame pair, then thresholded: the same matches as
     ``SiameseMatcher(conf with threshold=tau).match`` for each tau, at a fraction of the cost."""
-    from tqdm import tqdm
-
     from twohr.features import Matches
 
     from .core import knn_candidates, mutual_best
 
     camera = cache.sequence.camera
     results: dict[float, list[PairResult]] = {tau: [] for tau in taus}
-    loaded = {}
-    for a, b in tqdm(pairs, desc="tau sweep", unit="pair", disable=not progress):
-        for i in (a, b):
-            if i not in loaded:
-                loaded[i] = cache.load(i)
-        frame_a, frame_b = loaded[a], loaded[b]
-        if frame_a.pose is None or frame_b.pose is None:
-            continue
+    for a, b, frame_a, frame_b in _pairs_with_poses(cache, pairs, "tau sweep", progress):
         geometry = pair_geometry(frame_a, frame_b, camera.matrix, camera.width, camera.height)
         desc_a, desc_b = frame_a.keypoints.descriptors, frame_b.keypoints.descriptors
         idx_a, idx_b = knn_candidates(desc_a, desc_b, matcher.conf.candidates)
