@@ -10,8 +10,8 @@
 #      start `dockerd --storage-driver=vfs --iptables=false --bridge=none` in the background;
 #   2. the official python:3.11-slim base cannot be pulled: build twohr-base:bookworm with
 #      debootstrap from the apt mirror and `docker import` it;
-#   3. build twohr:latest from the Dockerfile (with the host's pip CA bundle, when the host's pip
-#      has one, for hosts that reach PyPI through a TLS proxy).
+#   3. build twohr:latest from the Dockerfile, trusting the host's CA bundle (the one the host's pip
+#      uses, else the system one) for hosts that reach PyPI through a TLS proxy.
 # CMD sees TWOHR_COMPOSE (the compose command with its -f files: docker-compose.host.yml in place
 # of docker-compose.override.yml when the engine has no bridge network) and TWOHR_BASE_IMAGE.
 # When no engine can be started the script prints one "SKIP" line and exits 0, so CI stays green
@@ -95,10 +95,11 @@ base_image() {
 }
 
 build_image() {
-    local cert=${PIP_CERT:-${SSL_CERT_FILE:-${REQUESTS_CA_BUNDLE:-}}}
+    # the bundle the host's pip trusts, else the system bundle: harmless where PyPI is reached directly
+    local cert=${PIP_CERT:-${SSL_CERT_FILE:-${REQUESTS_CA_BUNDLE:-/etc/ssl/certs/ca-certificates.crt}}}
     rm -f docker/pip-cert/ca-certificates.crt
     if [ -n "$cert" ] && [ -s "$cert" ]; then
-        log "the image build trusts the host pip's CA bundle $cert"
+        log "the image build trusts the host's CA bundle $cert"
         cp "$cert" docker/pip-cert/ca-certificates.crt
     fi
     local t0=$SECONDS
