@@ -14,34 +14,22 @@ DEFAULT_SEQUENCE = "../shared/data/rgbd_bonn_crowd_dev"
 DEFAULT_OUT = "runs/features"
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
+def _bounded(parse, minimum: float, inclusive: bool, what: str):
+    """An argparse ``type=`` that parses with ``parse`` and rejects values below ``minimum`` (or at it)."""
+    def convert(text: str):
+        try:
+            value = parse(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+        if not (value >= minimum if inclusive else value > minimum):
+            raise argparse.ArgumentTypeError(f"expected {what}, got {value}")
+        return value
+    return convert
 
 
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a frame number (0 or more), got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a frame number (0 or more), got {value}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {value}")
-    return value
+_positive_int = _bounded(int, 1, True, "a positive integer")
+_non_negative_int = _bounded(int, 0, True, "a frame number (0 or more)")
+_positive_float = _bounded(float, 0, False, "a positive number")
 
 
 def _detector_conf(args: argparse.Namespace):

@@ -80,19 +80,19 @@ def create_app(settings: GatewaySettings) -> FastAPI:
     table = SessionTable()
     bus_state: dict = {}
 
-    def on_pose(sample) -> None:
-        try:
-            pose, _ = decode(sample.payload.to_bytes(), PoseMsg)
-            table.on_pose(pose)
-        except MessageError as exc:
-            log.warning("malformed pose on %s: %s", sample.key_expr, exc)
+    def decoded(schema, handle):
+        """A Zenoh callback that decodes ``schema`` and hands it to ``handle``; malformed payloads are logged."""
+        def callback(sample) -> None:
+            try:
+                message, _ = decode(sample.payload.to_bytes(), schema)
+            except MessageError as exc:
+                log.warning("malformed %s on %s: %s", schema.__name__, sample.key_expr, exc)
+                return
+            handle(message)
+        return callback
 
-    def on_status(sample) -> None:
-        try:
-            status_msg, _ = decode(sample.payload.to_bytes(), StatusMsg)
-            table.on_status(status_msg)
-        except MessageError as exc:
-            log.warning("malformed status on %s: %s", sample.key_expr, exc)
+    on_pose = decoded(PoseMsg, table.on_pose)
+    on_status = decoded(StatusMsg, table.on_status)
 
     def send_control(session: Session, command: str, config: PipelineConfig | None = None) -> None:
         req = session.request
