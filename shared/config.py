@@ -29,7 +29,11 @@ class DetectorConfig(Section):
     )
     model: str = Field("faster2d2_WASF_N16", description="registered r2d2-kind model")
     input_scale: float = Field(1.0, gt=0, le=2, description="network input size relative to the image (even sizes)")
-    threads: int = Field(2, ge=1, description="onnxruntime intra-op threads")
+    backend: Literal["auto", "openvino", "onnxruntime"] = Field(
+        "auto", description="inference backend; auto = OpenVINO where installed, else onnxruntime")
+    precision: Literal["auto", "bf16", "f32"] = Field(
+        "auto", description="OpenVINO precision; auto = bf16 on CPUs with native bf16 (AMX), else f32")
+    threads: int = Field(1, ge=1, le=64, description="inference threads (1: the other core tracks frames)")
     max_keypoints: int = Field(1500, ge=16, description="keep the top N by score")
     min_reliability: float = Field(0.7, ge=0, le=1, description="R2D2 score floor before the 2HR filter")
     min_repeatability: float = Field(0.7, ge=0, le=1, description="R2D2 score floor before the 2HR filter")
@@ -46,7 +50,11 @@ class YoloConfig(Section):
 
     enabled: bool = True
     model: str = Field("yolov8n_320", description="registered yolov8- or yolov5-kind model (input size from the ONNX)")
-    threads: int = Field(2, ge=1, description="onnxruntime intra-op threads")
+    backend: Literal["auto", "openvino", "onnxruntime"] = Field(
+        "auto", description="inference backend; auto = OpenVINO where installed, else onnxruntime")
+    precision: Literal["auto", "bf16", "f32"] = Field(
+        "auto", description="OpenVINO precision; auto = bf16 on CPUs with native bf16 (AMX), else f32")
+    threads: int = Field(1, ge=1, le=64, description="inference threads")
     conf_threshold: float = Field(0.25, ge=0, le=1, description="keep detections scoring at least this")
     iou_threshold: float = Field(0.45, ge=0, le=1, description="class-aware NMS overlap")
     max_detections: int = Field(100, ge=1, description="keep at most this many detections per image")
@@ -115,6 +123,15 @@ class TrackerConfig(Section):
                                  "tracked frames")
     coast_velocity_decay: float = Field(0.7, ge=0, le=1, description="while lost, the pose coasts on the "
                                         "motion model whose velocity decays by this factor per frame")
+    # per-frame optical-flow tracking between keyframes (pipeline.mode = keyframes)
+    flow_window_px: int = Field(15, ge=5, le=63, description="Lucas-Kanade window (px)")
+    flow_levels: int = Field(3, ge=0, le=6, description="Lucas-Kanade pyramid levels above the image")
+    flow_fb_px: float = Field(1.0, gt=0, description="drop a track whose forward-backward flow misses its start "
+                              "by more than this (px)")
+    flow_max_tracks: int = Field(600, ge=16, description="follow at most this many landmarks per frame")
+    keyframe_max_interval: int = Field(10, ge=1, description="ask for a keyframe at least every this many frames")
+    flow_keyframe_min_inliers: int = Field(150, ge=6, description="ask for a keyframe when fewer tracks than this "
+                                           "are inliers of the pose")
     # keyframes and map
     keyframe_min_inlier_ratio: float = Field(0.6, ge=0, le=1, description="new keyframe when inliers fall below "
                                              "this fraction of those at the latest keyframe")
@@ -140,10 +157,28 @@ class TrackerConfig(Section):
                                           "map at the coasted pose")
 
 
+class RuntimeConfig(Section):
+    """How the cores are scheduled. ``keyframes`` (default) tracks every frame by optical flow and runs 2HR
+    detection, matching and bundle adjustment only on keyframes, in a mapping worker, with YOLO in its own
+    worker; ``every_frame`` runs every stage on every frame, as in the paper (for its ablations)."""
+
+    mode: Literal["keyframes", "every_frame"] = "keyframes"
+    synchronous: bool = Field(False, description="run the workers inline: slower, but deterministic (tests)")
+    yolo_every_n: int = Field(3, ge=1, description="keyframes mode: run YOLO on every n-th frame when its "
+                              "worker is free; masks are propagated to the frames between")
+    mask_max_age: int = Field(8, ge=0, description="keyframes mode: use a dynamic mask at most this many frames "
+                              "old (grown by yolo.propagate_growth per frame); older = no mask")
+    max_keyframe_lag: int = Field(8, ge=0, description="replay from disk: a frame waits for the mapping worker "
+                                  "when its keyframe job is more than this many frames old, so a replay faster than "
+                                  "the camera sees the map as a live camera would (live streams never wait)")
+    prefetch: int = Field(4, ge=1, le=64, description="frames read and decoded ahead on a background thread")
+
+
 class PipelineConfig(Section):
     """The whole in-process pipeline: detector -> yolo mask -> matcher -> tracker."""
 
     camera: str | None = Field(None, description="camera preset; None = camera.yaml or the folder name")
+    pipeline: RuntimeConfig = Field(default_factory=RuntimeConfig)
     detector: DetectorConfig = Field(default_factory=DetectorConfig)
     yolo: YoloConfig = Field(default_factory=YoloConfig)
     matcher: MatcherConfig = Field(default_factory=MatcherConfig)

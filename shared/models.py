@@ -17,6 +17,7 @@ from functools import cache
 from importlib import resources
 from pathlib import Path
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, Field
 
@@ -176,3 +177,79 @@ def cpu_session(model: str | bytes, threads: int):
     import onnxruntime as ort
 
     return ort.InferenceSession(model, session_options(threads), providers=["CPUExecutionProvider"])
+
+
+#: Inference backends for the dense networks; ``auto`` = OpenVINO where it is installed, else onnxruntime.
+BACKENDS = ("auto", "openvino", "onnxruntime")
+
+
+def resolve_backend(backend: str) -> str:
+    """``auto`` -> ``openvino`` when the package imports, else ``onnxruntime``; others are checked."""
+    if backend not in BACKENDS:
+        raise ModelError(f"unknown inference backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    if backend != "auto":
+        return backend
+    try:
+        import openvino  # noqa: F401
+    except ImportError:
+        return "onnxruntime"
+    return "openvino"
+
+
+def cpu_has_bf16() -> bool:
+    """True when OpenVINO reports native bf16 on this CPU (AMX or AVX-512 BF16)."""
+    try:
+        import openvino as ov
+    except ImportError:
+        return False
+    return "BF16" in ov.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")
+
+
+class Network:
+    """One compiled network, called with a dict of float32 inputs; returns its outputs by name.
+
+    ``backend`` is ``onnxruntime`` or ``openvino`` (see :func:`resolve_backend`). For OpenVINO,
+    ``precision`` is the inference precision: ``bf16`` uses AMX where the CPU has it (about 3.5x
+    faster than fp32 for faster2d2 here), ``f32`` is exact, ``auto`` = bf16 where native. The model
+    is compiled once per input shape, because static shapes run faster. Not thread-safe: give each
+    thread its own, or lock.
+    """
+
+    def __init__(self, model: str | bytes, threads: int, backend: str = "auto", precision: str = "auto") -> None:
+        self.backend = resolve_backend(backend)
+        self.threads = threads
+        if self.backend == "onnxruntime":
+            self._session = cpu_session(model, threads)
+            self.input_names = [i.name for i in self._session.get_inputs()]
+            self.output_names = [o.name for o in self._session.get_outputs()]
+            return
+        import openvino as ov
+
+        if precision == "auto":
+            precision = "bf16" if cpu_has_bf16() else "f32"
+        if precision not in ("bf16", "f32"):
+            raise ModelError(f"unknown OpenVINO precision {precision!r}; choose auto, bf16 or f32")
+        self.precision = precision
+        self._core = ov.Core()
+        self._model = self._core.read_model(model)
+        self.input_names = [i.get_any_name() for i in self._model.inputs]
+        self.output_names = [o.get_any_name() for o in self._model.outputs]
+        self._compiled: dict[tuple, object] = {}
+
+    def _request(self, inputs: dict[str, np.ndarray]):
+        key = tuple(inputs[name].shape for name in self.input_names)
+        if key not in self._compiled:
+            model = self._model.clone()
+            model.reshape({name: list(inputs[name].shape) for name in self.input_names})
+            compiled = self._core.compile_model(model, "CPU", {
+                "INFERENCE_PRECISION_HINT": self.precision, "INFERENCE_NUM_THREADS": self.threads,
+                "PERFORMANCE_HINT": "LATENCY", "NUM_STREAMS": 1})
+            self._compiled[key] = compiled.create_infer_request()
+        return self._compiled[key]
+
+    def __call__(self, inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        if self.backend == "onnxruntime":
+            return dict(zip(self.output_names, self._session.run(self.output_names, inputs), strict=True))
+        request = self._request(inputs)
+        request.infer(inputs)
+        return {name: request.get_tensor(name).data for name in self.output_names}

@@ -89,8 +89,10 @@ def test_post_session_streams_every_pose_and_matches_twohr_run(system, dev_seque
     assert sorted(p.frame_index for p in received) == list(range(FRAMES))
     assert all(k == "twohr/robot_a/pose" for k, p in listener.poses if p.session_id == session_id)
 
-    # the same frames and config in one process give the same trajectory
-    local = run_sequence(RGBDSequence(dev_sequence), load_config(None, OVERRIDES), stop=FRAMES, progress=False)
+    # the same frames and config in one process give the same trajectory (the services compose the
+    # every-frame schedule across Zenoh: each frame's keypoints come from the detector service)
+    local = run_sequence(RGBDSequence(dev_sequence), load_config(None, {**OVERRIDES, "pipeline.mode": "every_frame"}),
+                         stop=FRAMES, progress=False)
     (tmp_path / "served.txt").write_text(trajectory_text)
     served = read_tum(tmp_path / "served.txt")
     assert np.allclose(served.stamps, local.online.stamps)

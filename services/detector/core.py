@@ -27,7 +27,7 @@ import onnxruntime as ort
 
 from twohr.config import DetectorConfig
 from twohr.features import Keypoints
-from twohr.models import cpu_session, model_path
+from twohr.models import Network, cpu_session, model_path, resolve_backend
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
@@ -272,6 +272,16 @@ def _session(path: str, threads: int, sparse_descriptors: bool) -> tuple[ort.Inf
     return session, prepared
 
 
+class _OpenVinoRunner:
+    """The prepared graph compiled by OpenVINO (one compile per input size), with the same outputs."""
+
+    def __init__(self, prepared: _PreparedModel, threads: int, precision: str) -> None:
+        self.network = Network(prepared.model, threads, "openvino", precision)
+
+    def __call__(self, image: np.ndarray) -> dict[str, np.ndarray]:
+        return self.network({"image": image})
+
+
 class R2D2Network:
     """One onnxruntime session per process, model and thread count; input and output buffers reused per size.
 
@@ -279,10 +289,17 @@ class R2D2Network:
     slower, kept as the reference for tests and benchmarks.
     """
 
-    def __init__(self, model: str = "faster2d2_WASF_N16", threads: int = 2, sparse_descriptors: bool = True) -> None:
+    def __init__(self, model: str = "faster2d2_WASF_N16", threads: int = 2, sparse_descriptors: bool = True,
+                 backend: str = "onnxruntime", precision: str = "auto") -> None:
         self.model = model
         self.threads = threads
-        self.session, prepared = _session(str(model_path(model, kind="r2d2")), threads, sparse_descriptors)
+        self.backend = resolve_backend(backend)
+        path = str(model_path(model, kind="r2d2"))
+        if self.backend == "openvino":
+            prepared = _prepare_model(path, sparse_descriptors)
+            self.openvino = _OpenVinoRunner(prepared, threads, precision)
+        else:
+            self.session, prepared = _session(path, threads, sparse_descriptors)
         self.feature_stride = prepared.feature_stride
         self._buffers: dict[tuple[int, int], tuple[np.ndarray, dict[str, np.ndarray], ort.IOBinding]] = {}
         self._lock = threading.Lock()
@@ -299,6 +316,9 @@ class R2D2Network:
                 "reliability": np.zeros((1, 1, height, width), np.float32),
                 "repeatability": np.zeros((1, 1, height, width), np.float32),
             }
+            if self.backend == "openvino":
+                self._buffers[key] = (image, outputs, None)
+                return self._buffers[key]
             binding = self.session.io_binding()
             binding.bind_cpu_input("image", image)
             for name, array in outputs.items():
@@ -319,7 +339,10 @@ class R2D2Network:
                 np.multiply(rgb[:, :, channel], np.float32(1 / (255 * IMAGENET_STD[channel])), out=plane,
                             casting="unsafe")
                 plane -= IMAGENET_MEAN[channel] / IMAGENET_STD[channel]
-            self.session.run_with_iobinding(binding)
+            if binding is None:
+                outputs = self.openvino(image)
+            else:
+                self.session.run_with_iobinding(binding)
             return R2D2Maps(outputs["descriptors"][0], outputs["reliability"][0, 0],
                             outputs["repeatability"][0, 0], self.feature_stride)
 
@@ -346,7 +369,8 @@ class R2D2Detector:
         self.conf = conf or self.default_conf
         if self.conf.features not in ("2hr", "r2d2"):
             raise ValueError(f"R2D2Detector builds 2hr or r2d2 features, not {self.conf.features!r}")
-        self.network = R2D2Network(self.conf.model, self.conf.threads)
+        self.network = R2D2Network(self.conf.model, self.conf.threads, backend=self.conf.backend,
+                                   precision=self.conf.precision)
 
     def detect(self, rgb: np.ndarray) -> Keypoints:
         """Keypoints of an RGB uint8 image, in its pixel coordinates, best score first."""

@@ -34,17 +34,16 @@ from twohr.features import Keypoints, Matches
 from twohr.geometry import backproject, invert_pose, project, transform_points
 from twohr.trajectory import Trajectory
 
+from .motion import MotionModel
 from .optim import (
     MotionPrior,
     bundle_adjust,
+    estimate_pose,
     observation_errors,
     pnp_ransac,
     pose_difference,
     refine_pose,
     sample_depth,
-    scale_motion,
-    so3_exp_batch,
-    so3_log,
 )
 
 MatchFn = Callable[[np.ndarray, np.ndarray], Matches]
@@ -52,8 +51,6 @@ MatchFn = Callable[[np.ndarray, np.ndarray], Matches]
 
 #: Statuses whose pose was measured (the others coast on the motion model or wait for a first frame).
 TRACKED_STATUSES = ("init", "tracking", "relocalised", "reinitialised")
-#: Nominal frame interval used when stamps do not advance (seconds).
-NOMINAL_FRAME_DT = 1 / 30
 
 
 class TrackerInputError(TwohrError, ValueError):
@@ -82,6 +79,10 @@ class TrackResult:
     reason: str = ""
     timings: dict[str, float] = field(default_factory=dict)
     num_landmarks: int = 0
+    observed_xy: np.ndarray | None = None
+    """(M, 2) keypoints of this frame matched to a landmark (inliers of the pose), when tracked"""
+    observed_landmarks: np.ndarray | None = None
+    """(M,) the landmark id of each of those keypoints"""
 
     @property
     def tracked(self) -> bool:
@@ -171,14 +172,7 @@ class Tracker:
         self.map = LandmarkMap()
         self.keyframes: list[Keyframe] = []
         self._kf_poses = np.zeros((0, 4, 4))
-        self._last_pose: np.ndarray | None = None  # camera-to-world of the previous frame (tracked or coasted)
-        self._last_stamp: float | None = None
-        self._good_pose: np.ndarray | None = None  # the latest tracked pose
-        self._good_stamp: float | None = None
-        self._velocity: np.ndarray = np.eye(4)  # relative motion per nominal frame, camera frame
-        self._recent_motions: list[np.ndarray] = []  # (6,) rotation vector + translation per tracked frame
-        self._frame_dt = NOMINAL_FRAME_DT
-        self._lost_frames = 0
+        self.motion = MotionModel(self.conf.velocity_frames, self.conf.coast_velocity_decay)
         self._inliers_at_keyframe = 0
         self._descriptor_kind: tuple[int, np.dtype] | None = None
         # every frame's pose relative to the latest keyframe when it was tracked, for trajectory()
@@ -192,12 +186,21 @@ class Tracker:
     def initialised(self) -> bool:
         return bool(self.keyframes)
 
+    @property
+    def keyframe_poses(self) -> np.ndarray:
+        """(K, 4, 4) camera-to-world poses of the keyframes, as bundle adjustment has refined them."""
+        return self._kf_poses
+
     def reset(self) -> None:
         """Forget the map and the motion: the next frame with enough depth starts a new map."""
         self.__init__(self.camera, self.conf, self.match)
 
-    def track(self, stamp: float, keypoints: Keypoints, depth: np.ndarray) -> TrackResult:
-        """Estimate the camera pose of one frame from its (dynamic-masked) keypoints and depth image (metres)."""
+    def track(self, stamp: float, keypoints: Keypoints, depth: np.ndarray, prediction: np.ndarray | None = None,
+              force_keyframe: bool = False) -> TrackResult:
+        """Estimate the camera pose of one frame from its (dynamic-masked) keypoints and depth image (metres).
+
+        ``prediction`` replaces the motion model's predicted pose (the keyframe pipeline passes the pose
+        that optical flow tracked); ``force_keyframe`` makes a tracked frame a keyframe."""
         start = time.perf_counter()
         self._check_inputs(keypoints, depth)
         timings: dict[str, float] = {}
@@ -210,8 +213,9 @@ class Tracker:
         if not self.initialised:
             result = self._initialise(stamp, keypoints, xy, z, num_depth, "init", np.eye(4))
         else:
-            result = self._track_initialised(stamp, keypoints, xy, z, num_depth, timings)
-        self._last_pose, self._last_stamp = result.pose, stamp
+            predicted = self.motion.predict(stamp) if prediction is None else prediction
+            result = self._track_initialised(stamp, keypoints, xy, z, num_depth, timings, predicted, force_keyframe)
+        self.motion.advance(stamp, result.pose)
         anchor = len(self.keyframes) - 1
         self._frame_stamps.append(stamp)
         self._frame_anchor.append(anchor)
@@ -240,25 +244,25 @@ class Tracker:
             if not self.initialised:
                 return TrackResult(stamp, np.eye(4), "uninitialised", reason=f"waiting to start the map: {why}",
                                    **counts)
-            return self._coast(stamp, f"lost: {why}", counts)
-        self._insert_keyframe(stamp, pose, keypoints, xy, z, np.full(len(xy), -1), np.zeros(len(xy), bool))
-        self._good_pose, self._good_stamp = pose, stamp
-        self._velocity = np.eye(4)
-        self._lost_frames = 0
+            return self._coast(stamp, pose, f"lost: {why}", counts)
+        keyframe = self._insert_keyframe(stamp, pose, keypoints, xy, z, np.full(len(xy), -1), np.zeros(len(xy), bool))
+        self.motion.restart(pose, stamp)
         reason = "map started" if status == "init" else "new map started at the coasted pose after a long loss"
-        return TrackResult(stamp, pose, status, num_inliers=num_depth, is_keyframe=True, reason=reason, **counts)
+        observed = keyframe.landmark_ids >= 0
+        return TrackResult(stamp, pose, status, num_inliers=num_depth, is_keyframe=True, reason=reason,
+                           observed_xy=xy[observed], observed_landmarks=keyframe.landmark_ids[observed], **counts)
 
     def _track_initialised(self, stamp: float, keypoints: Keypoints, xy: np.ndarray, z: np.ndarray,
-                           num_depth: int, timings: dict[str, float]) -> TrackResult:
+                           num_depth: int, timings: dict[str, float], predicted: np.ndarray,
+                           force_keyframe: bool) -> TrackResult:
         conf = self.conf
         counts = dict(num_keypoints=len(keypoints), num_with_depth=num_depth)
-        predicted = self._predict(stamp)
         if len(keypoints) < conf.min_inliers:
             what = "no keypoints" if len(keypoints) == 0 else f"only {len(keypoints)} keypoints"
-            return self._coast(stamp, f"{what} (everything masked or textureless?)", counts)
+            return self._coast(stamp, predicted, f"{what} (everything masked or textureless?)", counts)
 
         t0 = time.perf_counter()
-        radius = conf.match_radius_px + conf.lost_radius_growth_px * self._lost_frames
+        radius = conf.match_radius_px + conf.lost_radius_growth_px * self.motion.lost_frames
         estimate = self._track_local_map(predicted, keypoints, xy, z, radius, check_jump=True)
         timings["local_map"] = _ms(t0)
         status = "tracking"
@@ -269,16 +273,17 @@ class Tracker:
             if relocalised.ok:
                 estimate, status = relocalised, "relocalised"
         if not estimate.ok:
-            if self._lost_frames + 1 >= conf.reinit_after_lost_frames and num_depth >= conf.init_min_points:
+            if self.motion.lost_frames + 1 >= conf.reinit_after_lost_frames and num_depth >= conf.init_min_points:
                 return self._initialise(stamp, keypoints, xy, z, num_depth, "reinitialised", predicted)
-            return self._coast(stamp, estimate.reason, {**counts, "num_matches": estimate.num_matches,
+            return self._coast(stamp, predicted, estimate.reason, {**counts, "num_matches": estimate.num_matches,
                                                         "num_inliers": estimate.num_inliers})
 
         pose = invert_pose(estimate.T_cw)
-        self._update_motion(stamp, pose)
+        self.motion.tracked(stamp, pose)
         t0 = time.perf_counter()
         # a keyframe needs depth: its new landmarks come from back-projected keypoints
-        is_keyframe = num_depth >= conf.init_min_points and self._needs_keyframe(pose, estimate.num_inliers, status)
+        is_keyframe = num_depth >= conf.init_min_points and (
+            force_keyframe or self._needs_keyframe(pose, estimate.num_inliers, status))
         if is_keyframe:
             self._insert_keyframe(stamp, pose, keypoints, xy, z, estimate.keypoint_landmarks, estimate.suspect)
             self._inliers_at_keyframe = max(estimate.num_inliers, int((self.keyframes[-1].landmark_ids >= 0).sum()))
@@ -288,47 +293,18 @@ class Tracker:
                 self._local_bundle_adjustment()
                 timings["bundle_adjustment"] = _ms(t0)
                 pose = self.keyframes[-1].pose
-                self._good_pose = pose
+                self.motion.good_pose = pose
         reason = estimate.reason if num_depth else f"{estimate.reason} (no depth: tracked from 2-D matches only)"
+        observed = self.keyframes[-1].landmark_ids if is_keyframe else estimate.keypoint_landmarks
         return TrackResult(stamp, pose, status, num_matches=estimate.num_matches, num_inliers=estimate.num_inliers,
-                           is_keyframe=is_keyframe, reason=reason, **counts)
+                           is_keyframe=is_keyframe, reason=reason, observed_xy=xy[observed >= 0],
+                           observed_landmarks=observed[observed >= 0], **counts)
 
-    def _coast(self, stamp: float, reason: str, counts: dict) -> TrackResult:
-        """An untrackable frame: the pose follows the decaying motion model and the frame is reported lost."""
-        pose = self._predict(stamp)
-        self._lost_frames += 1
-        self._velocity = scale_motion(self._velocity, self.conf.coast_velocity_decay)
-        return TrackResult(stamp, pose, "lost", reason=f"{reason}; pose coasts on the motion model "
-                           f"({self._lost_frames} frame(s) untracked)", **counts)
-
-    # ------------------------------------------------------------------ motion model
-
-    def _predict(self, stamp: float) -> np.ndarray:
-        """Constant-velocity prediction of the camera-to-world pose at ``stamp``."""
-        if self._last_pose is None:
-            return np.eye(4)
-        frames = (stamp - self._last_stamp) / self._frame_dt if stamp > self._last_stamp else 1.0
-        return self._last_pose @ scale_motion(self._velocity, frames)
-
-    def _update_motion(self, stamp: float, pose: np.ndarray) -> None:
-        """Velocity from the previous tracked frame to this one, per nominal frame. After a loss the
-        velocity restarts at zero: the motion across the gap says little about the motion now."""
-        if self._lost_frames > 0:
-            self._recent_motions = []
-        elif self._good_pose is not None and stamp > self._good_stamp:
-            elapsed = stamp - self._good_stamp
-            self._frame_dt = min(max(elapsed, 1e-3), 1.0)
-            motion = invert_pose(self._good_pose) @ pose
-            twist = np.concatenate([so3_log(motion[:3, :3]), motion[:3, 3]])
-            self._recent_motions = [*self._recent_motions, twist][-self.conf.velocity_frames:]
-        # the mean of the last few frame-to-frame motions: one frame's motion is as noisy as two poses
-        self._velocity = np.eye(4)
-        if self._recent_motions:
-            mean = np.mean(self._recent_motions, axis=0)
-            self._velocity[:3, :3] = so3_exp_batch(mean[:3])
-            self._velocity[:3, 3] = mean[3:]
-        self._good_pose, self._good_stamp = pose, stamp
-        self._lost_frames = 0
+    def _coast(self, stamp: float, predicted: np.ndarray, reason: str, counts: dict) -> TrackResult:
+        """An untrackable frame: the pose follows the (decaying) motion model and the frame is reported lost."""
+        self.motion.coast()
+        return TrackResult(stamp, predicted, "lost", reason=f"{reason}; pose coasts on the motion model "
+                           f"({self.motion.lost_frames} frame(s) untracked)", **counts)
 
     # ------------------------------------------------------------------ tracking against the local map
 
@@ -361,7 +337,7 @@ class Tracker:
         # motion-model gates: near the predicted projection, and at a consistent depth where measured (both
         # widen while lost, as the prediction grows uncertain)
         near = np.linalg.norm(xy[kp] - uv[lm], axis=1) <= radius
-        depth_gate = conf.match_depth_gate * (1 + self._lost_frames) * pred_z[lm]
+        depth_gate = conf.match_depth_gate * (1 + self.motion.lost_frames) * pred_z[lm]
         depth_ok = (z[kp] <= 0) | (np.abs(z[kp] - pred_z[lm]) <= depth_gate)
         gated = near & depth_ok
         kp, lm = kp[gated], lm[gated]
@@ -429,31 +405,20 @@ class Tracker:
         """RANSAC PnP + robust refinement of matches keypoint ``kp[i]`` <-> landmark ``landmark[i]``."""
         conf = self.conf
         num_matches = len(kp)
-        if num_matches < conf.min_inliers:
-            return _Estimate(False, f"too few matches ({num_matches} < {conf.min_inliers})", num_matches=num_matches)
-        points_w = self.map.positions[landmark]
-        T_cw, inliers = pnp_ransac(self.K, points_w, xy[kp], conf.ransac_reprojection_px, conf.ransac_iterations)
-        if T_cw is None or inliers.sum() < conf.min_inliers:
-            return _Estimate(False, f"RANSAC found too few inliers ({int(inliers.sum())} of {num_matches} matches)",
-                             num_matches=num_matches, num_inliers=int(inliers.sum()))
         prior = None
         if check_jump and conf.motion_prior_m > 0 and conf.motion_prior_deg > 0:
-            scale = 1.0 + self._lost_frames
+            scale = 1.0 + self.motion.lost_frames
             prior = MotionPrior(T_guess, conf.motion_prior_m * scale, np.radians(conf.motion_prior_deg) * scale)
-        for _ in range(2):  # refine on the inliers, re-classify all matches, refine again
-            T_cw = refine_pose(self.K, T_cw, points_w[inliers], xy[kp[inliers]], z[kp[inliers]], conf.depth_noise,
-                               conf.huber_px, prior=prior)
-            reproj, depth_err = observation_errors(self.K, T_cw, points_w, xy[kp], z[kp], conf.depth_noise)
-            inliers = (reproj < conf.ransac_reprojection_px) & (depth_err < conf.ransac_reprojection_px)
-            if inliers.sum() < conf.min_inliers:
-                break
+        points_w = self.map.positions[landmark]
+        T_cw, inliers, why = estimate_pose(self.K, points_w, xy[kp], z[kp], conf.ransac_reprojection_px,
+                                           conf.ransac_iterations, conf.min_inliers, conf.depth_noise,
+                                           conf.huber_px, prior)
         num_inliers = int(inliers.sum())
-        if num_inliers < conf.min_inliers:
-            return _Estimate(False, f"too few inliers after refinement ({num_inliers} < {conf.min_inliers})",
-                             num_matches=num_matches, num_inliers=num_inliers)
+        if T_cw is None:
+            return _Estimate(False, why, num_matches=num_matches, num_inliers=num_inliers)
         if check_jump:
             moved, turned = pose_difference(pose_guess, invert_pose(T_cw))
-            allowed = 1.0 + self._lost_frames
+            allowed = 1.0 + self.motion.lost_frames
             if moved > conf.max_jump_m * allowed or turned > conf.max_jump_deg * allowed:
                 self.map.vote(np.zeros(0, np.int64), landmark[inliers], conf.landmark_max_outlier_ratio)
                 return _Estimate(False, f"implausible jump from the prediction ({moved:.3f} m, {turned:.1f} deg)",
@@ -470,7 +435,7 @@ class Tracker:
         """RANSAC PnP against the keyframes nearest to the last good pose and to the coasted prediction, then
         verification on the local map around the best candidate's pose."""
         conf = self.conf
-        anchor = self._good_pose if self._good_pose is not None else self._kf_poses[-1]
+        anchor = self.motion.good_pose if self.motion.good_pose is not None else self._kf_poses[-1]
         candidates = np.unique(np.concatenate([self._local_keyframes(anchor, conf.relocalisation_candidates),
                                                self._local_keyframes(predicted, conf.relocalisation_candidates)]))
         best: _Estimate | None = None
@@ -507,11 +472,8 @@ class Tracker:
             return True
         if num_inliers < conf.keyframe_min_inlier_ratio * self._inliers_at_keyframe:
             return True
-        rel = np.einsum("ij,njk->nik", invert_pose(pose), self._kf_poses)
-        moved = np.linalg.norm(rel[:, :3, 3], axis=1)
-        turned = np.degrees(np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
-        near = (moved < conf.keyframe_max_translation) & (turned < conf.keyframe_max_rotation_deg)
-        return not near.any()
+        return not near_any_keyframe(pose, self._kf_poses, conf.keyframe_max_translation,
+                                     conf.keyframe_max_rotation_deg)
 
     def _insert_keyframe(self, stamp: float, pose: np.ndarray, keypoints: Keypoints, xy: np.ndarray, z: np.ndarray,
                          keypoint_landmarks: np.ndarray, suspect: np.ndarray) -> Keyframe:
@@ -603,6 +565,17 @@ class Tracker:
             self._descriptor_kind = kind
         elif kind != self._descriptor_kind:
             raise TrackerInputError(f"descriptors changed from {self._descriptor_kind} to {kind} mid-sequence")
+
+
+def near_any_keyframe(pose: np.ndarray, keyframe_poses: np.ndarray, max_translation: float,
+                      max_rotation_deg: float) -> bool:
+    """True when some keyframe lies within ``max_translation`` metres and ``max_rotation_deg`` of ``pose``."""
+    if len(keyframe_poses) == 0:
+        return False
+    rel = np.einsum("ij,njk->nik", invert_pose(pose), keyframe_poses)
+    moved = np.linalg.norm(rel[:, :3, 3], axis=1)
+    turned = np.degrees(np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    return bool(((moved < max_translation) & (turned < max_rotation_deg)).any())
 
 
 def descriptor_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -257,6 +257,26 @@ class BundleAdjustmentResult:
     iterations: int
 
 
+def estimate_pose(K: np.ndarray, points_w: np.ndarray, xy: np.ndarray, z_meas: np.ndarray, threshold_px: float,
+                  ransac_iterations: int, min_inliers: int, depth_noise: float, huber: float,
+                  prior: MotionPrior | None = None) -> tuple[np.ndarray | None, np.ndarray, str]:
+    """RANSAC PnP, then robust refinement on the inliers, re-classification of every correspondence and a
+    second refinement. Returns (T_cw or None, inlier mask, why it failed or "")."""
+    count = len(xy)
+    if count < min_inliers:
+        return None, np.zeros(count, bool), f"too few matches ({count} < {min_inliers})"
+    T_cw, inliers = pnp_ransac(K, points_w, xy, threshold_px, ransac_iterations)
+    if T_cw is None or inliers.sum() < min_inliers:
+        return None, inliers, f"RANSAC found too few inliers ({int(inliers.sum())} of {count} matches)"
+    for _ in range(2):
+        T_cw = refine_pose(K, T_cw, points_w[inliers], xy[inliers], z_meas[inliers], depth_noise, huber, prior=prior)
+        reproj, depth_err = observation_errors(K, T_cw, points_w, xy, z_meas, depth_noise)
+        inliers = (reproj < threshold_px) & (depth_err < threshold_px)
+        if inliers.sum() < min_inliers:
+            return None, inliers, f"too few inliers after refinement ({int(inliers.sum())} < {min_inliers})"
+    return T_cw, inliers, ""
+
+
 def _huber_weights(res: np.ndarray, huber: float) -> np.ndarray:
     abs_r = np.abs(res)
     return np.where(abs_r <= huber, 1.0, huber / np.maximum(abs_r, 1e-12))
@@ -269,9 +289,10 @@ def _huber_cost(res: np.ndarray, huber: float) -> float:
 
 def _sum_by(index: np.ndarray, values: np.ndarray, count: int) -> np.ndarray:
     """Sum rows of ``values`` (N, ...) into ``count`` bins given by ``index`` (N,)."""
-    out = np.zeros((count,) + values.shape[1:])
-    np.add.at(out, index, values)
-    return out
+    flat = values.reshape(len(values), -1)
+    # one bincount per column: much faster than np.add.at
+    out = np.stack([np.bincount(index, weights=flat[:, j], minlength=count) for j in range(flat.shape[1])], axis=1)
+    return out.reshape((count,) + values.shape[1:])
 
 
 def _same_point_pairs(obs_point: np.ndarray, members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -347,11 +368,10 @@ def bundle_adjust(K: np.ndarray, poses_cw: np.ndarray, points_w: np.ndarray, obs
             hp = h_pose + damping * np.einsum("pii->pi", h_pose)[:, :, None] * np.eye(6) + 1e-9 * np.eye(6)
             hl = h_point + damping * np.einsum("mii->mi", h_point)[:, :, None] * np.eye(3) + 1e-9 * np.eye(3)
             hl_inv = np.linalg.inv(hl)
-            schur = np.zeros((n_free, n_free, 6, 6))
-            for k in range(n_free):
-                schur[k, k] = hp[k]
             reduced = h_cross[pair_a] @ hl_inv[obs_point[pair_a]] @ np.swapaxes(h_cross[pair_b], 1, 2)
-            np.add.at(schur, (obs_slot[pair_a], obs_slot[pair_b]), -reduced)
+            schur = -_sum_by(obs_slot[pair_a] * n_free + obs_slot[pair_b], reduced, n_free * n_free).reshape(
+                n_free, n_free, 6, 6)
+            schur[np.arange(n_free), np.arange(n_free)] += hp
             rhs = -g_pose + _sum_by(obs_slot[free_obs], (h_cross[free_obs] @ hl_inv[obs_point[free_obs]] @ g_point[
                 obs_point[free_obs], :, None])[:, :, 0], n_free)
             system = schur.transpose(0, 2, 1, 3).reshape(6 * n_free, 6 * n_free)

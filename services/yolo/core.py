@@ -20,12 +20,11 @@ from functools import cache
 
 import cv2
 import numpy as np
-import onnxruntime as ort
 
 from twohr.config import YoloConfig
 from twohr.errors import ModelError
 from twohr.features import Detections
-from twohr.models import cpu_session, get_spec, model_path
+from twohr.models import Network, get_spec, model_path
 
 PAD_VALUE = 114
 YOLO_KINDS = ("yolov8", "yolov5")
@@ -166,9 +165,24 @@ def parse_class_names(metadata: dict[str, str]) -> list[str]:
 # ----------------------------------------------------------------------------- network
 
 
+def _network(path: str, threads: int, backend: str, precision: str) -> Network:
+    return Network(path, threads, backend, precision)
+
+
 @cache
-def _session(path: str, threads: int) -> ort.InferenceSession:
-    return cpu_session(path, threads)
+def _metadata(path: str) -> dict[str, str]:
+    """The ONNX file's metadata (class names live there)."""
+    import onnx
+
+    return {p.key: p.value for p in onnx.load(path, load_external_data=False).metadata_props}
+
+
+@cache
+def _input_shape(path: str) -> list:
+    import onnx
+
+    dims = onnx.load(path, load_external_data=False).graph.input[0].type.tensor_type.shape.dim
+    return [d.dim_value if d.HasField("dim_value") else d.dim_param for d in dims]
 
 
 def check_image(rgb: np.ndarray) -> None:
@@ -193,14 +207,15 @@ class YoloDetector:
             raise ModelError(f"model {spec.name!r} is a {spec.kind} model, not a YOLO detector "
                              f"({' or '.join(YOLO_KINDS)}); choose yolov8n_320, yolov8n, yolov5n_320 or yolov5n")
         self.kind = spec.kind
-        self.session = _session(str(model_path(self.conf.model)), self.conf.threads)
-        model_input = self.session.get_inputs()[0]
-        self.input_name = model_input.name
-        size = model_input.shape[2]
-        if not isinstance(size, int) or model_input.shape[3] != size:
-            raise ModelError(f"model {spec.name!r} needs a fixed square input, has {model_input.shape}")
+        path = str(model_path(self.conf.model))
+        self.network = _network(path, self.conf.threads, self.conf.backend, self.conf.precision)
+        self.input_name = self.network.input_names[0]
+        shape = _input_shape(path)
+        size = shape[2]
+        if not isinstance(size, int) or shape[3] != size:
+            raise ModelError(f"model {spec.name!r} needs a fixed square input, has {shape}")
         self.input_size = size
-        self.names = parse_class_names(self.session.get_modelmeta().custom_metadata_map)
+        self.names = parse_class_names(_metadata(path))
         self._canvas = np.empty((size, size, 3), np.uint8)
         self._tensor = np.empty((1, 3, size, size), np.float32)
         self._lock = threading.Lock()
@@ -211,7 +226,7 @@ class YoloDetector:
         with self._lock:
             canvas, geometry = letterbox(rgb, self.input_size, out=self._canvas)
             np.multiply(canvas.transpose(2, 0, 1), np.float32(1 / 255), out=self._tensor[0])
-            output = self.session.run(None, {self.input_name: self._tensor})[0]
+            output = self.network({self.input_name: self._tensor})[self.network.output_names[0]].copy()
         return output, geometry
 
     def detect(self, rgb: np.ndarray) -> Detections:

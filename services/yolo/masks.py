@@ -205,6 +205,12 @@ def region_mask(detections: Detections, shape: tuple[int, int], conf: YoloConfig
     return grow_border(mask, conf.border_grow)
 
 
+def propagated_mask(dynamic: Detections, frames_elapsed: int, shape: tuple[int, int], conf: YoloConfig,
+                    depth: np.ndarray | None = None) -> np.ndarray:
+    """The mask of dynamic boxes detected ``frames_elapsed`` frames ago, grown by :func:`grow_boxes`."""
+    return region_mask(grow_boxes(dynamic, frames_elapsed, conf.propagate_growth, shape), shape, conf, depth)
+
+
 @dataclass
 class DynamicRegions:
     """What :class:`DynamicMasker` found in one frame."""
@@ -261,6 +267,13 @@ class DynamicMasker:
         else:
             self._elapsed += 1
         dynamic = self.table.select(self._latest, self.conf.remove_levels)
+        mask = propagated_mask(dynamic, self._elapsed, shape, self.conf, depth)
         dynamic = grow_boxes(dynamic, self._elapsed, self.conf.propagate_growth, shape)
-        mask = region_mask(dynamic, shape, self.conf, depth)
         return DynamicRegions(mask, dynamic, self._latest, due, self._elapsed)
+
+    def detect_dynamic(self, rgb: np.ndarray) -> Detections:
+        """This frame's detections of the removed dynamics levels (no propagation, no mask)."""
+        check_image(rgb)
+        if self.detector is None:
+            return Detections.empty()
+        return self.table.select(self.detector.detect(rgb), self.conf.remove_levels)

@@ -351,7 +351,7 @@ def benchmark_yolo(sequence: str | Path | None = None,
                 timings[name]["detect"].append((time.perf_counter() - t0) * 1e3)
                 feed = {detector.input_name: detector._tensor}
                 t0 = time.perf_counter()
-                detector.session.run(None, feed)
+                detector.network(feed)
                 timings[name]["session"].append((time.perf_counter() - t0) * 1e3)
     result: dict[str, object] = {"image_size": list(images[0][0].shape[1::-1]), "threads": threads, "runs": runs,
                                  "frames_per_run": len(images), "machine": platform.processor() or platform.machine(),

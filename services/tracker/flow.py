@@ -1,0 +1,255 @@
+"""Per-frame tracking between keyframes: optical flow of map landmarks, then PnP. The camera-rate path.
+
+Per frame (:meth:`FrameTracker.track`):
+
+1. predict the pose with the constant-velocity motion model;
+2. move the image positions of the tracked landmarks from the previous frame to this one with pyramidal
+   Lucas-Kanade flow (sub-pixel), started at their projection under the prediction; keep a track only if
+   it flows back to where it started (forward-backward check) and lies outside the dynamic mask;
+3. RANSAC PnP and a robust refinement (reprojection + inverse depth, motion prior) against the landmarks'
+   3-D positions; a pose that jumps implausibly far from the prediction is rejected and the frame coasts;
+4. :meth:`FrameTracker.wants_keyframe` asks for a keyframe when the tracks thin out, the camera leaves
+   the keyframes behind, tracking is lost, or at least every ``keyframe_max_interval`` frames.
+
+Keyframes are built off this path (the :class:`~.core.Tracker` on 2HR keypoints, descriptor matching and
+bundle adjustment, in the mapping worker); each one comes back as a :class:`MapUpdate` that refreshes the
+landmark positions and re-seeds the tracks with the keyframe's observations.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from twohr.config import TrackerConfig
+from twohr.dataset import CameraIntrinsics
+from twohr.features import masked
+from twohr.geometry import invert_pose, project, transform_points
+from twohr.trajectory import Trajectory
+
+from .core import TrackResult, near_any_keyframe
+from .motion import MotionModel
+from .optim import MotionPrior, estimate_pose, pose_difference, sample_depth
+
+
+@dataclass
+class MapUpdate:
+    """What the mapping worker hands back after a keyframe job on frame ``frame_index``."""
+
+    frame_index: int
+    stamp: float
+    result: TrackResult
+    """the keyframe tracker's answer for that frame (``init``, ``tracking``, ``relocalised``, ``lost`` ...)"""
+    keyframe_id: int
+    """the new keyframe's id, -1 when the frame did not become one"""
+    seeds_xy: np.ndarray
+    """(M, 2) the keyframe's keypoints that observe a landmark, in that frame's pixels"""
+    seeds_landmark: np.ndarray
+    """(M,) their landmark ids, best observed first"""
+    landmark_positions: np.ndarray
+    """(L, 3) every landmark's world position, after bundle adjustment"""
+    landmark_usable: np.ndarray
+    """(L,) False for landmarks retired as outliers"""
+    keyframe_poses: np.ndarray
+    """(K, 4, 4) camera-to-world poses of all keyframes, after bundle adjustment"""
+    gray: np.ndarray | None = None
+    """the frame's grayscale image, to carry the seeds to a later frame by optical flow"""
+    timings: dict[str, float] | None = None
+
+
+def flow_points(source: np.ndarray, target: np.ndarray, xy: np.ndarray, guess: np.ndarray,
+                conf: TrackerConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Track points ``xy`` of grayscale image ``source`` into ``target`` by pyramidal Lucas-Kanade, starting
+    at ``guess``; returns (positions, ok) where
+    ok needs convergence both ways and a forward-backward error below ``flow_fb_px``."""
+    if len(xy) == 0:
+        return np.zeros((0, 2), np.float32), np.zeros(0, bool)
+    window = (conf.flow_window_px, conf.flow_window_px)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+    # copies: OpenCV writes the tracked positions into the initial-guess array
+    start = np.array(xy, np.float32).reshape(-1, 1, 2)
+    forward, ok_f, _ = cv2.calcOpticalFlowPyrLK(
+        source, target, start, np.array(guess, np.float32).reshape(-1, 1, 2), winSize=window,
+        maxLevel=conf.flow_levels, criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    back, ok_b, _ = cv2.calcOpticalFlowPyrLK(target, source, forward, start.copy(), winSize=window,
+                                             maxLevel=conf.flow_levels, criteria=criteria,
+                                             flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    forward, back = forward.reshape(-1, 2), back.reshape(-1, 2)
+    fb_error = np.linalg.norm(back - start.reshape(-1, 2), axis=1)
+    height, width = target.shape[:2]
+    inside = (forward[:, 0] >= 0) & (forward[:, 1] >= 0) & (forward[:, 0] <= width - 1) & (
+        forward[:, 1] <= height - 1)
+    ok = ok_f.reshape(-1).astype(bool) & ok_b.reshape(-1).astype(bool) & (fb_error < conf.flow_fb_px) & inside
+    return forward, ok
+
+
+class FrameTracker:
+    """Camera-rate tracking: landmarks followed by optical flow, pose by PnP; keyframes come from outside."""
+
+    default_conf = TrackerConfig()
+
+    def __init__(self, camera: CameraIntrinsics, conf: TrackerConfig | None = None) -> None:
+        self.camera = camera
+        self.conf = conf or self.default_conf
+        self.K = camera.matrix
+        self.motion = MotionModel(self.conf.velocity_frames, self.conf.coast_velocity_decay)
+        # the map as the latest MapUpdate described it (read-only copies; the mapper owns the map)
+        self.landmarks = np.zeros((0, 3))
+        self.usable = np.zeros(0, bool)
+        self.keyframe_poses = np.zeros((0, 4, 4))
+        # the tracks: landmark ids and their sub-pixel positions in the previous frame
+        self.track_xy = np.zeros((0, 2), np.float32)
+        self.track_landmark = np.zeros(0, np.int64)
+        self.previous: np.ndarray | None = None  # the previous frame's grayscale image
+        self.frames_since_keyframe = 0
+        self.anchor = -1  # the keyframe this frame's pose is kept relative to, for trajectory()
+        self._stamps: list[float] = []
+        self._anchors: list[int] = []
+        self._relative: list[np.ndarray] = []
+
+    @property
+    def initialised(self) -> bool:
+        return len(self.keyframe_poses) > 0
+
+    # ------------------------------------------------------------------ per frame
+
+    def track(self, stamp: float, gray: np.ndarray, depth: np.ndarray, mask: np.ndarray | None = None) -> TrackResult:
+        """The pose of one frame from its grayscale image, depth (metres) and dynamic mask (True = moving)."""
+        start = time.perf_counter()
+        predicted = self.motion.predict(stamp)
+        if not self.initialised or self.previous is None:
+            result = TrackResult(stamp, predicted, "uninitialised", reason="waiting for the first keyframe")
+        else:
+            result = self._track_flow(stamp, gray, depth, mask, predicted)
+        self.motion.advance(stamp, result.pose)
+        self.previous = gray
+        self.frames_since_keyframe += 1
+        self._record(stamp, result.pose)
+        result.timings = {"total": (time.perf_counter() - start) * 1000}
+        result.num_landmarks = len(self.track_landmark)
+        return result
+
+    def _track_flow(self, stamp: float, gray: np.ndarray, depth: np.ndarray, mask: np.ndarray | None,
+                    predicted: np.ndarray) -> TrackResult:
+        conf = self.conf
+        tracks = len(self.track_landmark)
+        T_guess = invert_pose(predicted)
+        guess = self.track_xy  # while lost the prediction is poor: start the flow where the tracks were
+        if self.motion.lost_frames == 0:
+            guess = project(transform_points(T_guess, self.landmarks[self.track_landmark]), self.K)
+            guess = np.where(np.isfinite(guess), guess, self.track_xy)
+        xy, ok = flow_points(self.previous, gray, self.track_xy, guess, conf)
+        if mask is not None and ok.any():
+            ok[ok] = ~masked(xy[ok], mask)
+        xy, landmark = xy[ok], self.track_landmark[ok]
+        z = sample_depth(depth, xy, conf.min_depth, conf.max_depth, conf.depth_edge_ratio)
+        counts = dict(num_keypoints=tracks, num_with_depth=int((z > 0).sum()), num_matches=len(xy))
+        prior = None
+        if conf.motion_prior_m > 0 and conf.motion_prior_deg > 0:
+            scale = 1.0 + self.motion.lost_frames
+            prior = MotionPrior(T_guess, conf.motion_prior_m * scale, np.radians(conf.motion_prior_deg) * scale)
+        T_cw, inliers, why = estimate_pose(self.K, self.landmarks[landmark], xy.astype(np.float64), z,
+                                           conf.ransac_reprojection_px, conf.ransac_iterations, conf.min_inliers,
+                                           conf.depth_noise, conf.huber_px, prior)
+        if T_cw is not None:
+            moved, turned = pose_difference(predicted, invert_pose(T_cw))
+            allowed = 1.0 + self.motion.lost_frames
+            if moved > conf.max_jump_m * allowed or turned > conf.max_jump_deg * allowed:
+                T_cw, why = None, f"implausible jump from the prediction ({moved:.3f} m, {turned:.1f} deg)"
+        if T_cw is None:
+            # keep the flowed tracks: the next keyframe or frame may still use them
+            self.track_xy, self.track_landmark = xy, landmark
+            self.motion.coast()
+            return TrackResult(stamp, predicted, "lost", num_inliers=int(inliers.sum()),
+                               reason=f"{why}; pose coasts on the motion model "
+                               f"({self.motion.lost_frames} frame(s) untracked)", **counts)
+        self.track_xy, self.track_landmark = xy[inliers], landmark[inliers]
+        pose = invert_pose(T_cw)
+        self.motion.tracked(stamp, pose)
+        num_inliers = int(inliers.sum())
+        reason = f"{num_inliers} inliers of {len(xy)} flowed tracks"
+        if counts["num_with_depth"] == 0:
+            reason += " (no depth: tracked from 2-D flow only)"
+        return TrackResult(stamp, pose, "tracking", num_inliers=num_inliers, reason=reason, **counts)
+
+    def wants_keyframe(self, result: TrackResult) -> bool:
+        """True when the map should grow at this frame (see the module docstring)."""
+        conf = self.conf
+        if not self.initialised or result.status != "tracking":
+            return True
+        if self.frames_since_keyframe >= conf.keyframe_max_interval:
+            return True
+        if result.num_inliers < conf.flow_keyframe_min_inliers:
+            return True
+        return not near_any_keyframe(result.pose, self.keyframe_poses, conf.keyframe_max_translation,
+                                     conf.keyframe_max_rotation_deg)
+
+    # ------------------------------------------------------------------ keyframes
+
+    def apply(self, update: MapUpdate) -> None:
+        """Take a finished keyframe job: refreshed landmarks and keyframe poses, and new tracks seeded from the
+        keyframe's observations (carried by optical flow from the keyframe's image to the latest frame)."""
+        self.landmarks = update.landmark_positions
+        self.usable = update.landmark_usable
+        self.keyframe_poses = update.keyframe_poses
+        keep = self.usable[self.track_landmark]
+        self.track_xy, self.track_landmark = self.track_xy[keep], self.track_landmark[keep]
+        if update.keyframe_id >= 0:
+            if update.result.status in ("init", "reinitialised"):
+                self.track_xy, self.track_landmark = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
+                self.motion.restart(update.result.pose, update.stamp)
+                if self.motion.last_stamp is None or self.motion.last_stamp <= update.stamp:
+                    self.motion.advance(update.stamp, update.result.pose)
+            self.anchor = update.keyframe_id
+            self.frames_since_keyframe = 0
+            self._attach_to_keyframe(update)
+        if update.result.tracked and self.motion.lost_frames > 0:
+            # found again: predict from the keyframe's measured pose, not from the coasted one
+            if self.motion.last_stamp == update.stamp:
+                self.motion.tracked(update.stamp, update.result.pose)
+            self.motion.last_pose = update.result.pose
+        seeds = self.usable[update.seeds_landmark] & ~np.isin(update.seeds_landmark, self.track_landmark)
+        xy, landmark = update.seeds_xy[seeds].astype(np.float32), update.seeds_landmark[seeds]
+        if update.gray is not None and self.previous is not None and update.gray is not self.previous:
+            # the keyframe is some frames old: carry its observations to the latest frame
+            guess = xy
+            if self.motion.lost_frames == 0 and self.motion.last_pose is not None:
+                projected = project(transform_points(invert_pose(self.motion.last_pose), self.landmarks[landmark]),
+                                    self.K)
+                guess = np.where(np.isfinite(projected), projected, xy)
+            xy, ok = flow_points(update.gray, self.previous, xy, guess, self.conf)
+            xy, landmark = xy[ok], landmark[ok]
+        room = max(0, self.conf.flow_max_tracks - len(self.track_landmark))
+        self.track_xy = np.concatenate([self.track_xy, xy[:room].astype(np.float32)])
+        self.track_landmark = np.concatenate([self.track_landmark, landmark[:room]])
+
+    def _attach_to_keyframe(self, update: MapUpdate) -> None:
+        """A frame that became a keyframe takes the keyframe's pose in the trajectory (measured from 2HR
+        matches and refined by bundle adjustment since), whatever optical flow had reported for it."""
+        for i in range(len(self._stamps) - 1, -1, -1):
+            if self._stamps[i] == update.stamp:
+                self._anchors[i] = update.keyframe_id
+                self._relative[i] = np.eye(4)
+                return
+            if self._stamps[i] < update.stamp:
+                return
+
+    # ------------------------------------------------------------------ trajectory
+
+    def _record(self, stamp: float, pose: np.ndarray) -> None:
+        self._stamps.append(stamp)
+        self._anchors.append(self.anchor)
+        self._relative.append(pose if self.anchor < 0 else invert_pose(self.keyframe_poses[self.anchor]) @ pose)
+
+    def trajectory(self, keyframe_poses: np.ndarray | None = None) -> Trajectory:
+        """Every frame's pose re-attached to its keyframe as bundle adjustment has refined it since
+        (``keyframe_poses``: the final ones from the mapper; default: the latest update's)."""
+        poses = self.keyframe_poses if keyframe_poses is None else keyframe_poses
+        anchors = np.asarray(self._anchors, np.int64)
+        relative = np.asarray(self._relative).reshape(-1, 4, 4)
+        base = np.tile(np.eye(4), (len(anchors), 1, 1))
+        base[anchors >= 0] = poses[anchors[anchors >= 0]]
+        return Trajectory(np.asarray(self._stamps), base @ relative)
