@@ -35,7 +35,8 @@ def peak_rss_mib() -> float:
 
 def _percentiles(values: list[float]) -> dict[str, float]:
     arr = np.asarray(values, float)
-    return {"median": round(float(np.median(arr)), 2), "p90": round(float(np.percentile(arr, 90)), 2)}
+    return {"median": round(float(np.median(arr)), 2), "p90": round(float(np.percentile(arr, 90)), 2),
+            "p99": round(float(np.percentile(arr, 99)), 2)}
 
 
 def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 0, runs: int = 3,
@@ -46,6 +47,8 @@ def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 
     stop = min(len(sequence), start + frames)
     results = {"pipeline": [], "baseline": []}
     stage_ms: dict[str, list[float]] = {"ms_detector": [], "ms_yolo": [], "ms_tracker": [], "ms_total": []}
+    latency: dict[str, list[float]] = {"keyframe_frames": [], "other_frames": []}
+    keyframe_ms: dict[str, list[float]] = {"ms_detector": [], "ms_yolo": [], "ms_mapping": [], "lag_frames": []}
     for _ in range(runs):
         for label, conf in (("pipeline", config), ("baseline", baseline)):
             run = run_sequence(sequence, conf, start=start, stop=stop, progress=progress)
@@ -53,6 +56,11 @@ def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 
             if label == "pipeline":
                 for key in stage_ms:
                     stage_ms[key] += [getattr(s, key) for s in run.stats]
+                for s in run.stats:
+                    latency["keyframe_frames" if s.keyframe else "other_frames"].append(s.ms_total)
+                for job in run.keyframe_log:
+                    for key in keyframe_ms:
+                        keyframe_ms[key].append(getattr(job, key))
     fps = float(np.median(results["pipeline"]))
     base = float(np.median(results["baseline"]))
     return {
@@ -61,6 +69,9 @@ def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 
         "baseline_fps_median": round(base, 3), "baseline": "ORB + mutual NN on the same tracker",
         "speed_ratio_to_baseline": round(fps / base, 4),
         "stages_ms": {k.removeprefix("ms_"): _percentiles(v) for k, v in stage_ms.items()},
+        "per_frame_latency_ms": {k: _percentiles(v) for k, v in latency.items() if v},
+        "keyframe_jobs": {k.removeprefix("ms_"): _percentiles(v) for k, v in keyframe_ms.items() if v},
+        "mode": config.pipeline.mode,
         "peak_rss_mib": round(peak_rss_mib(), 1),
         "machine": {"cpus": __import__("os").cpu_count(), "platform": platform.platform()},
     }
@@ -112,6 +123,7 @@ def ablations(sequence, base: PipelineConfig, variants: dict[str, dict] | None =
     rows = []
     for name, overrides in variants.items():
         config = load_config(None, {**base.model_dump(mode="json"), **_nested(overrides)})
+        config.pipeline.mode = "every_frame"  # the variants share cached front-end outputs of every frame
         fronts = cache.outputs(sequence, config, stop, progress)
 
         def once(config=config, fronts=fronts):

@@ -49,6 +49,13 @@ def write_run(out: Path, sequence, config, result) -> dict:
         "ms_per_frame_median": {k: round(float(_median([getattr(s, k) for s in result.stats])), 2)
                                 for k in ("ms_detector", "ms_yolo", "ms_tracker", "ms_total")} if frames else {},
     }
+    if result.keyframe_log:
+        log = result.keyframe_log
+        summary["keyframe_jobs"] = {
+            "count": len(log), "keyframes": sum(job.keyframe for job in log),
+            **{f"{key}_median": round(float(_median([getattr(job, key) for job in log])), 2)
+               for key in ("ms_detector", "ms_yolo", "ms_mapping", "lag_frames")},
+        }
     if sequence.has_ground_truth() and len(result.trajectory) >= 3:
         extrinsic = sequence.default_gt_extrinsic()
         for name, gt_extrinsic in (("ate", extrinsic), ("ate_raw_gt", "none")):
