@@ -227,11 +227,7 @@ class Tracker:
     def trajectory(self) -> Trajectory:
         """All frames' poses so far, each re-attached to its keyframe as bundle adjustment has refined it since
         (the ``TrackResult`` poses are online: final when reported). On the dev sequence the two score alike."""
-        anchors = np.asarray(self._frame_anchor, np.int64)
-        relative = np.asarray(self._frame_relative).reshape(-1, 4, 4)
-        base = np.tile(np.eye(4), (len(anchors), 1, 1))
-        base[anchors >= 0] = self._kf_poses[anchors[anchors >= 0]]
-        return Trajectory(np.asarray(self._frame_stamps), base @ relative)
+        return reattach_to_keyframes(self._frame_stamps, self._frame_anchor, self._frame_relative, self._kf_poses)
 
     # ------------------------------------------------------------------ steps
 
@@ -565,6 +561,16 @@ class Tracker:
             self._descriptor_kind = kind
         elif kind != self._descriptor_kind:
             raise TrackerInputError(f"descriptors changed from {self._descriptor_kind} to {kind} mid-sequence")
+
+
+def reattach_to_keyframes(stamps: list[float], anchors: list[int], relative: list[np.ndarray],
+                          keyframe_poses: np.ndarray) -> Trajectory:
+    """Frames' poses from their pose relative to an anchor keyframe (-1 = none: the pose itself) and the
+    keyframes' current poses, so that bundle adjustment's corrections reach every frame."""
+    anchors = np.asarray(anchors, np.int64)
+    base = np.tile(np.eye(4), (len(anchors), 1, 1))
+    base[anchors >= 0] = keyframe_poses[anchors[anchors >= 0]]
+    return Trajectory(np.asarray(stamps), base @ np.asarray(relative).reshape(-1, 4, 4))
 
 
 def near_any_keyframe(pose: np.ndarray, keyframe_poses: np.ndarray, max_translation: float,

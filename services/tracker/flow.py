@@ -30,7 +30,7 @@ from twohr.features import masked
 from twohr.geometry import invert_pose, project, transform_points
 from twohr.trajectory import Trajectory
 
-from .core import TrackResult, near_any_keyframe
+from .core import TrackResult, near_any_keyframe, reattach_to_keyframes
 from .motion import MotionModel
 from .optim import MotionPrior, estimate_pose, pose_difference, sample_depth
 
@@ -248,8 +248,4 @@ class FrameTracker:
         """Every frame's pose re-attached to its keyframe as bundle adjustment has refined it since
         (``keyframe_poses``: the final ones from the mapper; default: the latest update's)."""
         poses = self.keyframe_poses if keyframe_poses is None else keyframe_poses
-        anchors = np.asarray(self._anchors, np.int64)
-        relative = np.asarray(self._relative).reshape(-1, 4, 4)
-        base = np.tile(np.eye(4), (len(anchors), 1, 1))
-        base[anchors >= 0] = poses[anchors[anchors >= 0]]
-        return Trajectory(np.asarray(self._stamps), base @ relative)
+        return reattach_to_keyframes(self._stamps, self._anchors, self._relative, poses)
