@@ -95,8 +95,10 @@ class TrackerConfig(Section):
     max_depth: float = Field(6.0, gt=0, description="ignore depth readings farther than this (m)")
     depth_edge_ratio: float = Field(0.05, gt=0, description="reject depth where the 3x3 neighbourhood spreads "
                                     "more than this fraction of the depth (object boundaries)")
-    depth_noise: float = Field(0.005, gt=0, description="depth sigma = depth_noise * z^2 (m), i.e. the inverse-"
-                               "depth sigma (1/m) that weighs one pixel of reprojection error")
+    depth_noise: float = Field(0.05, gt=0, description="depth sigma = depth_noise * z^2 (m), i.e. the inverse-"
+                               "depth sigma (1/m) that weighs one pixel of reprojection error. Weak on purpose: "
+                               "consumer structured-light depth is biased (the Bonn sensor reads ~6 % short), and a "
+                               "tight term pulls that bias into the poses; use ~0.005 for exact depth")
     # matching against the local map
     match_radius_px: float = Field(25.0, gt=0, description="accept a descriptor match only this close to the "
                                    "landmark's projection under the motion-model prediction (px)")
@@ -128,6 +130,11 @@ class TrackerConfig(Section):
     flow_levels: int = Field(3, ge=0, le=6, description="Lucas-Kanade pyramid levels above the image")
     flow_fb_px: float = Field(1.0, gt=0, description="drop a track whose forward-backward flow misses its start "
                               "by more than this (px)")
+    flow_depth_noise: float | None = Field(None, gt=0, description="depth_noise for the per-frame pose from "
+                                           "flowed tracks; None = depth_noise")
+    flow_reacquire_keyframes: int = Field(3, ge=0, description="when tracks run short, look for the landmarks "
+                                          "of this many latest keyframes again by flow from the keyframe's image")
+    flow_reacquire_below: int = Field(100, ge=0, description="tracks run short below this many flowed tracks")
     flow_max_tracks: int = Field(600, ge=16, description="follow at most this many landmarks per frame")
     keyframe_max_interval: int = Field(10, ge=1, description="ask for a keyframe at least every this many frames")
     flow_keyframe_min_inliers: int = Field(150, ge=6, description="ask for a keyframe when fewer tracks than this "

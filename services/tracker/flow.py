@@ -28,7 +28,7 @@ from twohr.config import TrackerConfig
 from twohr.dataset import CameraIntrinsics
 from twohr.features import masked
 from twohr.geometry import invert_pose, project, transform_points
-from twohr.trajectory import Trajectory
+from twohr.trajectory import Trajectory, interpolate_poses
 
 from .core import TrackResult, near_any_keyframe, reattach_to_keyframes
 from .motion import MotionModel
@@ -86,6 +86,19 @@ def flow_points(source: np.ndarray, target: np.ndarray, xy: np.ndarray, guess: n
     return forward, ok
 
 
+def bridge_coasted(trajectory: Trajectory, measured: np.ndarray, max_gap_s: float = 3.0) -> Trajectory:
+    """Replace poses that only coasted on the motion model (``measured`` False) by interpolation between
+    the measured poses on either side, for gaps up to ``max_gap_s``: afterwards, the pose found again
+    says more about the gap than the extrapolation did. Gaps at the ends are left as they are."""
+    if measured.all() or measured.sum() < 2:
+        return trajectory
+    known = Trajectory(trajectory.stamps[measured], trajectory.poses[measured])
+    poses, valid = interpolate_poses(known, trajectory.stamps[~measured], max_gap=max_gap_s)
+    out = trajectory.poses.copy()
+    out[np.flatnonzero(~measured)[valid]] = poses[valid]
+    return Trajectory(trajectory.stamps, out)
+
+
 class FrameTracker:
     """Camera-rate tracking: landmarks followed by optical flow, pose by PnP; keyframes come from outside."""
 
@@ -105,8 +118,11 @@ class FrameTracker:
         self.track_landmark = np.zeros(0, np.int64)
         self.previous: np.ndarray | None = None  # the previous frame's grayscale image
         self.frames_since_keyframe = 0
+        # (grayscale image, observations xy, landmark ids) of the latest keyframes, to find lost landmarks again
+        self._recent_keyframes: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.anchor = -1  # the keyframe this frame's pose is kept relative to, for trajectory()
         self._stamps: list[float] = []
+        self._measured: list[bool] = []  # False where the pose only coasted on the motion model
         self._anchors: list[int] = []
         self._relative: list[np.ndarray] = []
 
@@ -127,7 +143,7 @@ class FrameTracker:
         self.motion.advance(stamp, result.pose)
         self.previous = gray
         self.frames_since_keyframe += 1
-        self._record(stamp, result.pose)
+        self._record(stamp, result.pose, result.tracked)
         result.timings = {"total": (time.perf_counter() - start) * 1000}
         result.num_landmarks = len(self.track_landmark)
         return result
@@ -142,9 +158,13 @@ class FrameTracker:
             guess = project(transform_points(T_guess, self.landmarks[self.track_landmark]), self.K)
             guess = np.where(np.isfinite(guess), guess, self.track_xy)
         xy, ok = flow_points(self.previous, gray, self.track_xy, guess, conf)
-        if mask is not None and ok.any():
-            ok[ok] = ~masked(xy[ok], mask)
         xy, landmark = xy[ok], self.track_landmark[ok]
+        if len(landmark) < conf.flow_reacquire_below:
+            found_xy, found = self._reacquire(gray, T_guess, landmark)
+            xy, landmark = np.concatenate([xy, found_xy]), np.concatenate([landmark, found])
+        if mask is not None and len(xy):
+            keep = ~masked(xy, mask)
+            xy, landmark = xy[keep], landmark[keep]
         z = sample_depth(depth, xy, conf.min_depth, conf.max_depth, conf.depth_edge_ratio)
         counts = dict(num_keypoints=tracks, num_with_depth=int((z > 0).sum()), num_matches=len(xy))
         prior = None
@@ -153,7 +173,7 @@ class FrameTracker:
             prior = MotionPrior(T_guess, conf.motion_prior_m * scale, np.radians(conf.motion_prior_deg) * scale)
         T_cw, inliers, why = estimate_pose(self.K, self.landmarks[landmark], xy.astype(np.float64), z,
                                            conf.ransac_reprojection_px, conf.ransac_iterations, conf.min_inliers,
-                                           conf.depth_noise, conf.huber_px, prior)
+                                           conf.flow_depth_noise or conf.depth_noise, conf.huber_px, prior)
         if T_cw is not None:
             moved, turned = pose_difference(predicted, invert_pose(T_cw))
             allowed = 1.0 + self.motion.lost_frames
@@ -174,6 +194,28 @@ class FrameTracker:
         if counts["num_with_depth"] == 0:
             reason += " (no depth: tracked from 2-D flow only)"
         return TrackResult(stamp, pose, "tracking", num_inliers=num_inliers, reason=reason, **counts)
+
+    def _reacquire(self, gray: np.ndarray, T_guess: np.ndarray, tracked: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Find landmarks of the latest keyframes again that the flow has lost (a person walked past them):
+        flow from their observation in the keyframe's image straight to this frame, starting at their
+        projection under the prediction (at the observation itself while lost)."""
+        found_xy, found = [np.zeros((0, 2), np.float32)], [np.zeros(0, np.int64)]
+        taken = set(tracked.tolist())
+        for gray_kf, xy_kf, landmark_kf in reversed(self._recent_keyframes):
+            todo = self.usable[landmark_kf] & ~np.isin(landmark_kf, list(taken))
+            if not todo.any():
+                continue
+            xy_kf, landmark_kf = xy_kf[todo], landmark_kf[todo]
+            guess = xy_kf
+            if self.motion.lost_frames == 0:
+                points = transform_points(T_guess, self.landmarks[landmark_kf])
+                guess = np.where((points[:, 2:] > 0) & np.isfinite(project(points, self.K)),
+                                 project(points, self.K), xy_kf)
+            xy, ok = flow_points(gray_kf, gray, xy_kf, guess, self.conf)
+            found_xy.append(xy[ok])
+            found.append(landmark_kf[ok])
+            taken.update(landmark_kf[ok].tolist())
+        return np.concatenate(found_xy), np.concatenate(found)
 
     def wants_keyframe(self, result: TrackResult) -> bool:
         """True when the map should grow at this frame (see the module docstring)."""
@@ -222,6 +264,10 @@ class FrameTracker:
                 guess = np.where(np.isfinite(projected), projected, xy)
             xy, ok = flow_points(update.gray, self.previous, xy, guess, self.conf)
             xy, landmark = xy[ok], landmark[ok]
+        if update.keyframe_id >= 0 and update.gray is not None:
+            observed = self.usable[update.seeds_landmark]
+            self._recent_keyframes = [*self._recent_keyframes, (update.gray, update.seeds_xy[observed].astype(
+                np.float32), update.seeds_landmark[observed])][-self.conf.flow_reacquire_keyframes:]
         room = max(0, self.conf.flow_max_tracks - len(self.track_landmark))
         self.track_xy = np.concatenate([self.track_xy, xy[:room].astype(np.float32)])
         self.track_landmark = np.concatenate([self.track_landmark, landmark[:room]])
@@ -233,13 +279,15 @@ class FrameTracker:
             if self._stamps[i] == update.stamp:
                 self._anchors[i] = update.keyframe_id
                 self._relative[i] = np.eye(4)
+                self._measured[i] = update.result.tracked
                 return
             if self._stamps[i] < update.stamp:
                 return
 
     # ------------------------------------------------------------------ trajectory
 
-    def _record(self, stamp: float, pose: np.ndarray) -> None:
+    def _record(self, stamp: float, pose: np.ndarray, measured: bool) -> None:
+        self._measured.append(measured)
         self._stamps.append(stamp)
         self._anchors.append(self.anchor)
         self._relative.append(pose if self.anchor < 0 else invert_pose(self.keyframe_poses[self.anchor]) @ pose)
@@ -248,4 +296,5 @@ class FrameTracker:
         """Every frame's pose re-attached to its keyframe as bundle adjustment has refined it since
         (``keyframe_poses``: the final ones from the mapper; default: the latest update's)."""
         poses = self.keyframe_poses if keyframe_poses is None else keyframe_poses
-        return reattach_to_keyframes(self._stamps, self._anchors, self._relative, poses)
+        trajectory = reattach_to_keyframes(self._stamps, self._anchors, self._relative, poses)
+        return bridge_coasted(trajectory, np.asarray(self._measured, bool))

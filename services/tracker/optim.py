@@ -237,7 +237,7 @@ def refine_pose(K: np.ndarray, T_cw: np.ndarray, points_w: np.ndarray, xy: np.nd
         except np.linalg.LinAlgError:
             break
         T = apply_update(T, delta)
-        if np.abs(delta).max() < 1e-6:  # micro-radians and micrometres
+        if np.abs(delta).max() < 1e-5:  # 10 micro-radians and 10 micrometres: far below the noise
             break
     return T
 
