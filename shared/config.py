@@ -28,7 +28,8 @@ class DetectorConfig(Section):
         "baselines"
     )
     model: str = Field("faster2d2_WASF_N16", description="registered r2d2-kind model")
-    input_scale: float = Field(1.0, gt=0, le=2, description="network input size relative to the image (even sizes)")
+    input_scale: float = Field(0.75, gt=0, le=2, description="network input size relative to the image (even sizes); "
+                               "0.75 = 480x360 for a VGA camera: keyframes cost 0.6x, at no measured loss of accuracy")
     backend: Literal["auto", "openvino", "onnxruntime"] = Field(
         "auto", description="inference backend; auto = OpenVINO where installed, else onnxruntime")
     precision: Literal["auto", "bf16", "f32"] = Field(
@@ -62,7 +63,8 @@ class YoloConfig(Section):
         None, description="YAML file: high/medium/low -> class names; None = the paper's table")
     remove_levels: list[Literal["high", "medium", "low"]] = Field(
         default_factory=lambda: ["high"], description="mask objects of these dynamics levels")
-    mask: Literal["box", "depth"] = Field("box", description="box = dilated boxes; depth = box pixels near its depth")
+    mask: Literal["box", "depth"] = Field("depth", description="box = dilated boxes; depth = box pixels near its "
+                                          "depth (leaves the background between people usable)")
     box_margin: int = Field(8, ge=0, description="dilate boxes by this many pixels")
     depth_band: float = Field(0.5, gt=0, description="depth mask: keep box pixels within this many metres of the "
                               "object's own depth (plus anything nearer); pixels without depth stay masked")

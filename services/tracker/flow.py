@@ -173,7 +173,8 @@ class FrameTracker:
             prior = MotionPrior(T_guess, conf.motion_prior_m * scale, np.radians(conf.motion_prior_deg) * scale)
         T_cw, inliers, why = estimate_pose(self.K, self.landmarks[landmark], xy.astype(np.float64), z,
                                            conf.ransac_reprojection_px, conf.ransac_iterations, conf.min_inliers,
-                                           conf.flow_depth_noise or conf.depth_noise, conf.huber_px, prior)
+                                           conf.flow_depth_noise or conf.depth_noise, conf.huber_px, prior,
+                                           initial=T_guess if self.motion.lost_frames == 0 else None)
         if T_cw is not None:
             moved, turned = pose_difference(predicted, invert_pose(T_cw))
             allowed = 1.0 + self.motion.lost_frames

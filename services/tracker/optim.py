@@ -259,12 +259,26 @@ class BundleAdjustmentResult:
 
 def estimate_pose(K: np.ndarray, points_w: np.ndarray, xy: np.ndarray, z_meas: np.ndarray, threshold_px: float,
                   ransac_iterations: int, min_inliers: int, depth_noise: float, huber: float,
-                  prior: MotionPrior | None = None) -> tuple[np.ndarray | None, np.ndarray, str]:
+                  prior: MotionPrior | None = None, initial: np.ndarray | None = None,
+                  trust_initial: float = 0.8) -> tuple[np.ndarray | None, np.ndarray, str]:
     """RANSAC PnP, then robust refinement on the inliers, re-classification of every correspondence and a
-    second refinement. Returns (T_cw or None, inlier mask, why it failed or "")."""
+    second refinement. Returns (T_cw or None, inlier mask, why it failed or "").
+
+    With an ``initial`` pose (a good prediction), RANSAC is skipped when a robust refinement from it
+    already explains at least ``trust_initial`` of the correspondences: the common case between
+    keyframes, where the correspondences come from optical flow."""
     count = len(xy)
     if count < min_inliers:
         return None, np.zeros(count, bool), f"too few matches ({count} < {min_inliers})"
+    if initial is not None:
+        T_cw = refine_pose(K, initial, points_w, xy, z_meas, depth_noise, huber, prior=prior)
+        reproj, depth_err = observation_errors(K, T_cw, points_w, xy, z_meas, depth_noise)
+        inliers = (reproj < threshold_px) & (depth_err < threshold_px)
+        if inliers.sum() >= max(min_inliers, trust_initial * count):
+            T_cw = refine_pose(K, T_cw, points_w[inliers], xy[inliers], z_meas[inliers], depth_noise, huber,
+                               prior=prior)
+            reproj, depth_err = observation_errors(K, T_cw, points_w, xy, z_meas, depth_noise)
+            return T_cw, (reproj < threshold_px) & (depth_err < threshold_px), ""
     T_cw, inliers = pnp_ransac(K, points_w, xy, threshold_px, ransac_iterations)
     if T_cw is None or inliers.sum() < min_inliers:
         return None, inliers, f"RANSAC found too few inliers ({int(inliers.sum())} of {count} matches)"

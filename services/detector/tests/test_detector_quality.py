@@ -71,7 +71,8 @@ def test_restrict_summarises_a_subset_of_pairs(small_table):
 
 def test_kmeans_study_small_grid(static_synthetic_sequence, tmp_path):
     grid = {"score_threshold": [0.0, 0.9], "reliability_clusters": [1, 3]}
-    result = kmeans_study(RGBDSequence(static_synthetic_sequence), DetectorConfig(), deltas=(2,), step=10, stop=13,
+    full_resolution = DetectorConfig(input_scale=1.0)  # the study is defined on the full-resolution maps
+    result = kmeans_study(RGBDSequence(static_synthetic_sequence), full_resolution, deltas=(2,), step=10, stop=13,
                           grid=grid, progress=False)
     assert [(p.parameter, p.value) for p in result.points] == [("score_threshold", 0.0), ("score_threshold", 0.9),
                                                               ("reliability_clusters", 1.0),

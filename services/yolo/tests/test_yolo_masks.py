@@ -150,7 +150,7 @@ def test_grow_boxes_in_proportion_to_frames_elapsed():
 def test_every_nth_frame_detection_propagates_masks(dev_frames):
     """Detect on frames 300 and 303 only; the masks in between still cover the people that fresh
     detections find there."""
-    conf = YoloConfig(every_n=3)
+    conf = YoloConfig(every_n=3, mask="box")
     propagating = DynamicMasker(conf)
     fresh = DynamicMasker(conf.model_copy(update={"every_n": 1}), detector=propagating.detector)
     flags, coverage = [], []
@@ -178,7 +178,8 @@ def test_masker_depth_mode_and_levels(dev_frames):
         depth_masker(frame.rgb)
     with pytest.raises(ValueError, match="depth shape"):
         depth_masker(frame.rgb, frame.depth[:100])
-    with_chairs = DynamicMasker(YoloConfig(remove_levels=["high", "medium"]), detector=depth_masker.detector)
+    with_chairs = DynamicMasker(YoloConfig(remove_levels=["high", "medium"], mask="box"),
+                                detector=depth_masker.detector)
     names = with_chairs(frame.rgb).dynamic.names
     assert "chair" in names and "person" in names
     disabled = DynamicMasker(YoloConfig(enabled=False))
