@@ -23,7 +23,7 @@ import numpy as np
 
 from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics, Frame
-from twohr.features import Detections, Keypoints, drop_masked
+from twohr.features import Keypoints, drop_masked
 from twohr.trajectory import Trajectory
 from twohr.workers import Worker, prefetch
 
@@ -192,13 +192,15 @@ class KeyframePipeline:
         self.config = config
         self.live = live
         runtime = config.pipeline
+        if runtime.opencv_threads:
+            cv2.setNumThreads(runtime.opencv_threads)  # process-wide: the LK pool otherwise fights the workers
         self.mapper = Mapper(config, camera)
         self.frames = FrameTracker(camera, config.tracker)
         self.masker = DynamicMasker(config.yolo) if config.yolo.enabled else None
         self.mapping = Worker(self.mapper, "mapping", runtime.synchronous)
         self.masking = Worker(self._detect_dynamic, "yolo", runtime.synchronous) if self.masker else None
         self.keyframe_log: list[KeyframeLog] = []
-        self._dynamic: tuple[int, Detections] | None = None  # the latest YOLO result and its frame
+        self._dynamic: tuple[int, np.ndarray, int] | None = None  # the latest YOLO mask: frame, mask, objects
         self._yolo_requested = -(10**9)
         self._last_index = 0
         self._job_index = 0  # the frame of the latest keyframe job
@@ -212,9 +214,11 @@ class KeyframePipeline:
             if masker is not None:
                 masker.detect_dynamic(blank)
 
-    def _detect_dynamic(self, job: tuple[int, np.ndarray]) -> tuple[int, Detections]:
-        index, rgb = job
-        return index, self.masker.detect_dynamic(rgb)
+    def _detect_dynamic(self, job: tuple[int, np.ndarray, np.ndarray]) -> tuple[int, np.ndarray, int]:
+        """YOLO worker: the dynamic mask of one frame (the frames after it reuse it, see :meth:`_mask`)."""
+        index, rgb, depth = job
+        dynamic = self.masker.detect_dynamic(rgb)
+        return index, propagated_mask(dynamic, 0, depth.shape, self.config.yolo, depth), len(dynamic)
 
     def _take(self, update: MapUpdate | None, index: int) -> None:
         if update is None:
@@ -230,20 +234,20 @@ class KeyframePipeline:
         if self.masking is None:
             return None, -1, 0
         if frame.index - self._yolo_requested >= self.config.pipeline.yolo_every_n and not self.masking.busy:
-            self.masking.submit((frame.index, frame.rgb))
+            self.masking.submit((frame.index, frame.rgb, frame.depth))
             self._yolo_requested = frame.index
         fresh = self.masking.poll()
         if fresh is not None:
             self._dynamic = fresh
         if self._dynamic is None:
             return None, -1, 0
-        detected_at, dynamic = self._dynamic
+        detected_at, mask, objects = self._dynamic
         age = frame.index - detected_at
         if age > self.config.pipeline.mask_max_age:
             return None, -1, 0
-        # the boxes as detected, not grown with their age: grown boxes soon cover a crowded view and starve
-        # the flow of tracks; a track that a person covers fails the forward-backward check or RANSAC
-        return propagated_mask(dynamic, 0, frame.depth.shape, self.config.yolo, frame.depth), age, len(dynamic)
+        # the mask as detected, not grown with its age: grown boxes soon cover a crowded view and starve the
+        # flow of tracks; a track that a person has since covered fails the forward-backward check or RANSAC
+        return mask, age, objects
 
     def process(self, frame: Frame) -> tuple[TrackResult, FrameStats]:
         """Track one frame; hand it to the mapping worker when the map should grow and the worker is free."""

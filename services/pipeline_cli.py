@@ -186,9 +186,12 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run the full pipeline on a sequence; writes trajectory, stats and evaluation",
-                       description="detector (2HR) -> yolo mask -> matcher -> tracker, in one process. Writes the "
-                       "TUM trajectory (camera-to-world), per-frame stats and, with ground truth, the ATE report "
-                       "and plot.")
+                       description="The whole pipeline in one process. By default (pipeline.mode=keyframes) every "
+                       "frame is tracked by optical flow against the map while 2HR detection, YOLO, matching and "
+                       "bundle adjustment run on keyframes in worker threads; --set pipeline.mode=every_frame runs "
+                       "detector (2HR) -> yolo mask -> matcher -> tracker on every frame, as in the paper. Writes "
+                       "the TUM trajectory (camera-to-world), per-frame stats and, with ground truth, the ATE "
+                       "report and plot.")
     _add_run_options(p)
     p.set_defaults(func=_run)
 

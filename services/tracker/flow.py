@@ -68,7 +68,7 @@ def flow_points(source: np.ndarray, target: np.ndarray, xy: np.ndarray, guess: n
     if len(xy) == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, bool)
     window = (conf.flow_window_px, conf.flow_window_px)
-    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03)
     # copies: OpenCV writes the tracked positions into the initial-guess array
     start = np.array(xy, np.float32).reshape(-1, 1, 2)
     forward, ok_f, _ = cv2.calcOpticalFlowPyrLK(
