@@ -6,15 +6,18 @@ each against a baseline measured in the same process at the same time (this mach
 
 from __future__ import annotations
 
+import os
 import platform
 import resource
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from twohr.config import PipelineConfig, load_config
 from twohr.evaluation import evaluate
+from twohr.trajectory import Trajectory
 
 from .pipeline import FrontEnd, StageOutput, run_sequence
 
@@ -39,6 +42,49 @@ def _percentiles(values: list[float]) -> dict[str, float]:
             "p99": round(float(np.percentile(arr, 99)), 2)}
 
 
+#: Where ORB-SLAM3's vocabulary and settings for the dev camera live (``../shared/baselines`` beside the repo);
+#: override with $PYORBSLAM3_VOCAB and $TWOHR_ORBSLAM3_SETTINGS.
+BASELINES_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "baselines"
+
+
+def orbslam3_files() -> tuple[Path, Path] | None:
+    """(vocabulary, settings) for ORB-SLAM3 RGB-D, or None when pyorbslam3 or the files are missing."""
+    try:
+        import pyorbslam3  # noqa: F401  (GPL-3.0, an optional benchmark comparison, not a dependency)
+    except ImportError:
+        return None
+    vocab = Path(os.environ.get("PYORBSLAM3_VOCAB", BASELINES_DIR / "ORBvoc_generic_nobonn_k10L6.txt"))
+    settings = Path(os.environ.get("TWOHR_ORBSLAM3_SETTINGS", BASELINES_DIR / "orbslam3_bonn_rgbd.yaml"))
+    return (vocab, settings) if vocab.is_file() and settings.is_file() else None
+
+
+def orbslam3_run(sequence, start: int, stop: int, files: tuple[Path, Path]) -> dict:
+    """ORB-SLAM3 RGB-D (pyorbslam3) on the same frames: ms per ``track_rgbd`` call and its trajectory's ATE.
+    Frames are read before timing; only the tracking calls are timed, as ORB-SLAM3's own examples do."""
+    import pyorbslam3
+
+    slam = pyorbslam3.Slam(str(files[0]), str(files[1]), pyorbslam3.Sensor.RGBD)
+    stamps, poses, ms = [], [], []
+    try:
+        for frame in sequence.frames(start, stop):
+            raw_depth = (frame.depth * sequence.camera.depth_factor).astype(np.float32)
+            t0 = time.perf_counter()
+            result = slam.track_rgbd(frame.rgb, raw_depth, frame.stamp)
+            ms.append((time.perf_counter() - t0) * 1000)
+            if result.pose_valid:
+                stamps.append(frame.stamp)
+                poses.append(np.asarray(result.pose_wc, np.float64))
+    finally:
+        slam.shutdown()
+    out = {"ms_per_frame": _percentiles(ms), "tracked_percent": round(100 * len(poses) / max(1, len(ms)), 1)}
+    if sequence.has_ground_truth() and len(poses) >= 3:
+        extrinsic = sequence.default_gt_extrinsic()
+        report, _ = evaluate(sequence.ground_truth(extrinsic), Trajectory(np.array(stamps), np.array(poses)),
+                             gt_extrinsic=extrinsic)
+        out["ate_rmse"] = round(report.ate.rmse, 4)
+    return out
+
+
 def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 0, runs: int = 3,
                baseline: PipelineConfig | None = None, progress: bool = True) -> dict:
     """Run the pipeline ``runs`` times over the same frames; each run is paired with a run of ``baseline``
@@ -46,6 +92,9 @@ def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 
     baseline = baseline or load_config(None, ABLATIONS["ORB + mutual NN"])
     stop = min(len(sequence), start + frames)
     results = {"pipeline": [], "baseline": []}
+    orbslam3 = orbslam3_files()
+    orbslam3_runs: list[dict] = []
+    ate_runs: list[float] = []
     stage_ms: dict[str, list[float]] = {"ms_detector": [], "ms_yolo": [], "ms_tracker": [], "ms_total": []}
     latency: dict[str, list[float]] = {"keyframe_frames": [], "other_frames": []}
     keyframe_ms: dict[str, list[float]] = {"ms_detector": [], "ms_yolo": [], "ms_mapping": [], "lag_frames": []}
@@ -54,6 +103,10 @@ def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 
             run = run_sequence(sequence, conf, start=start, stop=stop, progress=progress)
             results[label].append(len(run.stats) / run.wall_s)
             if label == "pipeline":
+                if sequence.has_ground_truth() and len(run.trajectory) >= 3:
+                    extrinsic = sequence.default_gt_extrinsic()
+                    ate_runs.append(evaluate(sequence.ground_truth(extrinsic), run.trajectory,
+                                             gt_extrinsic=extrinsic)[0].ate.rmse)
                 for key in stage_ms:
                     stage_ms[key] += [getattr(s, key) for s in run.stats]
                 for s in run.stats:
@@ -61,9 +114,20 @@ def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 
                 for job in run.keyframe_log:
                     for key in keyframe_ms:
                         keyframe_ms[key].append(getattr(job, key))
+        if orbslam3 is not None:
+            orbslam3_runs.append(orbslam3_run(sequence, start, stop, orbslam3))
     fps = float(np.median(results["pipeline"]))
     base = float(np.median(results["baseline"]))
-    return {
+    comparison: dict[str, object] = {"orbslam3": "not run: pip install pyorbslam3 and put its vocabulary and "
+                                                 "settings in ../shared/baselines (or set PYORBSLAM3_VOCAB)"}
+    if orbslam3_runs:
+        orb_ms = float(np.median([r["ms_per_frame"]["median"] for r in orbslam3_runs]))
+        comparison = {"orbslam3": {
+            "ms_per_frame_median": round(orb_ms, 2), "runs": orbslam3_runs,
+            "ratio_ms_per_frame": round((1000 / fps) / orb_ms, 3),
+            "note": "ours: wall time per frame over the whole run; ORB-SLAM3: its track_rgbd call"}}
+    return {**comparison, "ate_rmse_runs": [round(a, 4) for a in ate_runs],
+            "ate_rmse_median": round(float(np.median(ate_runs)), 4) if ate_runs else None,
         "sequence": sequence.name, "frames": stop - start, "runs": runs,
         "fps_median": round(fps, 3), "fps_runs": [round(f, 3) for f in results["pipeline"]],
         "baseline_fps_median": round(base, 3), "baseline": "ORB + mutual NN on the same tracker",

@@ -162,7 +162,13 @@ def _bench(args: argparse.Namespace) -> int:
         report["throughput"] = result
         print(f"{result['frames']} frames x {result['runs']} runs: {result['fps_median']} FPS "
               f"(ORB baseline {result['baseline_fps_median']} FPS, ratio {result['speed_ratio_to_baseline']}); "
-              f"peak RSS {result['peak_rss_mib']} MiB")
+              f"peak RSS {result['peak_rss_mib']} MiB; ATE median {result['ate_rmse_median']} m")
+        orbslam3 = result["orbslam3"]
+        if isinstance(orbslam3, dict):
+            print(f"ORB-SLAM3 RGB-D (pyorbslam3): {orbslam3['ms_per_frame_median']} ms/frame; ours/ORB-SLAM3 "
+                  f"ms per frame: {orbslam3['ratio_ms_per_frame']}")
+        else:
+            print(f"ORB-SLAM3: {orbslam3}")
         print(f"{'stage':10} {'median ms':>10} {'p90 ms':>8}")
         for stage, v in result["stages_ms"].items():
             print(f"{stage:10} {v['median']:10.1f} {v['p90']:8.1f}")

@@ -10,6 +10,8 @@ STREAMS = ("frames", "keypoints", "dynamics", "matches", "pose", "status")
 #: Control and request keys (not recorded as data streams).
 CONTROL = "control"
 MATCH_QUERY = "rpc/match"
+DETECT_QUERY = "rpc/detect"
+DYNAMICS_QUERY = "rpc/dynamics"
 RAW_CAMERA = "camera"
 
 _ROBOT = re.compile(r"^[A-Za-z0-9_-]{1,64}$")

@@ -54,26 +54,33 @@ class Inbox:
 
     def __init__(self, maxsize: int, policy: QueuePolicy, counters: Counters) -> None:
         self.items: collections.deque = collections.deque()
+        self.urgent: collections.deque = collections.deque()  # control messages and queries
         self.maxsize = maxsize
         self.policy = policy
         self.counters = counters
         self.cond = threading.Condition()
 
-    def put(self, item) -> None:
+    def put(self, item, urgent: bool = False) -> None:
+        """Queue ``item``; ``urgent`` items (control messages, queries) are never dropped and go first."""
         with self.cond:
-            if self.policy == "backpressure":
+            if urgent:
+                self.urgent.append(item)
+            elif self.policy == "backpressure":
                 while len(self.items) >= self.maxsize:
                     self.cond.wait(0.1)
             elif len(self.items) >= self.maxsize:
                 self.items.popleft()
                 self.counters.add("dropped")
-            self.items.append(item)
+            if not urgent:
+                self.items.append(item)
             self.cond.notify_all()
 
     def get(self, timeout: float):
         with self.cond:
-            if not self.items:
+            if not self.items and not self.urgent:
                 self.cond.wait(timeout)
+            if self.urgent:
+                return self.urgent.popleft()
             if not self.items:
                 return None
             item = self.items.popleft()
@@ -81,7 +88,7 @@ class Inbox:
             return item
 
     def __len__(self) -> int:
-        return len(self.items)
+        return len(self.items) + len(self.urgent)
 
 
 class Service:
@@ -129,7 +136,13 @@ class Service:
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         self.counters.add("received")
-        self.inbox.put((str(sample.key_expr), sample.payload.to_bytes()))
+        key = str(sample.key_expr)
+        self.inbox.put((key, sample.payload.to_bytes()), urgent=key.endswith("/" + keys.CONTROL))
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        """Queue a query (a request/reply stage); it is served before any queued stream sample."""
+        self.counters.add("received")
+        self.inbox.put((str(query.key_expr), query), urgent=True)
 
     def config_for(self, session_id: str) -> PipelineConfig:
         """The pipeline config of a session (the defaults if its start was never seen)."""
@@ -195,6 +208,18 @@ class Service:
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: self.stopping.set())
         self.run(self.stopping)
+
+
+def reply_to(query: zenoh.Query, answer) -> None:
+    """Answer a query with ``answer(payload) -> bytes``; anything that goes wrong is replied as an error at
+    once (the caller must not wait out its timeout) and then raised for the service's counters."""
+    payload = query.payload.to_bytes() if query.payload is not None else b""
+    try:
+        data = answer(payload)
+    except Exception as exc:
+        query.reply_err(f"{type(exc).__name__}: {exc}"[:500].encode())
+        raise
+    query.reply(query.key_expr, data)
 
 
 def declare_publisher(session: zenoh.Session, key: str, wait_for_subscribers: float = 2.0) -> zenoh.Publisher:

@@ -22,8 +22,10 @@ from twohr_services.pipeline import run_sequence
 from twohr_services.recorder.core import topic_counts
 
 FRAMES = 60
-# half-resolution R2D2 keeps this test quick; the same overrides go to `twohr run` below
-OVERRIDES = {"detector.input_scale": 0.5}
+# half-resolution R2D2 keeps this test quick; the same overrides go to `twohr run` below. The every-frame
+# schedule is deterministic, so the bus and one process must agree exactly; the camera-rate schedule is
+# tested at the end of this module.
+OVERRIDES = {"detector.input_scale": 0.5, "pipeline.mode": "every_frame"}
 
 
 @pytest.fixture(scope="module")
@@ -89,10 +91,8 @@ def test_post_session_streams_every_pose_and_matches_twohr_run(system, dev_seque
     assert sorted(p.frame_index for p in received) == list(range(FRAMES))
     assert all(k == "twohr/robot_a/pose" for k, p in listener.poses if p.session_id == session_id)
 
-    # the same frames and config in one process give the same trajectory (the services compose the
-    # every-frame schedule across Zenoh: each frame's keypoints come from the detector service)
-    local = run_sequence(RGBDSequence(dev_sequence), load_config(None, {**OVERRIDES, "pipeline.mode": "every_frame"}),
-                         stop=FRAMES, progress=False)
+    # the same frames and config in one process give the same trajectory
+    local = run_sequence(RGBDSequence(dev_sequence), load_config(None, OVERRIDES), stop=FRAMES, progress=False)
     (tmp_path / "served.txt").write_text(trajectory_text)
     served = read_tum(tmp_path / "served.txt")
     assert np.allclose(served.stamps, local.online.stamps)
@@ -174,3 +174,34 @@ def test_two_robots_at_once_without_cross_talk(system, dev_sequence):
         mine = [(k, p) for k, p in listener.poses if p.session_id == sid]
         assert sorted(p.frame_index for _, p in mine) == list(range(12))
         assert all(k == f"twohr/{robot}/pose" and p.robot_id == robot for k, p in mine)
+
+
+def test_camera_rate_schedule_over_the_bus(system, dev_sequence, tmp_path):
+    """The default schedule across Zenoh, the source playing at the camera's rate: a pose for every frame,
+    tracked by optical flow in the tracker service, with 2HR detection only on the keyframes it asks for."""
+    frames = 90
+    listener = PoseListener(system["router"])
+    try:
+        with httpx.Client(base_url=system["url"], timeout=30) as client:
+            response = client.post("/sessions", json={"sequence": dev_sequence.name, "robot_id": "robot_k",
+                                                      "max_frames": frames, "rate": 1.0})
+            assert response.status_code == 201, response.text
+            session_id = response.json()["id"]
+            info = wait_finished(client, session_id)
+            assert info["state"] == "finished" and info["frames"] == frames, info
+            recording = client.get(f"/sessions/{session_id}/recording")
+            assert recording.status_code == 200
+    finally:
+        time.sleep(0.5)
+        listener.close()
+    received = sorted((p.frame_index, p) for k, p in listener.poses if p.session_id == session_id)
+    assert [i for i, _ in received] == list(range(frames))
+    statuses = [p.status for _, p in received]
+    assert statuses[0] == "init" and statuses.count("tracking") >= 0.9 * frames, statuses
+    assert info["ate_rmse"] < 0.05, info
+    path = tmp_path / "camera_rate.mcap"
+    path.write_bytes(recording.content)
+    counts = topic_counts(path)
+    assert counts["/twohr/robot_k/frames"] == frames and counts["/twohr/robot_k/pose"] == frames, counts
+    # the detector ran on the keyframes the tracker asked for, not on every frame
+    assert 1 <= counts.get("/twohr/robot_k/keypoints", 0) < frames / 2, counts

@@ -1,4 +1,9 @@
-"""The detector service: ``twohr/<robot>/frames`` in, ``twohr/<robot>/keypoints`` out."""
+"""The detector service: 2HR keypoints for the pipeline, in either schedule (``pipeline.mode``).
+
+* ``every_frame``: ``twohr/<robot>/frames`` in, ``twohr/<robot>/keypoints`` out, for every frame.
+* ``keyframes``: the tracker asks for a keyframe's keypoints on ``twohr/<robot>/rpc/detect`` (query: the frame
+  message as the source sent it; reply: the keypoints). Each answer is also published on ``keypoints``.
+"""
 
 from __future__ import annotations
 
@@ -7,13 +12,13 @@ import time
 from twohr import keys
 from twohr.config import DetectorConfig
 from twohr.messages import FrameMsg, KeypointsMsg, decode, encode
-from twohr.service import Service, serve
+from twohr.service import Service, reply_to, serve
 
 from .core import build_detector
 
 
 class DetectorService(Service):
-    """2HR keypoints for every frame, with the detector config of the frame's session."""
+    """2HR keypoints with the detector config of the frame's session."""
 
     name = "detector"
     follows_sessions = True
@@ -25,14 +30,26 @@ class DetectorService(Service):
     def subscriptions(self) -> list[str]:
         return [keys.all_robots("frames")]
 
+    def on_start(self) -> None:
+        self.queryable = self.session.declare_queryable(keys.all_robots(keys.DETECT_QUERY), self._on_query)
+
     def detector_for(self, conf: DetectorConfig):
         key = conf.model_dump_json()
         if key not in self.detectors:
             self.detectors[key] = build_detector(conf)
         return self.detectors[key]
 
-    def handle(self, key: str, payload: bytes) -> None:
-        frame, arrays = decode(payload, FrameMsg)
+    def handle(self, key: str, payload) -> None:
+        if key.endswith(keys.DETECT_QUERY):
+            reply_to(payload, self._keypoints)
+            return
+        header, _ = decode(payload, FrameMsg, only=())
+        if self.config_for(header.session_id).pipeline.mode == "keyframes":
+            return  # the tracker asks for the frames it needs
+        self._keypoints(payload)
+
+    def _keypoints(self, payload: bytes) -> bytes:
+        frame, arrays = decode(payload, FrameMsg, only=("rgb",))
         detector = self.detector_for(self.config_for(frame.session_id).detector)
         t0 = time.perf_counter()
         kp = detector.detect(arrays["rgb"])
@@ -43,7 +60,9 @@ class DetectorService(Service):
         arrays_out = {"xy": kp.xy, "descriptors": kp.descriptors, "scores": kp.scores}
         if kp.reliability is not None:
             arrays_out |= {"reliability": kp.reliability, "repeatability": kp.repeatability}
-        self.publish(keys.key(frame.robot_id, "keypoints"), encode(out, arrays_out))
+        data = encode(out, arrays_out)
+        self.publish(keys.key(frame.robot_id, "keypoints"), data)
+        return data
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import time
 
-import zenoh
-
 from twohr import keys
 from twohr.config import MatcherConfig
 from twohr.messages import MatchesMsg, MatchRequestMsg, decode, encode
@@ -33,10 +31,6 @@ class MatcherService(Service):
 
     def on_start(self) -> None:
         self.queryable = self.session.declare_queryable(keys.all_robots(keys.MATCH_QUERY), self._on_query)
-
-    def _on_query(self, query: zenoh.Query) -> None:
-        self.counters.add("received")
-        self.inbox.put((str(query.key_expr), query))
 
     def matcher_for(self, conf: MatcherConfig):
         key = conf.model_dump_json()

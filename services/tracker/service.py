@@ -1,5 +1,12 @@
-"""The tracker service: joins ``frames`` (depth), ``keypoints`` and ``dynamics`` of each frame, asks the
-matcher service for correspondences, and publishes the pose on ``twohr/<robot>/pose``."""
+"""The tracker service: publishes each frame's pose on ``twohr/<robot>/pose``, in the session's schedule.
+
+* ``keyframes`` (default): every frame from ``frames`` is tracked by optical flow in this process (the
+  keyframe pipeline, :class:`~twohr_services.pipeline.KeyframePipeline`, as in ``twohr run``); its workers
+  ask the detector (``rpc/detect``), yolo (``rpc/dynamics``) and matcher (``rpc/match``) services for
+  keyframes and masks, so a pose never waits for a network.
+* ``every_frame``: joins ``frames`` (depth), ``keypoints`` and ``dynamics`` of each frame, asks the matcher
+  service for correspondences, and tracks with the keyframe tracker on every frame.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +17,7 @@ import numpy as np
 import zenoh
 
 from twohr import keys
+from twohr.dataset import Frame
 from twohr.features import Keypoints, Matches, drop_masked
 from twohr.geometry import rot_to_quat
 from twohr.messages import (
@@ -27,6 +35,32 @@ from twohr.messages import (
 from twohr.service import Service, serve
 
 from .core import Tracker
+from .keyframes import KeyframePipeline, Stages
+
+
+class RemoteStage:
+    """A network stage in another service, asked over the bus with the frame message as the source sent it."""
+
+    def __init__(self, session: zenoh.Session, robot_id: str, query: str, parse, timeout: float = 10.0) -> None:
+        self.session, self.key, self.parse, self.timeout = session, keys.key(robot_id, query), parse, timeout
+
+    def __call__(self, frame, source: bytes):
+        for reply in self.session.get(self.key, payload=source, timeout=self.timeout):
+            if reply.ok is not None:
+                return self.parse(reply.ok.payload.to_bytes())
+            raise MessageError(f"{self.key}: {reply.err.payload.to_bytes().decode(errors='replace')}")
+        raise TimeoutError(f"no service answered on {self.key} within {self.timeout} s")
+
+
+def _keypoints_reply(payload: bytes) -> Keypoints:
+    _, arrays = decode(payload, KeypointsMsg)
+    return Keypoints(arrays["xy"], arrays["descriptors"], arrays["scores"], arrays.get("reliability"),
+                     arrays.get("repeatability"))
+
+
+def _dynamics_reply(payload: bytes) -> tuple[np.ndarray, int]:
+    message, arrays = decode(payload, DynamicsMsg, only=("mask",))
+    return arrays["mask"].astype(bool), len(message.names)
 
 
 class RemoteMatcher:
@@ -64,11 +98,12 @@ class PendingFrame:
 
 @dataclass
 class SessionTrack:
-    tracker: Tracker
+    tracker: Tracker | None
     matcher: RemoteMatcher
     needs_dynamics: bool
     pending: dict[int, PendingFrame] = field(default_factory=dict)
     last_index: int = -1
+    pipeline: KeyframePipeline | None = None  # the keyframes schedule
 
 
 class TrackerService(Service):
@@ -85,7 +120,9 @@ class TrackerService(Service):
         return [keys.all_robots(s) for s in ("frames", "keypoints", "dynamics")]
 
     def on_session_stop(self, session_id: str) -> None:
-        self.tracks.pop(session_id, None)
+        track = self.tracks.pop(session_id, None)
+        if track is not None and track.pipeline is not None:
+            track.pipeline.close()
 
     def _track_for(self, session_id: str, robot_id: str, frame: FrameMsg | None) -> SessionTrack | None:
         if session_id not in self.tracks:
@@ -93,8 +130,15 @@ class TrackerService(Service):
                 return None  # the camera intrinsics come with the first frame
             config = self.config_for(session_id)
             matcher = RemoteMatcher(self.session, robot_id, session_id)
-            self.tracks[session_id] = SessionTrack(Tracker(frame.camera, config.tracker, match=matcher), matcher,
-                                                   config.yolo.enabled)
+            if config.pipeline.mode == "keyframes":
+                stages = Stages(RemoteStage(self.session, robot_id, keys.DETECT_QUERY, _keypoints_reply),
+                                RemoteStage(self.session, robot_id, keys.DYNAMICS_QUERY, _dynamics_reply)
+                                if config.yolo.enabled else None, matcher)
+                pipeline = KeyframePipeline(config, frame.camera, stages, live=True)
+                self.tracks[session_id] = SessionTrack(None, matcher, False, pipeline=pipeline)
+            else:
+                self.tracks[session_id] = SessionTrack(Tracker(frame.camera, config.tracker, match=matcher), matcher,
+                                                       config.yolo.enabled)
         return self.tracks[session_id]
 
     def handle(self, key: str, payload: bytes) -> None:
@@ -102,6 +146,9 @@ class TrackerService(Service):
         if stream == "frames":
             frame, arrays = decode(payload, FrameMsg, only=("depth",))
             track = self._track_for(frame.session_id, frame.robot_id, frame)
+            if track.pipeline is not None:
+                self._track_live(track, frame, payload)
+                return
             entry = track.pending.setdefault(frame.frame_index, PendingFrame())
             entry.stamp, entry.sent_at = frame.stamp, frame.sent_at
             entry.depth = arrays["depth"].astype(np.float32) / np.float32(frame.camera.depth_factor)
@@ -109,7 +156,7 @@ class TrackerService(Service):
         elif stream == "keypoints":
             message, arrays = decode(payload, KeypointsMsg)
             track = self._track_for(message.session_id, message.robot_id, None)
-            if track is None:
+            if track is None or track.pipeline is not None:
                 return
             entry = track.pending.setdefault(message.frame_index, PendingFrame())
             entry.keypoints = Keypoints(arrays["xy"], arrays["descriptors"], arrays["scores"],
@@ -118,7 +165,7 @@ class TrackerService(Service):
         elif stream == "dynamics":
             message, arrays = decode(payload, DynamicsMsg, only=("mask",))
             track = self._track_for(message.session_id, message.robot_id, None)
-            if track is None:
+            if track is None or track.pipeline is not None:
                 return
             entry = track.pending.setdefault(message.frame_index, PendingFrame())
             entry.mask, entry.have_dynamics = arrays["mask"].astype(bool), True
@@ -143,6 +190,21 @@ class TrackerService(Service):
             track.last_index = index
             self._track_frame(track, message.session_id, message.robot_id, index, entry)
 
+    def _track_live(self, track: SessionTrack, header: FrameMsg, payload: bytes) -> None:
+        """The keyframes schedule: track this frame now; keyframe and mask work goes to the pipeline's workers."""
+        _, arrays = decode(payload, FrameMsg, only=("rgb",))
+        depth = self._depth(header, payload)
+        frame = Frame(header.frame_index, header.stamp, arrays["rgb"], depth)
+        track.matcher.frame_index, track.matcher.stamp = header.frame_index, header.stamp
+        result, stats = track.pipeline.process(frame, source=payload)
+        self._publish_pose(header.session_id, header.robot_id, header.frame_index, header.stamp, result,
+                           stats.keypoints, header.sent_at, {"tracker": stats.ms_total})
+
+    @staticmethod
+    def _depth(header: FrameMsg, payload: bytes) -> np.ndarray:
+        _, arrays = decode(payload, FrameMsg, only=("depth",))
+        return arrays["depth"].astype(np.float32) / np.float32(header.camera.depth_factor)
+
     def _track_frame(self, track: SessionTrack, session_id: str, robot_id: str, index: int,
                      entry: PendingFrame) -> None:
         kept = entry.keypoints if entry.mask is None else drop_masked(entry.keypoints, entry.mask)
@@ -150,15 +212,19 @@ class TrackerService(Service):
         t0 = time.perf_counter()
         result = track.tracker.track(entry.stamp, kept, entry.depth)
         elapsed = {**entry.elapsed, "tracker": (time.perf_counter() - t0) * 1000}
-        pose = PoseMsg(session_id=session_id, robot_id=robot_id, frame_index=index, stamp=entry.stamp,
+        self._publish_pose(session_id, robot_id, index, entry.stamp, result, len(kept), entry.sent_at, elapsed)
+
+    def _publish_pose(self, session_id: str, robot_id: str, index: int, stamp: float, result, num_keypoints: int,
+                      sent_at: float, elapsed: dict[str, float]) -> None:
+        pose = PoseMsg(session_id=session_id, robot_id=robot_id, frame_index=index, stamp=stamp,
                        position=result.pose[:3, 3].tolist(), orientation=rot_to_quat(result.pose[:3, :3]).tolist(),
-                       status=result.status, num_keypoints=len(kept), num_matches=result.num_matches,
-                       num_inliers=result.num_inliers, is_keyframe=result.is_keyframe, frame_sent_at=entry.sent_at,
+                       status=result.status, num_keypoints=num_keypoints, num_matches=result.num_matches,
+                       num_inliers=result.num_inliers, is_keyframe=result.is_keyframe, frame_sent_at=sent_at,
                        elapsed_ms=elapsed)
         self.publish(keys.key(robot_id, "pose"), encode(pose))
 
     def on_session_start(self, control: ControlMsg) -> None:
-        self.tracks.pop(control.session_id, None)
+        self.on_session_stop(control.session_id)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -1,4 +1,10 @@
-"""The yolo service: ``twohr/<robot>/frames`` in, ``twohr/<robot>/dynamics`` (detections + mask) out."""
+"""The yolo service: dynamic-object detections and masks, in either schedule (``pipeline.mode``).
+
+* ``every_frame``: ``twohr/<robot>/frames`` in, ``twohr/<robot>/dynamics`` (detections + mask) out, with
+  detection on every n-th frame and masks propagated between.
+* ``keyframes``: the tracker asks on ``twohr/<robot>/rpc/dynamics`` (query: the frame message; reply: that
+  frame's fresh detections and mask) when its YOLO worker is free. Each answer is also published.
+"""
 
 from __future__ import annotations
 
@@ -8,13 +14,13 @@ import numpy as np
 
 from twohr import keys
 from twohr.messages import ControlMsg, DynamicsMsg, FrameMsg, decode, encode
-from twohr.service import Service, serve
+from twohr.service import Service, reply_to, serve
 
-from .masks import DynamicMasker
+from .masks import DynamicMasker, propagated_mask
 
 
 class YoloService(Service):
-    """Dynamic-object masks for every frame; one stateful masker per session (detection every n-th frame)."""
+    """Dynamic-object masks; one stateful masker per session."""
 
     name = "yolo"
     follows_sessions = True
@@ -26,28 +32,52 @@ class YoloService(Service):
     def subscriptions(self) -> list[str]:
         return [keys.all_robots("frames")]
 
+    def on_start(self) -> None:
+        self.queryable = self.session.declare_queryable(keys.all_robots(keys.DYNAMICS_QUERY), self._on_query)
+
     def on_session_start(self, control: ControlMsg) -> None:
         self.maskers[control.session_id] = DynamicMasker(control.config.yolo)
 
     def on_session_stop(self, session_id: str) -> None:
         self.maskers.pop(session_id, None)
 
-    def handle(self, key: str, payload: bytes) -> None:
+    def _masker(self, session_id: str) -> DynamicMasker:
+        if session_id not in self.maskers:
+            self.maskers[session_id] = DynamicMasker(self.config_for(session_id).yolo)
+        return self.maskers[session_id]
+
+    def handle(self, key: str, payload) -> None:
+        if key.endswith(keys.DYNAMICS_QUERY):
+            reply_to(payload, self._fresh_dynamics)
+            return
+        header, _ = decode(payload, FrameMsg, only=())
+        if self.config_for(header.session_id).pipeline.mode == "keyframes":
+            return  # the tracker asks for the frames it needs
         frame, arrays = decode(payload, FrameMsg)
-        masker = self.maskers.get(frame.session_id)
-        if masker is None:
-            masker = self.maskers[frame.session_id] = DynamicMasker(self.config_for(frame.session_id).yolo)
+        masker = self._masker(frame.session_id)
         depth = arrays["depth"].astype(np.float32) / np.float32(frame.camera.depth_factor)
         t0 = time.perf_counter()
         regions = masker(arrays["rgb"], depth)
-        elapsed = (time.perf_counter() - t0) * 1000
-        dyn = regions.dynamic
+        self._publish(frame, masker, regions.dynamic, regions.mask, (time.perf_counter() - t0) * 1000)
+
+    def _fresh_dynamics(self, payload: bytes) -> bytes:
+        frame, arrays = decode(payload, FrameMsg)
+        masker = self._masker(frame.session_id)
+        depth = arrays["depth"].astype(np.float32) / np.float32(frame.camera.depth_factor)
+        t0 = time.perf_counter()
+        dynamic = masker.detect_dynamic(arrays["rgb"])
+        mask = propagated_mask(dynamic, 0, depth.shape, masker.conf, depth)
+        return self._publish(frame, masker, dynamic, mask, (time.perf_counter() - t0) * 1000)
+
+    def _publish(self, frame: FrameMsg, masker: DynamicMasker, dynamic, mask: np.ndarray, elapsed: float) -> bytes:
         out = DynamicsMsg(session_id=frame.session_id, robot_id=frame.robot_id, frame_index=frame.frame_index,
-                          stamp=frame.stamp, names=list(dyn.names), levels=list(masker.conf.remove_levels),
+                          stamp=frame.stamp, names=list(dynamic.names), levels=list(masker.conf.remove_levels),
                           elapsed_ms=elapsed, sent_at=frame.sent_at)
-        arrays_out = {"boxes": dyn.boxes.astype(np.float32), "scores": dyn.scores.astype(np.float32),
-                      "class_ids": dyn.class_ids.astype(np.int64), "mask": regions.mask.astype(np.uint8)}
-        self.publish(keys.key(frame.robot_id, "dynamics"), encode(out, arrays_out, {"mask": "png"}))
+        arrays_out = {"boxes": dynamic.boxes.astype(np.float32), "scores": dynamic.scores.astype(np.float32),
+                      "class_ids": dynamic.class_ids.astype(np.int64), "mask": mask.astype(np.uint8)}
+        data = encode(out, arrays_out, {"mask": "png"})
+        self.publish(keys.key(frame.robot_id, "dynamics"), data)
+        return data
 
 
 def main(argv: list[str] | None = None) -> None:
