@@ -290,8 +290,9 @@ def session_latency(router: str, gateway_url: str, sequence_name: str, frames: i
         mine = sorted(((t, p) for t, p in received if p.session_id == session_id), key=lambda tp: tp[0])
     latencies = [1000 * (t - p.frame_sent_at) for t, p in mine]
     span = mine[-1][0] - min(p.frame_sent_at for _, p in mine) if mine else float("nan")
+    sent = int(info.get("frames") or frames)
     return {"session": info, "frames": len(mine), "frame_indices": [p.frame_index for _, p in mine],
-            "rate": rate,
+            "rate": rate, "dropped_percent": round(100 * (1 - len({p.frame_index for _, p in mine}) / max(1, sent)), 2),
             "latency_ms": {"p50": round(float(np.percentile(latencies, 50)), 1) if mine else None,
                            "p99": round(float(np.percentile(latencies, 99)), 1) if mine else None},
             "fps": round(len(mine) / span, 3) if mine else 0.0}
@@ -323,4 +324,4 @@ def bus_latency(sequence_root, config_overrides: dict, frames: int = 60, rate: f
 
 def latency_summary(result: dict) -> dict:
     """The numbers of a :func:`session_latency` result, without the per-frame detail."""
-    return {k: result[k] for k in ("frames", "rate", "latency_ms", "fps")}
+    return {k: result[k] for k in ("frames", "rate", "dropped_percent", "latency_ms", "fps")}

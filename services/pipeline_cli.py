@@ -133,10 +133,10 @@ def _bench(args: argparse.Namespace) -> int:
         lat = np.concatenate([[s.ms_total for s in r.stats] for r in local])
         if args.gateway:  # an already-running stack, e.g. the compose containers
             bus_runs = [bench.latency_summary(bench.session_latency(args.router, args.gateway, sequence.root.name,
-                                                                    frames, config_overrides=overrides))
+                                                                    frames, args.rate, config_overrides=overrides))
                         for _ in range(args.runs)]
         else:
-            bus_runs = [bench.bus_latency(sequence.root, overrides, frames) for _ in range(args.runs)]
+            bus_runs = [bench.bus_latency(sequence.root, overrides, frames, args.rate) for _ in range(args.runs)]
         report["bus"] = {
             "in_process": {"fps_median": round(float(np.median([len(r.stats) / r.wall_s for r in local])), 3),
                            "latency_ms": {"p50": round(float(np.percentile(lat, 50)), 1),
@@ -144,7 +144,8 @@ def _bench(args: argparse.Namespace) -> int:
             "zenoh_runs": bus_runs, "zenoh_system": args.gateway or "twohr up (local processes)",
             "zenoh": {"fps_median": float(np.median([r["fps"] for r in bus_runs])),
                       "latency_p50_median": float(np.median([r["latency_ms"]["p50"] for r in bus_runs])),
-                      "latency_p99_median": float(np.median([r["latency_ms"]["p99"] for r in bus_runs]))},
+                      "latency_p99_median": float(np.median([r["latency_ms"]["p99"] for r in bus_runs])),
+                      "dropped_percent_median": float(np.median([r["dropped_percent"] for r in bus_runs]))},
         }
         print(json.dumps(report["bus"], indent=2))
     elif args.ablations:
@@ -219,6 +220,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --bus: measure the system already running behind this gateway (e.g. the compose "
                    "stack, http://127.0.0.1:8080) instead of starting twohr up; its data root must hold --sequence")
     p.add_argument("--router", default="tcp/127.0.0.1:7447", help="with --gateway: that system's Zenoh router")
+    p.add_argument("--rate", type=float, default=1.0,
+                   help="with --bus: source speed, 1 = the camera's real rate (30 Hz for the dev sequence), "
+                   "0 = as fast as the pipeline answers (at most two frames in flight)")
     p.set_defaults(func=_bench)
 
     p = sub.add_parser("demo", help="the main job end to end on the dev sequence, with a printed result")
