@@ -290,7 +290,7 @@ def session_latency(router: str, gateway_url: str, sequence_name: str, frames: i
         mine = sorted(((t, p) for t, p in received if p.session_id == session_id), key=lambda tp: tp[0])
     latencies = [1000 * (t - p.frame_sent_at) for t, p in mine]
     span = mine[-1][0] - min(p.frame_sent_at for _, p in mine) if mine else float("nan")
-    sent = int(info.get("frames") or frames)
+    sent = int(info.get("frames_sent") or frames)  # "frames" in the session info counts poses received
     return {"session": info, "frames": len(mine), "frame_indices": [p.frame_index for _, p in mine],
             "rate": rate, "dropped_percent": round(100 * (1 - len({p.frame_index for _, p in mine}) / max(1, sent)), 2),
             "latency_ms": {"p50": round(float(np.percentile(latencies, 50)), 1) if mine else None,

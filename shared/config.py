@@ -180,6 +180,9 @@ class RuntimeConfig(Section):
     max_keyframe_lag: int = Field(8, ge=0, description="replay from disk: a frame waits for the mapping worker "
                                   "when its keyframe job is more than this many frames old, so a replay faster than "
                                   "the camera sees the map as a live camera would (live streams never wait)")
+    max_frame_age_ms: float = Field(50.0, gt=0, description="live streams over the bus: a frame that has waited "
+                                    "longer than this when its turn comes, with newer data queued behind it, is "
+                                    "dropped (and counted) so that poses stay current")
     opencv_threads: int = Field(1, ge=0, le=64, description="OpenCV's own thread pool (0 = OpenCV's default); one "
                                 "thread per stage is faster here, where the workers already fill the cores")
     prefetch: int = Field(4, ge=1, le=64, description="frames read and decoded ahead on a background thread")

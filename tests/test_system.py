@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from twohr import keys
-from twohr.bus import BusConfig, free_port, open_session
+from twohr.bus import BusConfig, free_port, open_session, query_health
 from twohr.config import load_config
 from twohr.dataset import RGBDSequence
 from twohr.messages import PoseMsg, decode
@@ -177,10 +177,12 @@ def test_two_robots_at_once_without_cross_talk(system, dev_sequence):
 
 
 def test_camera_rate_schedule_over_the_bus(system, dev_sequence, tmp_path):
-    """The default schedule across Zenoh, the source playing at the camera's rate: a pose for every frame,
-    tracked by optical flow in the tracker service, with 2HR detection only on the keyframes it asks for."""
+    """The default schedule across Zenoh, the source playing at the camera's rate: every frame gets a pose
+    from the tracker service (optical flow) or is counted as dropped because newer frames were waiting, and
+    2HR detection runs only on the keyframes the tracker asks for."""
     frames = 90
     listener = PoseListener(system["router"])
+    dropped_before = query_health(listener.session, "tracker")["dropped"]
     try:
         with httpx.Client(base_url=system["url"], timeout=30) as client:
             response = client.post("/sessions", json={"sequence": dev_sequence.name, "robot_id": "robot_k",
@@ -188,20 +190,23 @@ def test_camera_rate_schedule_over_the_bus(system, dev_sequence, tmp_path):
             assert response.status_code == 201, response.text
             session_id = response.json()["id"]
             info = wait_finished(client, session_id)
-            assert info["state"] == "finished" and info["frames"] == frames, info
+            assert info["state"] == "finished" and info["frames_sent"] == frames, info
             recording = client.get(f"/sessions/{session_id}/recording")
             assert recording.status_code == 200
+        dropped = query_health(listener.session, "tracker")["dropped"] - dropped_before
     finally:
         time.sleep(0.5)
         listener.close()
     received = sorted((p.frame_index, p) for k, p in listener.poses if p.session_id == session_id)
-    assert [i for i, _ in received] == list(range(frames))
+    indices = [i for i, _ in received]
+    assert len(set(indices)) == len(indices) and set(indices) <= set(range(frames))
+    assert len(indices) + dropped == frames and len(indices) >= frames // 2, (len(indices), dropped)
     statuses = [p.status for _, p in received]
-    assert statuses[0] == "init" and statuses.count("tracking") >= 0.9 * frames, statuses
+    assert statuses[0] == "init" and statuses.count("tracking") >= 0.9 * (len(statuses) - 1), statuses
     assert info["ate_rmse"] < 0.05, info
     path = tmp_path / "camera_rate.mcap"
     path.write_bytes(recording.content)
     counts = topic_counts(path)
-    assert counts["/twohr/robot_k/frames"] == frames and counts["/twohr/robot_k/pose"] == frames, counts
+    assert counts["/twohr/robot_k/frames"] == frames and counts["/twohr/robot_k/pose"] == len(indices), counts
     # the detector ran on the keyframes the tracker asked for, not on every frame
     assert 1 <= counts.get("/twohr/robot_k/keypoints", 0) < frames / 2, counts

@@ -104,6 +104,7 @@ class SessionTrack:
     pending: dict[int, PendingFrame] = field(default_factory=dict)
     last_index: int = -1
     pipeline: KeyframePipeline | None = None  # the keyframes schedule
+    dropped: int = 0  # frames dropped because newer ones were waiting
 
 
 class TrackerService(Service):
@@ -115,11 +116,13 @@ class TrackerService(Service):
     def __init__(self, bus=None) -> None:
         super().__init__(bus, queue_size=64, policy="backpressure")
         self.tracks: dict[str, SessionTrack] = {}
+        self.paced: dict[str, bool] = {}
 
     def subscriptions(self) -> list[str]:
         return [keys.all_robots(s) for s in ("frames", "keypoints", "dynamics")]
 
     def on_session_stop(self, session_id: str) -> None:
+        self.paced.pop(session_id, None)
         track = self.tracks.pop(session_id, None)
         if track is not None and track.pipeline is not None:
             track.pipeline.close()
@@ -191,7 +194,15 @@ class TrackerService(Service):
             self._track_frame(track, message.session_id, message.robot_id, index, entry)
 
     def _track_live(self, track: SessionTrack, header: FrameMsg, payload: bytes) -> None:
-        """The keyframes schedule: track this frame now; keyframe and mask work goes to the pipeline's workers."""
+        """The keyframes schedule: track this frame now; keyframe and mask work goes to the pipeline's workers.
+        In a session paced by the camera, a frame that waited too long while newer ones queued is dropped:
+        fresh data wins (a paced source does not wait for poses, so nothing stalls)."""
+        config = self.config_for(header.session_id)
+        waited_ms = (time.time() - header.sent_at) * 1000 if header.sent_at else 0.0
+        if self.paced.get(header.session_id) and len(self.inbox) and waited_ms > config.pipeline.max_frame_age_ms:
+            self.counters.add("dropped")
+            track.dropped += 1
+            return
         _, arrays = decode(payload, FrameMsg, only=("rgb",))
         depth = self._depth(header, payload)
         frame = Frame(header.frame_index, header.stamp, arrays["rgb"], depth)
@@ -225,6 +236,8 @@ class TrackerService(Service):
 
     def on_session_start(self, control: ControlMsg) -> None:
         self.on_session_stop(control.session_id)
+        # paced by the camera (a real-rate replay or a live camera): the source never waits for poses
+        self.paced[control.session_id] = control.rate > 0 or not control.sequence
 
 
 def main(argv: list[str] | None = None) -> None:
