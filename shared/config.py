@@ -173,7 +173,7 @@ class RuntimeConfig(Section):
 
     mode: Literal["keyframes", "every_frame"] = "keyframes"
     synchronous: bool = Field(False, description="run the workers inline: slower, but deterministic (tests)")
-    yolo_every_n: int = Field(3, ge=1, description="keyframes mode: run YOLO on every n-th frame when its "
+    yolo_every_n: int = Field(5, ge=1, description="keyframes mode: run YOLO on every n-th frame when its "
                               "worker is free; masks are propagated to the frames between")
     mask_max_age: int = Field(8, ge=0, description="keyframes mode: use a dynamic mask at most this many frames "
                               "old (grown by yolo.propagate_growth per frame); older = no mask")

@@ -267,6 +267,31 @@ class RGBDSequence:
         """The extrinsic preset that matches this sequence (``bonn`` for Bonn sequences)."""
         return "bonn" if guess_camera_preset(self.root) == "bonn" else "none"
 
+    def check(self, index: int) -> tuple[int, int]:
+        """Check frame ``index`` from its image headers only (about 30x cheaper than :meth:`read`): both files
+        readable, colour with 3 channels, 16-bit depth, equal sizes. Returns (height, width); raises
+        :class:`DatasetError` naming the file. Pixel data is not decoded, so damage past the header shows
+        only when a consumer decodes the image."""
+        from PIL import Image, UnidentifiedImageError
+
+        rec = self.records[index]
+        sizes = {}
+        for kind, path in (("colour", rec.rgb_path), ("depth", rec.depth_path)):
+            try:
+                with Image.open(path) as image:
+                    sizes[kind], mode = image.size, image.mode
+            except (OSError, UnidentifiedImageError):
+                raise DatasetError(f"unreadable {kind} image: {path}") from None
+            if kind == "colour" and mode != "RGB":
+                raise DatasetError(f"colour images must have 3 channels, got mode {mode}: {path}")
+            if kind == "depth" and mode not in ("I;16", "I;16B", "I"):
+                raise DatasetError(f"depth must be a single-channel 16-bit PNG, got mode {mode}: {path}")
+        if sizes["colour"] != sizes["depth"]:
+            raise DatasetError(f"depth size {sizes['depth']} differs from colour size {sizes['colour']}: "
+                               f"{rec.depth_path}")
+        width, height = sizes["colour"]
+        return height, width
+
     def read(self, index: int) -> Frame:
         """Read frame ``index``; raises :class:`DatasetError` naming the file if it is missing or corrupt."""
         rec = self.records[index]

@@ -39,7 +39,7 @@ def frame_payloads(sequence: RGBDSequence, session_id: str, robot_id: str, start
     for index in range(start, stop):
         record = sequence.records[index]
         try:
-            frame = sequence.read(index)  # validates both images
+            height, width = sequence.check(index)  # both images' headers: the consumers decode the pixels
         except DatasetError as exc:
             log.warning("skipping frame %d: %s", index, exc)
             sequence.skipped.append(index)
@@ -50,8 +50,8 @@ def frame_payloads(sequence: RGBDSequence, session_id: str, robot_id: str, start
                            camera=sequence.camera, sent_at=time.time())
         blobs = {
             "rgb": encoded_image("rgb", record.rgb_path.read_bytes(), _encoding_of(record.rgb_path), "uint8",
-                                 frame.rgb.shape),
-            "depth": encoded_image("depth", record.depth_path.read_bytes(), "png", "uint16", frame.depth.shape),
+                                 (height, width, 3)),
+            "depth": encoded_image("depth", record.depth_path.read_bytes(), "png", "uint16", (height, width)),
         }
         yield PlaybackItem(index, record.stamp, encode(message, blobs=blobs))
 

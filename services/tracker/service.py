@@ -147,11 +147,12 @@ class TrackerService(Service):
     def handle(self, key: str, payload: bytes) -> None:
         _, stream = keys.parse(key)
         if stream == "frames":
-            frame, arrays = decode(payload, FrameMsg, only=("depth",))
+            frame, _ = decode(payload, FrameMsg, only=())
             track = self._track_for(frame.session_id, frame.robot_id, frame)
             if track.pipeline is not None:
                 self._track_live(track, frame, payload)
                 return
+            _, arrays = decode(payload, FrameMsg, only=("depth",))
             entry = track.pending.setdefault(frame.frame_index, PendingFrame())
             entry.stamp, entry.sent_at = frame.stamp, frame.sent_at
             entry.depth = arrays["depth"].astype(np.float32) / np.float32(frame.camera.depth_factor)
@@ -203,18 +204,13 @@ class TrackerService(Service):
             self.counters.add("dropped")
             track.dropped += 1
             return
-        _, arrays = decode(payload, FrameMsg, only=("rgb",))
-        depth = self._depth(header, payload)
+        _, arrays = decode(payload, FrameMsg)
+        depth = arrays["depth"].astype(np.float32) / np.float32(header.camera.depth_factor)
         frame = Frame(header.frame_index, header.stamp, arrays["rgb"], depth)
         track.matcher.frame_index, track.matcher.stamp = header.frame_index, header.stamp
         result, stats = track.pipeline.process(frame, source=payload)
         self._publish_pose(header.session_id, header.robot_id, header.frame_index, header.stamp, result,
                            stats.keypoints, header.sent_at, {"tracker": stats.ms_total})
-
-    @staticmethod
-    def _depth(header: FrameMsg, payload: bytes) -> np.ndarray:
-        _, arrays = decode(payload, FrameMsg, only=("depth",))
-        return arrays["depth"].astype(np.float32) / np.float32(header.camera.depth_factor)
 
     def _track_frame(self, track: SessionTrack, session_id: str, robot_id: str, index: int,
                      entry: PendingFrame) -> None:
