@@ -201,6 +201,7 @@ def test_camera_rate_schedule_over_the_bus(system, dev_sequence, tmp_path):
     indices = [i for i, _ in received]
     assert len(set(indices)) == len(indices) and set(indices) <= set(range(frames))
     assert len(indices) + dropped == frames and len(indices) >= frames // 2, (len(indices), dropped)
+    assert info["frames_dropped"] == dropped, info  # the session status reports the drops
     statuses = [p.status for _, p in received]
     assert statuses[0] == "init" and statuses.count("tracking") >= 0.9 * (len(statuses) - 1), statuses
     assert info["ate_rmse"] < 0.05, info

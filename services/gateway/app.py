@@ -160,6 +160,8 @@ def create_app(settings: GatewaySettings) -> FastAPI:
             id=session.id, robot_id=session.request.robot_id, sequence=session.request.sequence,
             state=session.state, detail=session.detail, created=session.created,
             frames_total=session.frames_total, frames_sent=session.frames_sent, frames=len(session.poses),
+            frames_dropped=max(0, session.frames_sent - len({p.frame_index for p in session.poses}))
+            if session.state in ("finished", "stopped", "error") and session.frames_sent is not None else None,
             fps=round(session.fps(), 3),
             latest_pose=PoseOut(frame_index=latest.frame_index, stamp=latest.stamp, position=latest.position,
                                 orientation=latest.orientation, status=latest.status) if latest else None,

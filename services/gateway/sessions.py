@@ -53,6 +53,8 @@ class SessionInfo(BaseModel):
     frames_total: int | None = Field(None, description="frames the source will send (known once it starts)")
     frames_sent: int | None = Field(None, description="frames the source has finished sending")
     frames: int = Field(0, description="poses received")
+    frames_dropped: int | None = Field(None, description="once the session has ended: frames sent that got no pose "
+                                       "(a camera-paced session drops frames its tracker cannot keep up with)")
     fps: float = 0.0
     latest_pose: PoseOut | None = None
     ate_rmse: float | None = Field(None, description="ATE RMSE in metres (SE(3), 0.02 s) when ground truth exists")
