@@ -23,7 +23,7 @@ import zenoh
 from . import keys
 from .bus import HEALTH_PREFIX, BusConfig, open_session
 from .config import PipelineConfig
-from .messages import ControlMsg, MessageError, decode
+from .messages import ControlMsg, FrameMsg, MessageError, decode
 
 QueuePolicy = Literal["drop_oldest", "backpressure"]
 
@@ -150,6 +150,12 @@ class Service:
             self.log.warning("no start message seen for session %s: using the default config", session_id)
             self.session_configs[session_id] = PipelineConfig()
         return self.session_configs[session_id]
+
+    def streams_frame(self, payload: bytes) -> bool:
+        """Whether a streamed frame is this stage's to process: not in a ``keyframes`` session, where the
+        tracker asks the detector and yolo stages by query for the frames it needs."""
+        header, _ = decode(payload, FrameMsg, only=())
+        return self.config_for(header.session_id).pipeline.mode != "keyframes"
 
     def _handle_control(self, payload: bytes) -> None:
         control, _ = decode(payload, ControlMsg)

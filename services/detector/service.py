@@ -43,9 +43,8 @@ class DetectorService(Service):
         if key.endswith(keys.DETECT_QUERY):
             reply_to(payload, self._keypoints)
             return
-        header, _ = decode(payload, FrameMsg, only=())
-        if self.config_for(header.session_id).pipeline.mode == "keyframes":
-            return  # the tracker asks for the frames it needs
+        if not self.streams_frame(payload):
+            return
         self._keypoints(payload)
 
     def _keypoints(self, payload: bytes) -> bytes:

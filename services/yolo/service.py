@@ -50,9 +50,8 @@ class YoloService(Service):
         if key.endswith(keys.DYNAMICS_QUERY):
             reply_to(payload, self._fresh_dynamics)
             return
-        header, _ = decode(payload, FrameMsg, only=())
-        if self.config_for(header.session_id).pipeline.mode == "keyframes":
-            return  # the tracker asks for the frames it needs
+        if not self.streams_frame(payload):
+            return
         frame, arrays = decode(payload, FrameMsg)
         masker = self._masker(frame.session_id)
         depth = arrays["depth"].astype(np.float32) / np.float32(frame.camera.depth_factor)
