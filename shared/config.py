@@ -174,9 +174,10 @@ class RuntimeConfig(Section):
     mode: Literal["keyframes", "every_frame"] = "keyframes"
     synchronous: bool = Field(False, description="run the workers inline: slower, but deterministic (tests)")
     yolo_every_n: int = Field(5, ge=1, description="keyframes mode: run YOLO on every n-th frame when its "
-                              "worker is free; masks are propagated to the frames between")
+                              "worker is free; the frames between reuse its mask (keyframes get a fresh one)")
     mask_max_age: int = Field(8, ge=0, description="keyframes mode: use a dynamic mask at most this many frames "
-                              "old (grown by yolo.propagate_growth per frame); older = no mask")
+                              "old, as detected (not grown: grown boxes soon cover a crowded view); older = no "
+                              "mask, and tracks that a person covers fail the flow check or RANSAC instead")
     max_keyframe_lag: int = Field(8, ge=0, description="replay from disk: a frame waits for the mapping worker "
                                   "when its keyframe job is more than this many frames old, so a replay faster than "
                                   "the camera sees the map as a live camera would (live streams never wait)")

@@ -110,3 +110,16 @@ def test_health_of_absent_service_is_none(bus_config):
     finally:
         client.close()
 
+
+
+def test_control_and_queries_are_never_dropped_with_frames():
+    """A drop-oldest inbox under a frame flood still delivers the urgent item, and first."""
+    counters = Counters()
+    inbox = Inbox(2, "drop_oldest", counters)
+    inbox.put(("twohr/r/frames", 0))
+    inbox.put(("twohr/r/control", "stop"), urgent=True)
+    for i in range(1, 5):
+        inbox.put(("twohr/r/frames", i))
+    assert inbox.get(0.1) == ("twohr/r/control", "stop")
+    assert [inbox.get(0.1), inbox.get(0.1), inbox.get(0.1)] == [("twohr/r/frames", 3), ("twohr/r/frames", 4), None]
+    assert counters.dropped == 3
