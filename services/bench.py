@@ -17,6 +17,7 @@ import numpy as np
 
 from twohr.config import PipelineConfig, load_config
 from twohr.evaluation import evaluate
+from twohr.models import REPO_ROOT
 from twohr.trajectory import Trajectory
 
 from .pipeline import FrontEnd, StageOutput, run_sequence
@@ -44,7 +45,7 @@ def _percentiles(values: list[float]) -> dict[str, float]:
 
 #: Where ORB-SLAM3's vocabulary and settings for the dev camera live (``../shared/baselines`` beside the repo);
 #: override with $PYORBSLAM3_VOCAB and $TWOHR_ORBSLAM3_SETTINGS.
-BASELINES_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "baselines"
+BASELINES_DIR = REPO_ROOT.parent / "shared" / "baselines"
 
 
 def orbslam3_files() -> tuple[Path, Path] | None:

@@ -12,7 +12,6 @@ Two schedules (``pipeline.mode``):
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -88,10 +87,6 @@ class Pipeline:
         )
         return result, stats
 
-    @staticmethod
-    def online_trajectory(results: Iterable[TrackResult]) -> Trajectory:
-        """The poses as they were estimated, frame by frame (what the tracker publishes live)."""
-        return online_trajectory(results)
 
 
 def local_stages(config: PipelineConfig, camera: CameraIntrinsics) -> Stages:
@@ -172,7 +167,7 @@ def run_sequence(sequence, config: PipelineConfig, start: int = 0, stop: int | N
     if keyframes:
         pipeline.finish()
     wall = time.perf_counter() - t0
-    online = pipeline.online_trajectory(results)
+    online = online_trajectory(results)
     if not results:
         refined = online
     else:

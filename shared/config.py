@@ -132,8 +132,6 @@ class TrackerConfig(Section):
     flow_levels: int = Field(3, ge=0, le=6, description="Lucas-Kanade pyramid levels above the image")
     flow_fb_px: float = Field(1.0, gt=0, description="drop a track whose forward-backward flow misses its start "
                               "by more than this (px)")
-    flow_depth_noise: float | None = Field(None, gt=0, description="depth_noise for the per-frame pose from "
-                                           "flowed tracks; None = depth_noise")
     flow_reacquire_keyframes: int = Field(3, ge=0, description="when tracks run short, look for the landmarks "
                                           "of this many latest keyframes again by flow from the keyframe's image")
     flow_reacquire_below: int = Field(100, ge=0, description="tracks run short below this many flowed tracks")

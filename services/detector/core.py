@@ -272,16 +272,6 @@ def _session(path: str, threads: int, sparse_descriptors: bool) -> tuple[ort.Inf
     return session, prepared
 
 
-class _OpenVinoRunner:
-    """The prepared graph compiled by OpenVINO (one compile per input size), with the same outputs."""
-
-    def __init__(self, prepared: _PreparedModel, threads: int, precision: str) -> None:
-        self.network = Network(prepared.model, threads, "openvino", precision)
-
-    def __call__(self, image: np.ndarray) -> dict[str, np.ndarray]:
-        return self.network({"image": image})
-
-
 class R2D2Network:
     """One onnxruntime session per process, model and thread count; input and output buffers reused per size.
 
@@ -297,7 +287,7 @@ class R2D2Network:
         path = str(model_path(model, kind="r2d2"))
         if self.backend == "openvino":
             prepared = _prepare_model(path, sparse_descriptors)
-            self.openvino = _OpenVinoRunner(prepared, threads, precision)
+            self.openvino = Network(prepared.model, threads, "openvino", precision)  # compiled per input size
         else:
             self.session, prepared = _session(path, threads, sparse_descriptors)
         self.feature_stride = prepared.feature_stride
@@ -340,7 +330,7 @@ class R2D2Network:
                             casting="unsafe")
                 plane -= IMAGENET_MEAN[channel] / IMAGENET_STD[channel]
             if binding is None:
-                outputs = self.openvino(image)
+                outputs = self.openvino({"image": image})
             else:
                 self.session.run_with_iobinding(binding)
             return R2D2Maps(outputs["descriptors"][0], outputs["reliability"][0, 0],

@@ -41,7 +41,6 @@ from .optim import (
     estimate_pose,
     observation_errors,
     pnp_ransac,
-    pose_difference,
     refine_pose,
     sample_depth,
 )
@@ -401,10 +400,7 @@ class Tracker:
         """RANSAC PnP + robust refinement of matches keypoint ``kp[i]`` <-> landmark ``landmark[i]``."""
         conf = self.conf
         num_matches = len(kp)
-        prior = None
-        if check_jump and conf.motion_prior_m > 0 and conf.motion_prior_deg > 0:
-            scale = 1.0 + self.motion.lost_frames
-            prior = MotionPrior(T_guess, conf.motion_prior_m * scale, np.radians(conf.motion_prior_deg) * scale)
+        prior = self.motion.prior(T_guess, conf) if check_jump else None
         points_w = self.map.positions[landmark]
         T_cw, inliers, why = estimate_pose(self.K, points_w, xy[kp], z[kp], conf.ransac_reprojection_px,
                                            conf.ransac_iterations, conf.min_inliers, conf.depth_noise,
@@ -412,13 +408,9 @@ class Tracker:
         num_inliers = int(inliers.sum())
         if T_cw is None:
             return _Estimate(False, why, num_matches=num_matches, num_inliers=num_inliers)
-        if check_jump:
-            moved, turned = pose_difference(pose_guess, invert_pose(T_cw))
-            allowed = 1.0 + self.motion.lost_frames
-            if moved > conf.max_jump_m * allowed or turned > conf.max_jump_deg * allowed:
-                self.map.vote(np.zeros(0, np.int64), landmark[inliers], conf.landmark_max_outlier_ratio)
-                return _Estimate(False, f"implausible jump from the prediction ({moved:.3f} m, {turned:.1f} deg)",
-                                 num_matches=num_matches, num_inliers=num_inliers)
+        if check_jump and (why := self.motion.implausible_jump(pose_guess, invert_pose(T_cw), conf)):
+            self.map.vote(np.zeros(0, np.int64), landmark[inliers], conf.landmark_max_outlier_ratio)
+            return _Estimate(False, why, num_matches=num_matches, num_inliers=num_inliers)
         self.map.vote(landmark[inliers], landmark[~inliers], conf.landmark_max_outlier_ratio)
         keypoint_landmarks = np.full(len(xy), -1, np.int64)
         keypoint_landmarks[kp[inliers]] = landmark[inliers]

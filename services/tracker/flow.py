@@ -32,7 +32,7 @@ from twohr.trajectory import Trajectory, interpolate_poses
 
 from .core import TrackResult, near_any_keyframe, reattach_to_keyframes
 from .motion import MotionModel
-from .optim import MotionPrior, estimate_pose, pose_difference, sample_depth
+from .optim import estimate_pose, sample_depth
 
 
 @dataclass
@@ -153,10 +153,7 @@ class FrameTracker:
         conf = self.conf
         tracks = len(self.track_landmark)
         T_guess = invert_pose(predicted)
-        guess = self.track_xy  # while lost the prediction is poor: start the flow where the tracks were
-        if self.motion.lost_frames == 0:
-            guess = project(transform_points(T_guess, self.landmarks[self.track_landmark]), self.K)
-            guess = np.where(np.isfinite(guess), guess, self.track_xy)
+        guess = self._flow_start(T_guess, self.track_landmark, self.track_xy)
         xy, ok = flow_points(self.previous, gray, self.track_xy, guess, conf)
         xy, landmark = xy[ok], self.track_landmark[ok]
         if len(landmark) < conf.flow_reacquire_below:
@@ -167,19 +164,12 @@ class FrameTracker:
             xy, landmark = xy[keep], landmark[keep]
         z = sample_depth(depth, xy, conf.min_depth, conf.max_depth, conf.depth_edge_ratio)
         counts = dict(num_keypoints=tracks, num_with_depth=int((z > 0).sum()), num_matches=len(xy))
-        prior = None
-        if conf.motion_prior_m > 0 and conf.motion_prior_deg > 0:
-            scale = 1.0 + self.motion.lost_frames
-            prior = MotionPrior(T_guess, conf.motion_prior_m * scale, np.radians(conf.motion_prior_deg) * scale)
         T_cw, inliers, why = estimate_pose(self.K, self.landmarks[landmark], xy.astype(np.float64), z,
                                            conf.ransac_reprojection_px, conf.ransac_iterations, conf.min_inliers,
-                                           conf.flow_depth_noise or conf.depth_noise, conf.huber_px, prior,
+                                           conf.depth_noise, conf.huber_px, self.motion.prior(T_guess, conf),
                                            initial=T_guess if self.motion.lost_frames == 0 else None)
-        if T_cw is not None:
-            moved, turned = pose_difference(predicted, invert_pose(T_cw))
-            allowed = 1.0 + self.motion.lost_frames
-            if moved > conf.max_jump_m * allowed or turned > conf.max_jump_deg * allowed:
-                T_cw, why = None, f"implausible jump from the prediction ({moved:.3f} m, {turned:.1f} deg)"
+        if T_cw is not None and (jump := self.motion.implausible_jump(predicted, invert_pose(T_cw), conf)):
+            T_cw, why = None, jump
         if T_cw is None:
             # keep the flowed tracks: the next keyframe or frame may still use them
             self.track_xy, self.track_landmark = xy, landmark
@@ -207,16 +197,19 @@ class FrameTracker:
             if not todo.any():
                 continue
             xy_kf, landmark_kf = xy_kf[todo], landmark_kf[todo]
-            guess = xy_kf
-            if self.motion.lost_frames == 0:
-                points = transform_points(T_guess, self.landmarks[landmark_kf])
-                guess = np.where((points[:, 2:] > 0) & np.isfinite(project(points, self.K)),
-                                 project(points, self.K), xy_kf)
-            xy, ok = flow_points(gray_kf, gray, xy_kf, guess, self.conf)
+            xy, ok = flow_points(gray_kf, gray, xy_kf, self._flow_start(T_guess, landmark_kf, xy_kf), self.conf)
             found_xy.append(xy[ok])
             found.append(landmark_kf[ok])
             taken.update(landmark_kf[ok].tolist())
         return np.concatenate(found_xy), np.concatenate(found)
+
+    def _flow_start(self, T_cw: np.ndarray, landmark: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+        """Where the flow of landmarks starts: their projection under ``T_cw`` (world-to-camera), or ``fallback``
+        (their last image position) for points behind the camera and while lost, when the pose is poor."""
+        if self.motion.lost_frames > 0:
+            return fallback
+        projected = project(transform_points(T_cw, self.landmarks[landmark]), self.K)
+        return np.where(np.isfinite(projected), projected, fallback)
 
     def wants_keyframe(self, result: TrackResult) -> bool:
         """True when the map should grow at this frame (see the module docstring)."""
@@ -258,11 +251,8 @@ class FrameTracker:
         xy, landmark = update.seeds_xy[seeds].astype(np.float32), update.seeds_landmark[seeds]
         if update.gray is not None and self.previous is not None and update.gray is not self.previous:
             # the keyframe is some frames old: carry its observations to the latest frame
-            guess = xy
-            if self.motion.lost_frames == 0 and self.motion.last_pose is not None:
-                projected = project(transform_points(invert_pose(self.motion.last_pose), self.landmarks[landmark]),
-                                    self.K)
-                guess = np.where(np.isfinite(projected), projected, xy)
+            guess = xy if self.motion.last_pose is None else self._flow_start(
+                invert_pose(self.motion.last_pose), landmark, xy)
             xy, ok = flow_points(update.gray, self.previous, xy, guess, self.conf)
             xy, landmark = xy[ok], landmark[ok]
         if update.keyframe_id >= 0 and update.gray is not None:

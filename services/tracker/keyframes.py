@@ -257,11 +257,6 @@ class KeyframePipeline:
         """Every frame's pose, re-attached to its keyframe as bundle adjustment left it."""
         return self.frames.trajectory(self.mapper.tracker.keyframe_poses)
 
-    @staticmethod
-    def online_trajectory(results: Iterable[TrackResult]) -> Trajectory:
-        """The poses as they were published, frame by frame."""
-        return online_trajectory(results)
-
 
 def online_trajectory(results: Iterable[TrackResult]) -> Trajectory:
     """The poses as they were estimated, frame by frame (what the tracker publishes live)."""

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from twohr.config import TrackerConfig
 from twohr.geometry import invert_pose
 
-from .optim import scale_motion, so3_exp_batch, so3_log
+from .optim import MotionPrior, pose_difference, scale_motion, so3_exp_batch, so3_log
 
 #: Nominal frame interval used when stamps do not advance (seconds).
 NOMINAL_FRAME_DT = 1 / 30
@@ -69,6 +70,23 @@ class MotionModel:
         """An untracked frame: count it and let the velocity decay."""
         self.lost_frames += 1
         self.velocity = scale_motion(self.velocity, self.coast_decay)
+
+    def prior(self, T_guess: np.ndarray, conf: TrackerConfig) -> MotionPrior | None:
+        """The prediction (world-to-camera ``T_guess``) as a Gaussian prior on a pose refinement, widening with
+        every untracked frame; None when ``motion_prior_*`` switch it off."""
+        if conf.motion_prior_m <= 0 or conf.motion_prior_deg <= 0:
+            return None
+        scale = 1.0 + self.lost_frames
+        return MotionPrior(T_guess, conf.motion_prior_m * scale, np.radians(conf.motion_prior_deg) * scale)
+
+    def implausible_jump(self, predicted: np.ndarray, pose: np.ndarray, conf: TrackerConfig) -> str:
+        """Why a measured camera-to-world ``pose`` is too far from the ``predicted`` one ("" when it is not):
+        ``max_jump_*`` per frame since the last tracked one."""
+        moved, turned = pose_difference(predicted, pose)
+        allowed = 1.0 + self.lost_frames
+        if moved > conf.max_jump_m * allowed or turned > conf.max_jump_deg * allowed:
+            return f"implausible jump from the prediction ({moved:.3f} m, {turned:.1f} deg)"
+        return ""
 
     def advance(self, stamp: float, pose: np.ndarray) -> None:
         """Remember the pose reported for this frame, tracked or coasted."""

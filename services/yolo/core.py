@@ -165,24 +165,15 @@ def parse_class_names(metadata: dict[str, str]) -> list[str]:
 # ----------------------------------------------------------------------------- network
 
 
-def _network(path: str, threads: int, backend: str, precision: str) -> Network:
-    return Network(path, threads, backend, precision)
-
-
 @cache
-def _metadata(path: str) -> dict[str, str]:
-    """The ONNX file's metadata (class names live there)."""
+def _onnx_header(path: str) -> tuple[list, dict[str, str]]:
+    """The ONNX file's input shape and metadata (the class names live there), whichever backend runs it."""
     import onnx
 
-    return {p.key: p.value for p in onnx.load(path, load_external_data=False).metadata_props}
-
-
-@cache
-def _input_shape(path: str) -> list:
-    import onnx
-
-    dims = onnx.load(path, load_external_data=False).graph.input[0].type.tensor_type.shape.dim
-    return [d.dim_value if d.HasField("dim_value") else d.dim_param for d in dims]
+    model = onnx.load(path, load_external_data=False)
+    dims = model.graph.input[0].type.tensor_type.shape.dim
+    shape = [d.dim_value if d.HasField("dim_value") else d.dim_param for d in dims]
+    return shape, {p.key: p.value for p in model.metadata_props}
 
 
 def check_image(rgb: np.ndarray) -> None:
@@ -208,14 +199,14 @@ class YoloDetector:
                              f"({' or '.join(YOLO_KINDS)}); choose yolov8n_320, yolov8n, yolov5n_320 or yolov5n")
         self.kind = spec.kind
         path = str(model_path(self.conf.model))
-        self.network = _network(path, self.conf.threads, self.conf.backend, self.conf.precision)
+        self.network = Network(path, self.conf.threads, self.conf.backend, self.conf.precision)
         self.input_name = self.network.input_names[0]
-        shape = _input_shape(path)
+        shape, metadata = _onnx_header(path)
         size = shape[2]
         if not isinstance(size, int) or shape[3] != size:
             raise ModelError(f"model {spec.name!r} needs a fixed square input, has {shape}")
         self.input_size = size
-        self.names = parse_class_names(_metadata(path))
+        self.names = parse_class_names(metadata)
         self._canvas = np.empty((size, size, 3), np.uint8)
         self._tensor = np.empty((1, 3, size, size), np.float32)
         self._lock = threading.Lock()
