@@ -1,5 +1,10 @@
 """Opening Zenoh sessions from config, a router started from Python, and the health query.
 
+A process joins the bus as a role (``TWOHR_ZENOH_USER``) with that role's password
+(``TWOHR_ZENOH_PASSWORD``, or a file named by ``TWOHR_ZENOH_PASSWORD_FILE``), or from a whole Zenoh
+client config file (``TWOHR_ZENOH_CONFIG``, as ``twohr up --write-client-config`` writes). The router
+checks both, and its access-control list (``twohr.access``) decides what each role may do.
+
 Kept light (no numpy or OpenCV): container health checks import only this module."""
 
 from __future__ import annotations
@@ -8,14 +13,32 @@ import json
 import os
 import socket
 import time
+from pathlib import Path
 from typing import Literal
 
 import zenoh
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, SecretStr
+
+from .errors import TwohrError
+from .keys import HEALTH_PREFIX
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
-#: every service answers a health query on ``twohr/_health/<name>`` with its counters
-HEALTH_PREFIX = "twohr/_health"
+
+
+def _env_password() -> SecretStr | None:
+    if path := os.environ.get("TWOHR_ZENOH_PASSWORD_FILE"):
+        return SecretStr(Path(path).read_text().strip())
+    value = os.environ.get("TWOHR_ZENOH_PASSWORD")
+    return SecretStr(value) if value else None
+
+
+class RouterSecurity(BaseModel):
+    """What a router checks: the ``user:password`` file, the access-control list, and TLS when given."""
+
+    users_file: Path
+    access_control: dict
+    tls_certificate: Path | None = Field(None, description="PEM certificate for tls/ endpoints")
+    tls_private_key: Path | None = None
 
 
 class BusConfig(BaseModel):
@@ -25,9 +48,20 @@ class BusConfig(BaseModel):
     connect: list[str] = Field(default_factory=lambda: [os.environ.get("TWOHR_ZENOH_ROUTER", DEFAULT_ROUTER)])
     listen: list[str] = Field(default_factory=list)
     multicast_scouting: bool = False
+    user: str | None = Field(default_factory=lambda: os.environ.get("TWOHR_ZENOH_USER") or None)
+    password: SecretStr | None = Field(default_factory=_env_password)
+    tls_root_ca: Path | None = Field(default_factory=lambda: os.environ.get("TWOHR_ZENOH_TLS_ROOT_CA") or None)
+    config_file: Path | None = Field(default_factory=lambda: os.environ.get("TWOHR_ZENOH_CONFIG") or None,
+                                     description="a whole Zenoh config file; replaces every other field")
+    security: RouterSecurity | None = Field(None, description="routers only")
 
     def zenoh_config(self) -> zenoh.Config:
-        conf = {
+        if self.config_file is not None and self.mode == "client":
+            try:
+                return zenoh.Config.from_file(str(self.config_file))
+            except Exception as exc:  # zenoh raises a bare ZError on a missing or malformed file
+                raise TwohrError(f"cannot read the Zenoh config {self.config_file}: {exc}") from None
+        conf: dict = {
             "mode": self.mode,
             "scouting": {"multicast": {"enabled": self.multicast_scouting}},
         }
@@ -35,12 +69,33 @@ class BusConfig(BaseModel):
             conf["connect"] = {"endpoints": self.connect}
         if self.listen:
             conf["listen"] = {"endpoints": self.listen}
+        transport: dict = {}
+        if self.user and self.password is not None:
+            transport["auth"] = {"usrpwd": {"user": self.user, "password": self.password.get_secret_value()}}
+        if self.tls_root_ca:
+            transport["link"] = {"tls": {"root_ca_certificate": str(self.tls_root_ca)}}
+        if self.security is not None:
+            auth = transport.setdefault("auth", {}).setdefault("usrpwd", {})
+            auth["dictionary_file"] = str(self.security.users_file)
+            conf["access_control"] = self.security.access_control
+            if self.security.tls_certificate:
+                transport["link"] = {"tls": {"listen_certificate": str(self.security.tls_certificate),
+                                             "listen_private_key": str(self.security.tls_private_key)}}
+        if transport:
+            conf["transport"] = transport
         return zenoh.Config.from_json5(json.dumps(conf))
 
 
 def open_session(conf: BusConfig | None = None) -> zenoh.Session:
-    """A Zenoh session as ``conf`` says (default: a client of the router at $TWOHR_ZENOH_ROUTER)."""
-    return zenoh.open((conf or BusConfig()).zenoh_config())
+    """A Zenoh session as ``conf`` says (default: a client of the router at $TWOHR_ZENOH_ROUTER, with the
+    credentials in the environment)."""
+    conf = conf or BusConfig()
+    try:
+        return zenoh.open(conf.zenoh_config())
+    except zenoh.ZError as exc:
+        where = conf.config_file or ", ".join(conf.connect)
+        who = f" as {conf.user!r}" if conf.user else " without credentials"
+        raise TwohrError(f"cannot join the Zenoh bus at {where}{who}: {exc}".split(" at /")[0]) from None
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -50,9 +105,11 @@ def free_port(host: str = "127.0.0.1") -> int:
         return s.getsockname()[1]
 
 
-def start_router(listen: list[str] | None = None) -> zenoh.Session:
-    """A Zenoh router inside this process, listening on ``listen`` (default tcp/127.0.0.1:7447)."""
-    return open_session(BusConfig(mode="router", connect=[], listen=listen or [DEFAULT_ROUTER]))
+def start_router(listen: list[str] | None = None, security: RouterSecurity | None = None) -> zenoh.Session:
+    """A Zenoh router inside this process, listening on ``listen`` (default tcp/127.0.0.1:7447); with
+    ``security`` it admits only its users and enforces their access-control list."""
+    return open_session(BusConfig(mode="router", connect=[], listen=listen or [DEFAULT_ROUTER], user=None,
+                                  password=None, config_file=None, tls_root_ca=None, security=security))
 
 
 def query_health(session: zenoh.Session, service: str, timeout: float = 1.0) -> dict | None:

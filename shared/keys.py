@@ -13,14 +13,19 @@ MATCH_QUERY = "rpc/match"
 DETECT_QUERY = "rpc/detect"
 DYNAMICS_QUERY = "rpc/dynamics"
 RAW_CAMERA = "camera"
+#: every service answers a health query on ``twohr/_health/<name>`` with its counters
+HEALTH_PREFIX = f"{PREFIX}/_health"
+#: every service holds a liveliness token ``twohr/_alive/<name>`` while it is connected
+ALIVE_PREFIX = f"{PREFIX}/_alive"
 
-_ROBOT = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+_ROBOT = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
 
 
 def key(robot_id: str, stream: str) -> str:
     """The key of one robot's stream, e.g. ``twohr/robot1/pose``."""
     if not _ROBOT.match(robot_id):
-        raise ValueError(f"invalid robot id {robot_id!r}: use letters, digits, '_' or '-' (at most 64)")
+        raise ValueError(f"invalid robot id {robot_id!r}: use letters, digits, '_' or '-' (at most 64), "
+                         "starting with a letter or digit")
     return f"{PREFIX}/{robot_id}/{stream}"
 
 

@@ -14,6 +14,7 @@ and drop it instead of crashing.
 from __future__ import annotations
 
 import json
+import math
 import struct
 from typing import Any, ClassVar, Literal
 
@@ -29,7 +30,7 @@ MAGIC = b"2HR"
 WIRE_VERSION = 1
 _PREFIX = struct.Struct("<3sBI")
 _DTYPES = {"uint8", "uint16", "int32", "int64", "float32", "float64", "bool"}
-ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$"
 
 
 class MessageError(TwohrError):
@@ -37,9 +38,9 @@ class MessageError(TwohrError):
 
 
 class ArraySpec(BaseModel):
-    name: str
+    name: str = Field(max_length=64)
     dtype: str
-    shape: list[int]
+    shape: list[int] = Field(max_length=8)
     encoding: Literal["raw", "jpeg", "png"] = "raw"
     nbytes: int = Field(ge=0)
 
@@ -192,7 +193,7 @@ def _decode_array(spec: ArraySpec, blob: bytes) -> np.ndarray:
     if any(d < 0 for d in spec.shape):
         raise MessageError(f"array {spec.name}: negative dimension in {spec.shape}")
     if spec.encoding == "raw":
-        expected = int(np.prod(spec.shape, dtype=np.int64)) * np.dtype(spec.dtype).itemsize
+        expected = math.prod(spec.shape) * np.dtype(spec.dtype).itemsize  # Python ints: no overflow
         if expected != len(blob):
             raise MessageError(f"array {spec.name}: {len(blob)} bytes for shape {spec.shape} {spec.dtype}")
         return np.frombuffer(blob, dtype=spec.dtype).reshape(spec.shape)

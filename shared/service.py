@@ -3,7 +3,14 @@
 A :class:`Service` subscribes to key expressions, puts each sample into a bounded
 :class:`Inbox` (policy ``drop_oldest`` or ``backpressure``), and one worker thread hands the
 samples to :meth:`Service.handle`. A malformed payload is counted and logged, never fatal.
-Each service answers a health query on ``twohr/_health/<name>`` with its counters.
+Each service answers a health query on ``twohr/_health/<name>`` with its counters, and holds a
+liveliness token ``twohr/_alive/<name>`` while it is connected, so that the gateway notices at once
+when it dies.
+
+Per-session state exists only for sessions whose ``start`` control message this service saw: a message
+for any other session is counted as ``ignored`` and dropped, and a message whose header names another
+robot than its key is ``malformed``. A ``start`` this service cannot honour (a config its core rejects)
+is answered with an ``error`` status on ``twohr/<robot>/status``, which fails the session at once.
 """
 
 from __future__ import annotations
@@ -21,11 +28,19 @@ from typing import Literal
 import zenoh
 
 from . import keys
-from .bus import HEALTH_PREFIX, BusConfig, open_session
+from .bus import BusConfig, open_session
 from .config import PipelineConfig
-from .messages import ControlMsg, FrameMsg, MessageError, decode
+from .keys import ALIVE_PREFIX, HEALTH_PREFIX
+from .messages import ControlMsg, FrameMsg, MessageError, StatusMsg, decode, encode, split
 
 QueuePolicy = Literal["drop_oldest", "backpressure"]
+#: distinct model configs a service keeps loaded at once (each holds a network); the least recently used goes
+MODEL_CACHE_SIZE = 3
+COUNTERS = ("received", "processed", "dropped", "malformed", "ignored", "errors")
+
+
+class UnknownSession(Exception):
+    """A message for a session whose start this service never saw (or that has ended)."""
 
 
 @dataclass
@@ -36,6 +51,7 @@ class Counters:
     processed: int = 0
     dropped: int = 0
     malformed: int = 0
+    ignored: int = 0
     errors: int = 0
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -45,7 +61,7 @@ class Counters:
 
     def as_dict(self) -> dict[str, int]:
         with self.lock:
-            return {k: getattr(self, k) for k in ("received", "processed", "dropped", "malformed", "errors")}
+            return {k: getattr(self, k) for k in COUNTERS}
 
 
 class Inbox:
@@ -145,11 +161,11 @@ class Service:
         self.inbox.put((str(query.key_expr), query), urgent=True)
 
     def config_for(self, session_id: str) -> PipelineConfig:
-        """The pipeline config of a session (the defaults if its start was never seen)."""
-        if session_id not in self.session_configs:
-            self.log.warning("no start message seen for session %s: using the default config", session_id)
-            self.session_configs[session_id] = PipelineConfig()
-        return self.session_configs[session_id]
+        """The pipeline config of a running session; raises :class:`UnknownSession` for any other."""
+        config = self.session_configs.get(session_id)
+        if config is None:
+            raise UnknownSession(session_id)
+        return config
 
     def streams_frame(self, payload: bytes) -> bool:
         """Whether a streamed frame is this stage's to process: not in a ``keyframes`` session, where the
@@ -160,11 +176,22 @@ class Service:
     def _handle_control(self, payload: bytes) -> None:
         control, _ = decode(payload, ControlMsg)
         if control.command == "start":
+            try:
+                self.on_session_start(control)
+            except Exception as exc:
+                self.on_session_stop(control.session_id)
+                self.report(control, "error", f"{self.name}: {exc}")
+                raise
             self.session_configs[control.session_id] = control.config
-            self.on_session_start(control)
         else:
             self.on_session_stop(control.session_id)
             self.session_configs.pop(control.session_id, None)
+
+    def report(self, about, state: str, detail: str = "", **counters: int) -> None:
+        """Publish a session status (``about`` is any message of that session) on ``twohr/<robot>/status``."""
+        status = StatusMsg(session_id=about.session_id, robot_id=about.robot_id, frame_index=-1, stamp=time.time(),
+                           service=self.name, state=state, detail=detail[:2000], counters=counters)
+        self.publish(keys.key(about.robot_id, "status"), encode(status))
 
     def _on_health(self, query: zenoh.Query) -> None:
         query.reply(query.key_expr, json.dumps(self.health()))
@@ -176,6 +203,14 @@ class Service:
             return False
         key, payload = item
         try:
+            check_robot(key, payload)
+        except MessageError as exc:
+            self.counters.add("malformed")
+            self.log.warning("dropped a message on %s: %s", key, exc)
+            if isinstance(payload, zenoh.Query):
+                payload.reply_err(f"{self.name}: {exc}".encode())
+            return True
+        try:
             if self.follows_sessions and key.endswith("/" + keys.CONTROL):
                 self._handle_control(payload)
             else:
@@ -184,6 +219,11 @@ class Service:
         except MessageError as exc:
             self.counters.add("malformed")
             self.log.warning("dropped malformed message on %s: %s", key, exc)
+        except UnknownSession as exc:
+            self.counters.add("ignored")
+            if isinstance(payload, zenoh.Query):
+                payload.reply_err(f"{self.name}: no running session {exc}".encode())
+            self.log.debug("ignored a message on %s for session %s, which this service does not run", key, exc)
         except Exception:  # a bad frame must not take the service down
             self.counters.add("errors")
             self.log.exception("error while handling %s", key)
@@ -197,11 +237,13 @@ class Service:
         subscribers = [self.session.declare_subscriber(k, self._on_sample) for k in wanted]
         queryable = self.session.declare_queryable(f"{HEALTH_PREFIX}/{self.name}", self._on_health)
         self.on_start()
+        alive = self.session.liveliness().declare_token(f"{ALIVE_PREFIX}/{self.name}")
         self.log.info("%s serving %s", self.name, ", ".join(self.subscriptions()) or "(no subscriptions)")
         try:
             while not stop.is_set():
                 self.process_one()
         finally:
+            alive.undeclare()
             for sub in subscribers:
                 sub.undeclare()
             queryable.undeclare()
@@ -214,6 +256,20 @@ class Service:
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: self.stopping.set())
         self.run(self.stopping)
+
+
+def check_robot(key: str, payload) -> None:
+    """Raise :class:`MessageError` unless a twohr message's header names the robot of the key it came on: a
+    publisher allowed on ``twohr/r2/...`` must not speak for ``r1``."""
+    if isinstance(payload, zenoh.Query):
+        payload = payload.payload.to_bytes() if payload.payload is not None else b""
+    try:
+        robot, _ = keys.parse(key)
+    except ValueError:
+        return  # not a per-robot key (health, liveliness)
+    message, _ = split(payload)
+    if message.robot_id != robot:
+        raise MessageError(f"a message for robot {message.robot_id!r} on {key}")
 
 
 def reply_to(query: zenoh.Query, answer) -> None:

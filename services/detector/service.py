@@ -7,12 +7,13 @@
 
 from __future__ import annotations
 
+import functools
 import time
 
 from twohr import keys
 from twohr.config import DetectorConfig
 from twohr.messages import FrameMsg, KeypointsMsg, decode, encode
-from twohr.service import Service, reply_to, serve
+from twohr.service import MODEL_CACHE_SIZE, Service, reply_to, serve
 
 from .core import build_detector
 
@@ -25,19 +26,15 @@ class DetectorService(Service):
 
     def __init__(self, bus=None) -> None:
         super().__init__(bus, queue_size=4, policy="drop_oldest")
-        self.detectors: dict[str, object] = {}  # one per distinct config, shared by sessions
+        # one detector per distinct config, shared by sessions; a few at most (each holds a network)
+        self.detector_for = functools.lru_cache(maxsize=MODEL_CACHE_SIZE)(
+            lambda conf_json: build_detector(DetectorConfig.model_validate_json(conf_json)))
 
     def subscriptions(self) -> list[str]:
         return [keys.all_robots("frames")]
 
     def on_start(self) -> None:
         self.queryable = self.session.declare_queryable(keys.all_robots(keys.DETECT_QUERY), self._on_query)
-
-    def detector_for(self, conf: DetectorConfig):
-        key = conf.model_dump_json()
-        if key not in self.detectors:
-            self.detectors[key] = build_detector(conf)
-        return self.detectors[key]
 
     def handle(self, key: str, payload) -> None:
         if key.endswith(keys.DETECT_QUERY):
@@ -49,7 +46,7 @@ class DetectorService(Service):
 
     def _keypoints(self, payload: bytes) -> bytes:
         frame, arrays = decode(payload, FrameMsg, only=("rgb",))
-        detector = self.detector_for(self.config_for(frame.session_id).detector)
+        detector = self.detector_for(self.config_for(frame.session_id).detector.model_dump_json())
         t0 = time.perf_counter()
         kp = detector.detect(arrays["rgb"])
         elapsed = (time.perf_counter() - t0) * 1000

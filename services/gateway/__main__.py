@@ -15,12 +15,15 @@ parser.add_argument("--port", type=int, default=8080)
 parser.add_argument("--router", default=None, help="Zenoh router endpoint (default $TWOHR_ZENOH_ROUTER)")
 parser.add_argument("--data-root", action="append", default=None, help="folder sequences may come from (repeatable)")
 parser.add_argument("--recordings", default="recordings", help="folder the recorder writes MCAP files to")
-parser.add_argument("--api-token", default=None, help="require 'Authorization: Bearer TOKEN' on /sessions")
+parser.add_argument("--api-token", default=None, help="require 'Authorization: Bearer TOKEN' on /sessions "
+                    "(default $TWOHR_API_TOKEN)")
+parser.add_argument("--api-token-file", default=None, help="read the token from this file (as compose does)")
 args = parser.parse_args()
 settings = GatewaySettings(
     data_roots=[Path(r) for r in (args.data_root or ["data"])],
     recordings=Path(args.recordings),
-    api_token=args.api_token,
+    **({"api_token": Path(args.api_token_file).read_text().strip()} if args.api_token_file else
+       {"api_token": args.api_token} if args.api_token else {}),
     bus=BusConfig(connect=[args.router]) if args.router else BusConfig(),
 )
 uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")

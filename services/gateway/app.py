@@ -4,11 +4,17 @@
 the config overrides and model names must validate) and publishes a ``start`` control message;
 the source, the cores and the recorder take it from there. The gateway follows each session's
 poses and status on the bus, and serves its state, trajectory, ATE and recording.
+
+It also watches for failure: a session fails, with the reason, when a service it needs loses its
+bus connection (its liveliness token goes), when a service rejects its config (an ``error`` status),
+or when no pose arrives for a while. Its robot is then free for a new session.
 """
 
 from __future__ import annotations
 
+import asyncio
 import logging
+import os
 import secrets
 import threading
 import time
@@ -16,6 +22,7 @@ import uuid
 from contextlib import asynccontextmanager
 from pathlib import Path
 
+import zenoh
 from fastapi import Depends, FastAPI, HTTPException, Request, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
@@ -27,17 +34,35 @@ from twohr.config import PipelineConfig, load_config
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
 from twohr.evaluation import evaluate
+from twohr.mcapfile import is_finalised, partial_marker
 from twohr.messages import ControlMsg, MessageError, PoseMsg, StatusMsg, decode, encode
 from twohr.models import get_spec
 from twohr.paths import resolve_under_roots
 from twohr.service import declare_publisher
 from twohr.trajectory import tum_text
 
-from .sessions import PoseOut, Session, SessionInfo, SessionRequest, SessionTable
+from .sessions import ACTIVE, PoseOut, Session, SessionInfo, SessionRequest, SessionTable
 
 log = logging.getLogger("twohr.gateway")
 
 SERVICES = ["source", "detector", "yolo", "matcher", "tracker", "recorder"]
+
+
+class Problem(BaseModel):
+    """Every error reply: one line saying what is wrong and how to fix it."""
+
+    detail: str
+
+
+ERRORS = {code: {"model": Problem, "description": text} for code, text in {
+    401: "missing or wrong API token", 404: "no such session", 409: "conflict with the session's state",
+    413: "request body too large", 422: "invalid request: the detail names the field",
+    503: "a service the session needs is not running"}.items()}
+
+
+def errors(*codes: int) -> dict:
+    """The OpenAPI ``responses`` of a route that can answer ``codes``."""
+    return {code: ERRORS[code] for code in codes}
 
 
 class GatewaySettings(BaseModel):
@@ -45,10 +70,15 @@ class GatewaySettings(BaseModel):
 
     data_roots: list[Path] = Field(default_factory=lambda: [Path("data")])
     recordings: Path = Path("recordings")
-    api_token: str | None = Field(None, description="if set, requests need 'Authorization: Bearer <token>'")
+    api_token: str | None = Field(default_factory=lambda: os.environ.get("TWOHR_API_TOKEN") or None,
+                                  description="if set, requests need 'Authorization: Bearer <token>'")
     bus: BusConfig = Field(default_factory=BusConfig)
     idle_timeout: float = Field(15.0, gt=0, description="a session whose source is done and that gets no pose "
                                 "for this long is finished")
+    start_timeout: float = Field(180.0, gt=0, description="a session with no pose this long after its start fails")
+    stall_timeout: float = Field(45.0, gt=0, description="a running session with no pose for this long fails")
+    keep_ended: int = Field(200, ge=1, description="ended sessions kept in the table (the oldest are forgotten)")
+    max_request_bytes: int = Field(256 * 1024, ge=1024, description="larger request bodies get 413")
 
 
 def validate_models(config: PipelineConfig) -> None:
@@ -63,19 +93,6 @@ def validate_models(config: PipelineConfig) -> None:
         get_spec(config.matcher.model, "siamese")
 
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-
-
-def _mcap_finalised(path: Path) -> bool:
-    """True once an MCAP file ends with its closing magic (the recorder has written summary and footer)."""
-    try:
-        with open(path, "rb") as fh:
-            fh.seek(-len(MCAP_MAGIC), 2)
-            return fh.read() == MCAP_MAGIC
-    except OSError:
-        return False
-
-
 def create_app(settings: GatewaySettings) -> FastAPI:
     table = SessionTable()
     bus_state: dict = {}
@@ -85,14 +102,34 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         def callback(sample) -> None:
             try:
                 message, _ = decode(sample.payload.to_bytes(), schema)
-            except MessageError as exc:
-                log.warning("malformed %s on %s: %s", schema.__name__, sample.key_expr, exc)
+                robot, _ = keys.parse(sample.key_expr)
+                if robot != message.robot_id:
+                    raise MessageError(f"a message for robot {message.robot_id!r} on {sample.key_expr}")
+            except (MessageError, ValueError) as exc:
+                log.warning("dropped %s on %s: %s", schema.__name__, sample.key_expr, exc)
                 return
             handle(message)
         return callback
 
+    def on_status(status: StatusMsg) -> None:
+        failed = table.on_status(status)
+        if failed is not None:
+            send_control(failed, "stop")
+            log.warning("session %s failed: %s", failed.id, failed.detail)
+
+    alive: set[str] = set()
+
+    def on_liveliness(sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        if sample.kind == zenoh.SampleKind.PUT:
+            alive.add(name)
+            return
+        alive.discard(name)
+        for session in table.fail_active(f"the {name} service stopped during the session"):
+            log.warning("session %s failed: %s", session.id, session.detail)
+            send_control(session, "stop")
+
     on_pose = decoded(PoseMsg, table.on_pose)
-    on_status = decoded(StatusMsg, table.on_status)
 
     def send_control(session: Session, command: str, config: PipelineConfig | None = None) -> None:
         req = session.request
@@ -120,13 +157,18 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         while not stop.wait(0.25):
             for session in table.finished_sessions(settings.idle_timeout):
                 finish(session)
+            for session in table.stalled_sessions(settings.start_timeout, settings.stall_timeout):
+                log.warning("session %s failed: %s", session.id, session.detail)
+                send_control(session, "stop")
+            table.forget_ended(settings.keep_ended)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         zsession = open_session(settings.bus)
         bus_state["session"] = zsession
         subs = [zsession.declare_subscriber(keys.all_robots("pose"), on_pose),
-                zsession.declare_subscriber(keys.all_robots("status"), on_status)]
+                zsession.declare_subscriber(keys.all_robots("status"), decoded(StatusMsg, on_status)),
+                zsession.liveliness().declare_subscriber(f"{keys.ALIVE_PREFIX}/*", on_liveliness, history=True)]
         stop = threading.Event()
         thread = threading.Thread(target=monitor, args=(stop,), daemon=True)
         thread.start()
@@ -145,13 +187,21 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         if settings.api_token is None:
             return
         supplied = request.headers.get("authorization", "").removeprefix("Bearer ").strip()
-        if not secrets.compare_digest(supplied, settings.api_token):
+        # compared as bytes: a header with non-ASCII characters is simply a wrong token
+        if not secrets.compare_digest(supplied.encode("utf-8", "surrogateescape"), settings.api_token.encode()):
             raise HTTPException(status.HTTP_401_UNAUTHORIZED, "missing or wrong API token (Authorization: Bearer …)")
+
+    @app.middleware("http")
+    async def limit_body(request: Request, call_next):
+        size = request.headers.get("content-length")
+        if size is not None and (not size.isdigit() or int(size) > settings.max_request_bytes):
+            return JSONResponse({"detail": f"request body over {settings.max_request_bytes} bytes"}, status_code=413)
+        return await call_next(request)
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
         problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'] if p != 'body')}: {e['msg']}" for e in exc.errors())
-        return JSONResponse({"detail": f"invalid request: {problems}"}, status_code=422)
+        return JSONResponse({"detail": f"invalid request: {problems}"[:2000]}, status_code=422)
 
     def info(session: Session) -> SessionInfo:
         latest = session.poses[-1] if session.poses else None
@@ -161,7 +211,7 @@ def create_app(settings: GatewaySettings) -> FastAPI:
             state=session.state, detail=session.detail, created=session.created,
             frames_total=session.frames_total, frames_sent=session.frames_sent, frames=len(session.poses),
             frames_dropped=max(0, session.frames_sent - len({p.frame_index for p in session.poses}))
-            if session.state in ("finished", "stopped", "error") and session.frames_sent is not None else None,
+            if session.state not in ACTIVE and session.frames_sent is not None else None,
             fps=round(session.fps(), 3),
             latest_pose=PoseOut(frame_index=latest.frame_index, stamp=latest.stamp, position=latest.position,
                                 orientation=latest.orientation, status=latest.status) if latest else None,
@@ -182,16 +232,23 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         services = {name: query_health(zsession, name, timeout=0.5) for name in SERVICES} if zsession else {}
         return {"status": "ok", "services": services}
 
-    @app.post("/sessions", status_code=201, response_model=SessionInfo, dependencies=[Depends(require_token)])
+    @app.post("/sessions", status_code=201, response_model=SessionInfo, dependencies=[Depends(require_token)],
+              responses=errors(401, 409, 413, 422, 503))
     def create_session(request: SessionRequest) -> SessionInfo:
-        """Start a session on a sequence under the data roots. 409 if the robot already runs one."""
+        """Start a session on a sequence under the data roots. 409 if the robot already runs one, 503 if a
+        service is not running."""
         try:
             folder = resolve_under_roots(request.sequence, settings.data_roots)
             config = load_config(None, request.config)
             validate_models(config)
             RGBDSequence(folder, camera=config.camera)
         except TwohrError as exc:
-            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)) from None
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)[:2000]) from None
+        except OSError as exc:  # e.g. a name too long for the file system
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"sequence: {exc.strerror}") from None
+        missing = [name for name in SERVICES if name not in alive]
+        if missing:
+            raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, f"services not running: {', '.join(missing)}")
         if table.active_for_robot(request.robot_id):
             raise HTTPException(status.HTTP_409_CONFLICT, f"robot {request.robot_id} already runs a session")
         session = Session(id=uuid.uuid4().hex[:12], request=request, folder=folder)
@@ -199,44 +256,53 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         send_control(session, "start", config)
         return info(session)
 
-    @app.get("/sessions", response_model=list[SessionInfo], dependencies=[Depends(require_token)])
+    @app.get("/sessions", response_model=list[SessionInfo], dependencies=[Depends(require_token)],
+             responses=errors(401))
     def list_sessions() -> list[SessionInfo]:
         return [info(s) for s in list(table.sessions.values())]
 
-    @app.get("/sessions/{session_id}", response_model=SessionInfo, dependencies=[Depends(require_token)])
+    @app.get("/sessions/{session_id}", response_model=SessionInfo, dependencies=[Depends(require_token)],
+             responses=errors(401, 404))
     def get_session(session_id: str) -> SessionInfo:
         return info(lookup(session_id))
 
-    @app.delete("/sessions/{session_id}", response_model=SessionInfo, dependencies=[Depends(require_token)])
+    @app.delete("/sessions/{session_id}", response_model=SessionInfo, dependencies=[Depends(require_token)],
+                responses=errors(401, 404))
     def stop_session(session_id: str) -> SessionInfo:
+        """Stop a session (its robot is free at once); an ended session is returned unchanged."""
         session = lookup(session_id)
-        if session.state in ("starting", "running"):
+        if session.state in ACTIVE:
             session.state = "stopped"
             send_control(session, "stop")
         return info(session)
 
     @app.get("/sessions/{session_id}/trajectory", response_class=PlainTextResponse,
-             dependencies=[Depends(require_token)])
+             dependencies=[Depends(require_token)], responses=errors(401, 404))
     def trajectory(session_id: str) -> str:
         """The session's trajectory so far, in TUM format (camera-to-world)."""
         return tum_text(lookup(session_id).trajectory())
 
-    @app.get("/sessions/{session_id}/recording", dependencies=[Depends(require_token)])
-    def recording(session_id: str) -> FileResponse:
+    @app.get("/sessions/{session_id}/recording", dependencies=[Depends(require_token)],
+             responses={200: {"content": {"application/octet-stream": {}},
+                              "description": "the MCAP file; header X-Twohr-Recording: partial when the recorder "
+                              "died and its readable prefix was re-indexed"}, **errors(401, 404, 409)})
+    async def recording(session_id: str) -> FileResponse:
         """The session's MCAP file, once the session has ended."""
         session = lookup(session_id)
         path = settings.recordings / f"{session.id}.mcap"
         if not session.request.record:
             raise HTTPException(status.HTTP_404_NOT_FOUND, "this session was not recorded")
-        if session.state in ("starting", "running"):
+        if session.state in ACTIVE:
             raise HTTPException(status.HTTP_409_CONFLICT, "the recording is finalised when the session ends")
         deadline = time.monotonic() + 10
-        while not _mcap_finalised(path) and time.monotonic() < deadline:
-            time.sleep(0.1)  # the recorder finalises the file when it sees the session's stop message
+        while not is_finalised(path) and time.monotonic() < deadline:
+            await asyncio.sleep(0.1)  # the recorder finalises the file when it sees the session's stop message
         if not path.is_file():
             raise HTTPException(status.HTTP_404_NOT_FOUND, "no recording found (is the recorder running?)")
-        if not _mcap_finalised(path):
+        if not is_finalised(path):
             raise HTTPException(status.HTTP_409_CONFLICT, "the recording is still being finalised; try again")
-        return FileResponse(path, media_type="application/octet-stream", filename=path.name)
+        partial = partial_marker(path).is_file()
+        return FileResponse(path, media_type="application/octet-stream", filename=path.name,
+                            headers={"X-Twohr-Recording": "partial" if partial else "complete"})
 
     return app

@@ -15,17 +15,20 @@ from twohr.geometry import make_pose, quat_to_rot
 from twohr.messages import ID_PATTERN, PoseMsg, StatusMsg
 from twohr.trajectory import Trajectory
 
-SessionState = Literal["starting", "running", "finished", "stopped", "error"]
+SessionState = Literal["starting", "running", "finished", "stopped", "failed"]
+ACTIVE = ("starting", "running")
+MAX_FRAMES = 10_000_000
 
 
 class SessionRequest(BaseModel):
     """Body of ``POST /sessions``."""
 
-    sequence: str = Field(description="sequence folder, relative to a data root or absolute inside one")
+    sequence: str = Field(min_length=1, max_length=1024,
+                          description="sequence folder, relative to a data root or absolute inside one")
     robot_id: str = Field("robot1", pattern=ID_PATTERN)
     rate: float = Field(0.0, ge=0, le=100, description="1 = real time, 0 = as fast as the pipeline keeps up")
     record: bool = Field(True, description="write every stream to an MCAP file")
-    max_frames: int | None = Field(None, ge=1, description="stop after this many frames")
+    max_frames: int | None = Field(None, ge=1, le=MAX_FRAMES, description="stop after this many frames")
     config: dict[str, Any] = Field(
         default_factory=dict, description="pipeline config overrides, nested or dotted: {'detector.max_keypoints': 800}"
     )
@@ -47,7 +50,8 @@ class SessionInfo(BaseModel):
     id: str
     robot_id: str
     sequence: str
-    state: SessionState
+    state: SessionState = Field(description="starting, running, then finished, stopped (DELETE) or failed "
+                                "(detail says why: a service rejected the config, stopped, or the pipeline stalled)")
     detail: str = ""
     created: float
     frames_total: int | None = Field(None, description="frames the source will send (known once it starts)")
@@ -75,6 +79,7 @@ class Session:
     poses: list[PoseMsg] = field(default_factory=list)
     first_pose_at: float | None = None
     last_pose_at: float | None = None
+    started_at: float = field(default_factory=time.time)
     source_done_at: float | None = None
     ate_rmse: float | None = None
     finalising: bool = False
@@ -108,7 +113,7 @@ class SessionTable:
     def active_for_robot(self, robot_id: str) -> Session | None:
         with self.lock:
             return next((s for s in self.sessions.values()
-                         if s.request.robot_id == robot_id and s.state in ("starting", "running")), None)
+                         if s.request.robot_id == robot_id and s.state in ACTIVE), None)
 
     def on_pose(self, pose: PoseMsg) -> None:
         with self.lock:
@@ -122,20 +127,57 @@ class SessionTable:
             if session.state == "starting":
                 session.state = "running"
 
-    def on_status(self, status: StatusMsg) -> None:
+    def on_status(self, status: StatusMsg) -> Session | None:
+        """Follow a session's status; returns the session if this status failed it (a service reported an error)."""
         with self.lock:
             session = self.sessions.get(status.session_id)
-            if session is None or status.service != "source":
-                return
+            if session is None or session.request.robot_id != status.robot_id or session.state not in ACTIVE:
+                return None
+            if status.state == "error":
+                session.state, session.detail = "failed", status.detail or f"the {status.service} service failed"
+                return session
+            if status.service != "source":
+                return None
             if status.state == "started":
                 session.state = "running" if session.state == "starting" else session.state
                 session.frames_total = status.counters.get("frames")
             elif status.state in ("finished", "stopped"):
                 session.frames_sent = status.counters.get("frames", 0)
                 session.source_done_at = time.time()
-            elif status.state == "error":
-                session.state = "error"
-                session.detail = status.detail
+        return None
+
+    def fail_active(self, reason: str) -> list[Session]:
+        """Fail every active session (a service they need went away); returns them."""
+        with self.lock:
+            failed = [s for s in self.sessions.values() if s.state in ACTIVE]
+            for s in failed:
+                s.state, s.detail = "failed", reason
+        return failed
+
+    def stalled_sessions(self, start_timeout: float, stall_timeout: float) -> list[Session]:
+        """Active sessions that got no pose within ``start_timeout`` of their start, or none for ``stall_timeout``
+        while their source was still sending; they are marked failed and returned."""
+        now = time.time()
+        stalled = []
+        with self.lock:
+            for s in self.sessions.values():
+                if s.state not in ACTIVE or s.source_done_at is not None:
+                    continue
+                if s.last_pose_at is None and now - s.started_at > start_timeout:
+                    s.state, s.detail = "failed", f"no pose within {start_timeout:.0f} s of the start"
+                elif s.last_pose_at is not None and now - s.last_pose_at > stall_timeout:
+                    s.state, s.detail = "failed", f"no pose for {stall_timeout:.0f} s: the pipeline stalled"
+                else:
+                    continue
+                stalled.append(s)
+        return stalled
+
+    def forget_ended(self, keep: int) -> None:
+        """Keep at most ``keep`` ended sessions (the oldest go), so the table stays bounded."""
+        with self.lock:
+            ended = sorted((s for s in self.sessions.values() if s.state not in ACTIVE), key=lambda s: s.created)
+            for s in ended[:max(0, len(ended) - keep)]:
+                del self.sessions[s.id]
 
     def finished_sessions(self, idle_timeout: float) -> list[Session]:
         """Running sessions whose source is done and whose last pose arrived (or that went quiet)."""
@@ -143,7 +185,7 @@ class SessionTable:
         done = []
         with self.lock:
             for s in self.sessions.values():
-                if s.state not in ("starting", "running") or s.source_done_at is None:
+                if s.state not in ACTIVE or s.source_done_at is None:
                     continue
                 last = max(s.source_done_at, s.last_pose_at or 0)
                 if (len(s.poses) >= (s.frames_sent or 0) or now - last > idle_timeout) and not s.finalising:

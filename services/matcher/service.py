@@ -8,12 +8,13 @@ keeps the map.
 
 from __future__ import annotations
 
+import functools
 import time
 
 from twohr import keys
 from twohr.config import MatcherConfig
 from twohr.messages import MatchesMsg, MatchRequestMsg, decode, encode
-from twohr.service import Service, serve
+from twohr.service import MODEL_CACHE_SIZE, Service, reply_to, serve
 
 from .core import build_matcher
 
@@ -26,26 +27,20 @@ class MatcherService(Service):
 
     def __init__(self, bus=None) -> None:
         super().__init__(bus, queue_size=16, policy="backpressure")
-        self.matchers: dict[str, object] = {}
+        # one matcher per distinct config, shared by sessions; a few at most
+        self.matcher_for = functools.lru_cache(maxsize=MODEL_CACHE_SIZE)(
+            lambda conf_json: build_matcher(MatcherConfig.model_validate_json(conf_json)))
         self.queryable = None
 
     def on_start(self) -> None:
         self.queryable = self.session.declare_queryable(keys.all_robots(keys.MATCH_QUERY), self._on_query)
 
-    def matcher_for(self, conf: MatcherConfig):
-        key = conf.model_dump_json()
-        if key not in self.matchers:
-            self.matchers[key] = build_matcher(conf)
-        return self.matchers[key]
-
     def handle(self, key: str, query) -> None:
-        payload = query.payload.to_bytes() if query.payload is not None else b""
-        try:
-            request, arrays = decode(payload, MatchRequestMsg)
-        except Exception:
-            query.reply_err(b"malformed match request")
-            raise
-        match = self.matcher_for(self.config_for(request.session_id).matcher)
+        reply_to(query, self._match)
+
+    def _match(self, payload: bytes) -> bytes:
+        request, arrays = decode(payload, MatchRequestMsg)
+        match = self.matcher_for(self.config_for(request.session_id).matcher.model_dump_json())
         t0 = time.perf_counter()
         matches = match(arrays["desc_a"], arrays["desc_b"])
         reply = MatchesMsg(session_id=request.session_id, robot_id=request.robot_id, frame_index=request.frame_index,
@@ -53,8 +48,8 @@ class MatcherService(Service):
                            elapsed_ms=(time.perf_counter() - t0) * 1000)
         data = encode(reply, {"idx_a": matches.idx_a.astype("int64"), "idx_b": matches.idx_b.astype("int64"),
                               "scores": matches.scores.astype("float32")})
-        query.reply(query.key_expr, data)
         self.publish(keys.key(request.robot_id, "matches"), data)
+        return data
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -2,6 +2,9 @@
 
 A session's file opens on its ``start`` control message (when ``record`` is true) and is
 finalised on ``stop``. Files of sessions still open when the service exits are finalised too.
+A session's file stops growing at ``max_session_bytes`` (it is finalised there, and the session's
+status says so). At start, files that a killed recorder left unfinalised are recovered
+(``twohr.mcapfile.recover``): their readable prefix is re-indexed and marked partial.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from pathlib import Path
 
 from twohr import keys
 from twohr.bus import BusConfig
+from twohr.mcapfile import recover
 from twohr.messages import ControlMsg, decode, split
 from twohr.service import Service
 
@@ -23,12 +27,19 @@ class RecorderService(Service):
     name = "recorder"
 
     def __init__(self, bus: BusConfig | None = None, recordings: Path = Path("recordings"),
-                 grace: float = 1.0) -> None:
+                 grace: float = 1.0, max_session_bytes: int = 4 << 30) -> None:
         super().__init__(bus, queue_size=256, policy="backpressure")
         self.recordings = recordings
         self.grace = grace
+        self.max_session_bytes = max_session_bytes
         self.open: dict[str, SessionRecorder] = {}
         self.closing: dict[str, float] = {}
+
+    def on_start(self) -> None:
+        for path in sorted(self.recordings.glob("*.mcap")):
+            kept = recover(path)
+            if kept is not None:
+                self.log.warning("recovered %s, left unfinalised by a crash: %d messages kept", path, kept)
 
     def subscriptions(self) -> list[str]:
         return [keys.all_robots(stream) for stream in (*keys.STREAMS, keys.CONTROL)]
@@ -52,6 +63,11 @@ class RecorderService(Service):
         recorder = self.open.get(message.session_id)
         if recorder is not None:
             recorder.write(key, payload, now)
+            if recorder.file.tell() > self.max_session_bytes:
+                self.log.warning("session %s reached %d bytes: its recording ends here", message.session_id,
+                                 self.max_session_bytes)
+                self.report(message, "capped", f"recording capped at {self.max_session_bytes} bytes")
+                self._close(message.session_id)
 
     def process_one(self, timeout: float = 0.2) -> bool:
         handled = super().process_one(timeout)
@@ -79,12 +95,13 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m twohr_services.recorder", description=__doc__)
     parser.add_argument("--router", default=None, help="Zenoh router endpoint (default $TWOHR_ZENOH_ROUTER)")
     parser.add_argument("--recordings", default="recordings", help="folder for the MCAP files")
+    parser.add_argument("--max-session-gb", type=float, default=4.0, help="a session's recording ends at this size")
     args = parser.parse_args(argv)
     recordings = Path(args.recordings)
     if problem := unwritable(recordings):
         parser.exit(2, f"recorder: error: {problem}\n")
     bus = BusConfig(connect=[args.router]) if args.router else BusConfig()
-    RecorderService(bus, recordings).run_forever()
+    RecorderService(bus, recordings, max_session_bytes=int(args.max_session_gb * (1 << 30))).run_forever()
 
 
 def unwritable(folder: Path) -> str | None:

@@ -1,0 +1,169 @@
+"""Who may do what on the bus: the roles, their credentials and the router's access-control list.
+
+Every process joins the router with a user name and password (Zenoh's ``usrpwd`` authentication); the
+user name is its role. The router's access-control list, made here from :data:`GRANTS`, denies everything
+that a role was not granted: only the tracker may publish poses, only the gateway may start or stop a
+session, only the pipeline services may report a session's status, and an outside ``client`` (another
+robot, a camera driver, a ROS 2 node, a viewer) may publish camera frames and read results, nothing more.
+A client that presents no credentials, or wrong ones, cannot connect at all.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+from pathlib import Path
+
+from pydantic import BaseModel, Field
+
+from .keys import ALIVE_PREFIX, HEALTH_PREFIX, PREFIX
+
+
+def _robots(*streams: str) -> list[str]:
+    return [f"{PREFIX}/*/{stream}" for stream in streams]
+
+
+class Grants(BaseModel):
+    """What one role may do, as key expressions."""
+
+    publish: list[str] = Field(default_factory=list, description="keys it may put on")
+    subscribe: list[str] = Field(default_factory=list, description="keys it may receive")
+    serve: list[str] = Field(default_factory=list, description="keys it may answer queries on")
+    ask: list[str] = Field(default_factory=list, description="keys it may query")
+    watch_liveliness: bool = Field(False, description="may follow which services are alive")
+
+
+SERVICE_ROLES = ("source", "detector", "yolo", "matcher", "tracker", "recorder")
+
+
+def ros2_keys(domain: int) -> list[str]:
+    """rmw_zenoh's keys of one ROS 2 domain: ``<domain>/<topic>/<type>/<hash>`` data and its liveliness tokens."""
+    return [f"{domain}/**", f"@ros2_lv/{domain}/**"]
+
+
+def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
+    """Every role's grants; ROS 2 keys are granted in ``ros2_domain`` only."""
+    ros2 = ros2_keys(ros2_domain)
+    return {
+        "gateway": Grants(publish=_robots("control"), subscribe=_robots("pose", "status"), watch_liveliness=True),
+        "source": Grants(publish=_robots("frames", "status"), subscribe=_robots("control", "pose", "camera")),
+        "detector": Grants(publish=_robots("keypoints", "status"), subscribe=_robots("control", "frames"),
+                           serve=_robots("rpc/detect")),
+        "yolo": Grants(publish=_robots("dynamics", "status"), subscribe=_robots("control", "frames"),
+                       serve=_robots("rpc/dynamics")),
+        "matcher": Grants(publish=_robots("matches", "status"), subscribe=_robots("control"),
+                          serve=_robots("rpc/match")),
+        "tracker": Grants(publish=_robots("pose", "status", "map"),
+                          subscribe=_robots("control", "frames", "keypoints", "dynamics"),
+                          ask=_robots("rpc/detect", "rpc/dynamics", "rpc/match")),
+        "recorder": Grants(publish=_robots("status"), subscribe=[f"{PREFIX}/*/*"]),
+        "ros2": Grants(publish=_robots("camera") + ros2, subscribe=_robots("pose", "map") + ros2),
+        # what twohr hands to the outside: camera drivers, other robots, viewers, ROS 2 nodes, `twohr health`
+        "client": Grants(publish=_robots("camera") + ros2,
+                         subscribe=_robots("pose", "status", "map") + ros2,
+                         watch_liveliness=True),
+    }
+
+
+ROLES = tuple(role_grants())
+
+
+def _rule(rule_id: str, messages: list[str], flow: str, key_exprs: list[str]) -> dict:
+    return {"id": rule_id, "messages": messages, "flows": [flow], "permission": "allow", "key_exprs": key_exprs}
+
+
+def role_rules(role: str, grants: Grants) -> list[dict]:
+    """The ACL rules of one role. ``ingress`` is what the role sends to the router, ``egress`` what the router
+    sends to it: a publisher sends puts and learns of matching subscribers; a subscriber declares interest and
+    receives puts; a queryable declares itself, receives queries and sends replies; a querier the reverse."""
+    rules = []
+    own = [f"{HEALTH_PREFIX}/{role}"]
+    serve = grants.serve + own
+    if grants.publish:
+        rules += [_rule(f"{role}-pub", ["put", "delete"], "ingress", grants.publish),
+                  _rule(f"{role}-pub-match", ["declare_subscriber"], "egress", grants.publish)]
+    if grants.subscribe:
+        rules += [_rule(f"{role}-sub", ["declare_subscriber"], "ingress", grants.subscribe),
+                  _rule(f"{role}-sub-data", ["put", "delete"], "egress", grants.subscribe)]
+    ask = grants.ask + [f"{HEALTH_PREFIX}/*"]  # every role may read the services' health counters
+    rules += [_rule(f"{role}-serve", ["declare_queryable", "reply"], "ingress", serve),
+              _rule(f"{role}-serve-query", ["query"], "egress", serve),
+              _rule(f"{role}-alive", ["liveliness_token"], "ingress", [f"{ALIVE_PREFIX}/{role}"]),
+              _rule(f"{role}-ask", ["query"], "ingress", ask),
+              _rule(f"{role}-ask-reply", ["reply", "declare_queryable"], "egress", ask)]
+    ros2_tokens = [k for k in grants.publish if k.startswith("@ros2_lv/")]
+    if ros2_tokens:
+        rules.append(_rule(f"{role}-ros2-tokens", ["liveliness_token"], "ingress", ros2_tokens))
+    watched = ([f"{ALIVE_PREFIX}/*"] if grants.watch_liveliness else []) + [
+        k for k in grants.subscribe if k.startswith("@ros2_lv/")]
+    if watched:
+        rules += [_rule(f"{role}-watch", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", watched),
+                  _rule(f"{role}-watch-tokens", ["liveliness_token", "reply"], "egress", watched)]
+    return rules
+
+
+def access_control(ros2_domain: int = 0) -> dict:
+    """The router's ``access_control`` section: deny by default, allow what :func:`role_grants` lists."""
+    rules, subjects, policies = [], [], []
+    for role, grants in role_grants(ros2_domain).items():
+        mine = role_rules(role, grants)
+        rules += mine
+        subjects.append({"id": role, "usernames": [role]})
+        policies.append({"id": f"{role}-policy", "rules": [r["id"] for r in mine], "subjects": [role]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+class Credentials(BaseModel):
+    """One password per role, plus the HTTP API token; made once per deployment by :func:`generate`."""
+
+    passwords: dict[str, str]
+    api_token: str
+
+    @classmethod
+    def generate(cls, api_token: str | None = None) -> Credentials:
+        return cls(passwords={role: secrets.token_urlsafe(24) for role in ROLES},
+                   api_token=api_token or secrets.token_urlsafe(24))
+
+    def dictionary(self) -> str:
+        """The router's ``user:password`` dictionary file."""
+        return "".join(f"{role}:{password}\n" for role, password in self.passwords.items())
+
+    def save(self, folder: Path) -> Path:
+        """Write ``credentials.json`` and the router's dictionary into ``folder`` (created private)."""
+        folder.mkdir(parents=True, exist_ok=True, mode=0o700)
+        for name, text in (("credentials.json", self.model_dump_json(indent=1)), ("users.txt", self.dictionary())):
+            path = folder / name
+            path.write_text(text)
+            path.chmod(0o600)
+        return folder / "credentials.json"
+
+    @classmethod
+    def load(cls, path: Path) -> Credentials:
+        return cls.model_validate_json(Path(path).read_text())
+
+
+def client_config(endpoint: str, user: str, password: str, tls_root_ca: str | None = None) -> dict:
+    """A Zenoh client configuration for ``user`` on the router at ``endpoint`` (what ``--write-client-config``
+    writes and what ``BusConfig.from_file`` reads)."""
+    conf: dict = {
+        "mode": "client",
+        "connect": {"endpoints": [endpoint]},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"auth": {"usrpwd": {"user": user, "password": password}}},
+    }
+    if tls_root_ca:
+        conf["transport"]["link"] = {"tls": {"root_ca_certificate": tls_root_ca}}
+    return conf
+
+
+def write_client_config(path: Path, endpoint: str, credentials: Credentials, role: str = "client") -> Path:
+    """Write a private (0600) JSON5 client config for ``role``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as fh:
+        fh.write("// twohr: a Zenoh client of the twohr router, with its credentials. Keep it private.\n")
+        json.dump(client_config(endpoint, role, credentials.passwords[role]), fh, indent=2)
+    return path
