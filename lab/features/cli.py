@@ -1,7 +1,7 @@
 """``twohr features eval | study | bench``: the feature-quality table, the 2HR parameter study, detector timings.
 
-A thin shell over :mod:`twohr_services.detector` (core, evaluation, quality, bench); heavy modules are
-imported inside the handlers so that ``twohr --help`` stays fast.
+A thin shell over the detector core and the lab's ``evaluation``, ``quality`` and ``bench``; heavy modules
+are imported inside the handlers so that ``twohr --help`` stays fast.
 """
 
 from __future__ import annotations

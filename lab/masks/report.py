@@ -1,7 +1,7 @@
 """Measurements of the yolo core on a sequence: per-frame statistics, pictures and timings.
 
-These compose the yolo core with the keypoint detector (as a CLI may); the core itself stays in
-``core.py``, ``dynamics.py`` and ``masks.py``.
+A lab study: it composes the yolo core with the keypoint detector; the core itself stays in
+``twohr_services.yolo`` (``core.py``, ``dynamics.py``, ``masks.py``).
 """
 
 from __future__ import annotations
