@@ -1,8 +1,8 @@
-"""The ``twohr`` command line: a thin shell over the library and the service cores.
+"""The ``twohr`` command line: a thin shell over the library, the service cores and the lab's studies.
 
-Each service package may contribute subcommands through a ``cli.py`` module with a
-``register(subparsers)`` function; handlers import their heavy dependencies lazily so that
-``twohr --help`` stays fast.
+Modules contribute subcommands through a ``register(subparsers)`` function: the pipeline and the
+launcher here, the offline studies (benches, feature and mask evaluation, matcher training) in
+``twohr_lab``. Handlers import their heavy dependencies lazily so that ``twohr --help`` stays fast.
 """
 
 from __future__ import annotations
@@ -19,9 +19,10 @@ from twohr.errors import TwohrError
 #: Modules that add subcommands, in the order they appear in ``--help``.
 COMMAND_MODULES = [
     "twohr_services.pipeline_cli",
-    "twohr_services.detector.cli",
-    "twohr_services.yolo.cli",
-    "twohr_services.matcher.cli",
+    "twohr_lab.bench_cli",
+    "twohr_lab.features.cli",
+    "twohr_lab.masks.cli",
+    "twohr_lab.matching.cli",
     "twohr_services.launcher_cli",
 ]
 
@@ -35,7 +36,7 @@ def _models(args: argparse.Namespace) -> int:
             status = "cached" if (models.cache_dir() / spec.file).is_file() or spec.bundled else "-"
             print(f"{name:24} {spec.kind:10} {spec.file:26} {status:10} {spec.licence}")
         return 0
-    names = args.names or list(models.registry())
+    names = getattr(args, "names", None) or list(models.registry())
     failed = 0
     for name in names:
         try:
@@ -101,6 +102,15 @@ def _synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("twohr")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="twohr",
@@ -110,14 +120,20 @@ def build_parser() -> argparse.ArgumentParser:
         "Every subcommand has its own --help.",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser("models", help="list, fetch or verify the registered models",
                        description="Models come from $TWOHR_MODEL_MIRROR (default ../shared/models) or their "
                        "official URL, into $TWOHR_CACHE/models, and are checked by sha256.")
-    p.add_argument("action", choices=["list", "fetch", "verify"])
-    p.add_argument("names", nargs="*", help="model names (default: all)")
-    p.add_argument("--force", action="store_true", help="fetch again even when cached")
+    actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+    actions.add_parser("list", help="every registered model, its licence and whether it is cached")
+    for action, text in (("fetch", "copy or download models into the cache and check them"),
+                         ("verify", "check the sha256 of cached (or mirrored) models")):
+        q = actions.add_parser(action, help=text, description=text)
+        q.add_argument("names", nargs="*", metavar="NAME", help="model names (default: all)")
+        if action == "fetch":
+            q.add_argument("--force", action="store_true", help="fetch again even when cached")
     p.set_defaults(func=_models)
 
     p = sub.add_parser("eval", help="ATE/RPE of a trajectory against ground truth (TUM/evo conventions)",
@@ -146,7 +162,7 @@ def build_parser() -> argparse.ArgumentParser:
         try:
             module = importlib.import_module(module_name)
         except ModuleNotFoundError as exc:
-            if exc.name != module_name:
+            if exc.name not in (module_name, module_name.split(".")[0]):  # e.g. an image without the lab
                 raise
             continue
         module.register(sub)
@@ -156,6 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # the exact command, for the studies' stamps
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
     if not args.verbose:

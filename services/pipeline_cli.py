@@ -113,71 +113,6 @@ def _demo(args: argparse.Namespace) -> int:
     return _run(args)
 
 
-def _bench(args: argparse.Namespace) -> int:
-    from . import bench
-
-    config, sequence = _load(args)
-    out = Path(args.out or "runs/bench")
-    out.mkdir(parents=True, exist_ok=True)
-    report: dict = {}
-    if args.bus:
-        import numpy as np
-
-        from twohr.config import merge_overrides
-
-        from .pipeline import run_sequence
-
-        overrides = merge_overrides({}, args.set or [])
-        frames = args.frames or 60
-        local = [run_sequence(sequence, config, stop=frames, progress=not args.quiet) for _ in range(args.runs)]
-        lat = np.concatenate([[s.ms_total for s in r.stats] for r in local])
-        if args.gateway:  # an already-running stack, e.g. the compose containers
-            bus_runs = [bench.latency_summary(bench.session_latency(args.router, args.gateway, sequence.root.name,
-                                                                    frames, args.rate, config_overrides=overrides))
-                        for _ in range(args.runs)]
-        else:
-            bus_runs = [bench.bus_latency(sequence.root, overrides, frames, args.rate) for _ in range(args.runs)]
-        report["bus"] = {
-            "in_process": {"fps_median": round(float(np.median([len(r.stats) / r.wall_s for r in local])), 3),
-                           "latency_ms": {"p50": round(float(np.percentile(lat, 50)), 1),
-                                          "p99": round(float(np.percentile(lat, 99)), 1)}},
-            "zenoh_runs": bus_runs, "zenoh_system": args.gateway or "twohr up (local processes)",
-            "zenoh": {"fps_median": float(np.median([r["fps"] for r in bus_runs])),
-                      "latency_p50_median": float(np.median([r["latency_ms"]["p50"] for r in bus_runs])),
-                      "latency_p99_median": float(np.median([r["latency_ms"]["p99"] for r in bus_runs])),
-                      "dropped_percent_median": float(np.median([r["dropped_percent"] for r in bus_runs]))},
-        }
-        print(json.dumps(report["bus"], indent=2))
-    elif args.ablations:
-        rows = bench.ablations(sequence, config, stop=args.frames, progress=not args.quiet)
-        rows.append(bench.static_camera_row(sequence))
-        report["ablations"] = {"sequence": sequence.name, "frames": args.frames or len(sequence),
-                               "ate": "RMSE after SE(3) Umeyama alignment, max dt 0.02 s, camera-frame GT",
-                               "rows": rows}
-        table = bench.format_table(rows)
-        (out / "ablations.md").write_text(table + "\n")
-        print(table)
-    else:
-        result = bench.throughput(sequence, config, frames=args.frames or 60, start=args.start, runs=args.runs,
-                                  progress=not args.quiet)
-        report["throughput"] = result
-        print(f"{result['frames']} frames x {result['runs']} runs: {result['fps_median']} FPS "
-              f"(ORB baseline {result['baseline_fps_median']} FPS, ratio {result['speed_ratio_to_baseline']}); "
-              f"peak RSS {result['peak_rss_mib']} MiB; ATE median {result['ate_rmse_median']} m")
-        orbslam3 = result["orbslam3"]
-        if isinstance(orbslam3, dict):
-            print(f"ORB-SLAM3 RGB-D (pyorbslam3): {orbslam3['ms_per_frame_median']} ms/frame; ours/ORB-SLAM3 "
-                  f"ms per frame: {orbslam3['ratio_ms_per_frame']}")
-        else:
-            print(f"ORB-SLAM3: {orbslam3}")
-        print(f"{'stage':10} {'median ms':>10} {'p90 ms':>8}")
-        for stage, v in result["stages_ms"].items():
-            print(f"{stage:10} {v['median']:10.1f} {v['p90']:8.1f}")
-    (out / "bench.json").write_text(json.dumps(report, indent=2))
-    print(f"written: {out / 'bench.json'}")
-    return 0
-
-
 def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sequence", required=True, help="TUM-layout RGB-D folder (rgb.txt, depth.txt, images)")
     p.add_argument("--out", default=None, help="output folder (default runs/<sequence name>)")
@@ -201,29 +136,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "report and plot.")
     _add_run_options(p)
     p.set_defaults(func=_run)
-
-    p = sub.add_parser("bench", help="throughput and per-stage latency (or --ablations: the accuracy table)",
-                       description="Without --ablations: FPS, per-stage ms (median, p90) and peak RSS of the pipeline "
-                       "over --frames frames, --runs times, each paired with an ORB baseline run for a ratio. With "
-                       "--ablations: ATE RMSE, S.D., %% tracked and ms/frame of ORB, R2D2, 2HR, 2HR+YOLO and the "
-                       "full pipeline on the same tracker.")
-    _add_run_options(p)
-    p.set_defaults(sequence="../shared/data/rgbd_bonn_crowd_dev")
-    for action in p._actions:
-        if action.dest == "sequence":
-            action.required = False
-    p.add_argument("--runs", type=int, default=3, help="repetitions for throughput (median reported)")
-    p.add_argument("--ablations", action="store_true", help="the ablation table instead of throughput")
-    p.add_argument("--bus", action="store_true", help="frame->pose latency and FPS over Zenoh (twohr up as local "
-                   "processes) against in-process, same frames and config (--set overrides go to both)")
-    p.add_argument("--gateway", default=None, metavar="URL",
-                   help="with --bus: measure the system already running behind this gateway (e.g. the compose "
-                   "stack, http://127.0.0.1:8080) instead of starting twohr up; its data root must hold --sequence")
-    p.add_argument("--router", default="tcp/127.0.0.1:7447", help="with --gateway: that system's Zenoh router")
-    p.add_argument("--rate", type=float, default=1.0,
-                   help="with --bus: source speed, 1 = the camera's real rate (30 Hz for the dev sequence), "
-                   "0 = as fast as the pipeline answers (at most two frames in flight)")
-    p.set_defaults(func=_bench)
 
     p = sub.add_parser("demo", help="the main job end to end on the dev sequence, with a printed result")
     p.add_argument("--sequence", default="../shared/data/rgbd_bonn_crowd_dev", help="TUM-layout RGB-D folder")

@@ -15,3 +15,11 @@ class ModelError(TwohrError):
 
 class ConfigError(TwohrError):
     """A configuration value that does not validate."""
+
+
+def validation_problems(exc, empty_location: str = "", skip: tuple[str, ...] = ()) -> str:
+    """A pydantic ``ValidationError`` as one line: ``loc.path: message; ...``.
+
+    ``skip`` drops location parts (e.g. FastAPI's ``body``); ``empty_location`` names an error at the root."""
+    return "; ".join(f"{'.'.join(str(p) for p in e['loc'] if p not in skip) or empty_location}: {e['msg']}"
+                     for e in exc.errors())

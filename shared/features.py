@@ -97,3 +97,33 @@ def masked(xy: np.ndarray, mask: np.ndarray) -> np.ndarray:
     cols = np.clip(np.rint(xy[:, 0]).astype(np.int64), 0, width - 1)
     rows = np.clip(np.rint(xy[:, 1]).astype(np.int64), 0, height - 1)
     return mask[rows, cols]
+
+
+def descriptor_distances(desc_a: np.ndarray, desc_b: np.ndarray, squared: bool = False) -> np.ndarray:
+    """Pairwise distances (Na, Nb): Euclidean (``squared``: its square) for float descriptors, Hamming for
+    packed uint8 bits."""
+    if desc_a.dtype == np.uint8:
+        bits_a = np.unpackbits(desc_a, axis=1).astype(np.float32)
+        bits_b = np.unpackbits(desc_b, axis=1).astype(np.float32)
+        # hamming = |a| + |b| - 2 a.b for 0/1 vectors
+        return bits_a.sum(1)[:, None] + bits_b.sum(1)[None, :] - 2 * bits_a @ bits_b.T
+    a = desc_a.astype(np.float32, copy=False)
+    b = desc_b.astype(np.float32, copy=False)
+    sq = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2 * a @ b.T
+    return sq if squared else np.sqrt(np.maximum(sq, 0))
+
+
+def mutual_nn(desc_a: np.ndarray, desc_b: np.ndarray, max_distance: float | None = None) -> Matches:
+    """Pairs that are each other's nearest neighbour; score = -distance."""
+    if len(desc_a) == 0 or len(desc_b) == 0:
+        return Matches.empty()
+    dist = descriptor_distances(desc_a, desc_b)
+    nn_ab = dist.argmin(1)
+    nn_ba = dist.argmin(0)
+    idx_a = np.flatnonzero(nn_ba[nn_ab] == np.arange(len(desc_a)))
+    idx_b = nn_ab[idx_a]
+    d = dist[idx_a, idx_b]
+    if max_distance is not None:
+        keep = d <= max_distance
+        idx_a, idx_b, d = idx_a[keep], idx_b[keep], d[keep]
+    return Matches(idx_a, idx_b, (-d).astype(np.float32))

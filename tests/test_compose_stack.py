@@ -17,7 +17,7 @@ import pytest
 
 from conftest import REPO
 from twohr.bus import free_port
-from twohr_services.bench import latency_summary, session_latency
+from twohr_lab.bench import latency_summary, session_latency
 from twohr_services.launcher_cli import PIPELINE_SERVICES
 from twohr_services.recorder.core import topic_counts
 

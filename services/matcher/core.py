@@ -2,7 +2,7 @@
 
 Baselines: mutual nearest neighbour and Lowe's ratio test, for float (L2-normalised) and packed
 binary (Hamming) descriptors. The paper's matcher: :class:`SiameseMatcher`, a learned similarity
-(``model.py``, exported to ONNX) that scores the k nearest candidates; it runs on onnxruntime alone.
+(``twohr_lab.matching.model``, exported to ONNX) that scores the k nearest candidates; it runs on onnxruntime alone.
 :func:`build_matcher` returns the method a :class:`~twohr.config.MatcherConfig` names.
 """
 
@@ -18,39 +18,13 @@ import onnxruntime as ort
 
 from twohr.config import MatcherConfig
 from twohr.errors import ModelError
-from twohr.features import Matches
+from twohr.features import Matches, descriptor_distances, mutual_nn
 from twohr.models import cpu_session, model_path
 
 log = logging.getLogger(__name__)
 
-
-def descriptor_distances(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
-    """Pairwise distances (Na, Nb): Euclidean for float descriptors, Hamming for packed uint8 bits."""
-    if desc_a.dtype == np.uint8:
-        bits_a = np.unpackbits(desc_a, axis=1).astype(np.float32)
-        bits_b = np.unpackbits(desc_b, axis=1).astype(np.float32)
-        # hamming = |a| + |b| - 2 a.b for 0/1 vectors
-        return bits_a.sum(1)[:, None] + bits_b.sum(1)[None, :] - 2 * bits_a @ bits_b.T
-    a = desc_a.astype(np.float32, copy=False)
-    b = desc_b.astype(np.float32, copy=False)
-    sq = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2 * a @ b.T
-    return np.sqrt(np.maximum(sq, 0))
-
-
-def mutual_nn(desc_a: np.ndarray, desc_b: np.ndarray, max_distance: float | None = None) -> Matches:
-    """Pairs that are each other's nearest neighbour; score = -distance."""
-    if len(desc_a) == 0 or len(desc_b) == 0:
-        return Matches.empty()
-    dist = descriptor_distances(desc_a, desc_b)
-    nn_ab = dist.argmin(1)
-    nn_ba = dist.argmin(0)
-    idx_a = np.flatnonzero(nn_ba[nn_ab] == np.arange(len(desc_a)))
-    idx_b = nn_ab[idx_a]
-    d = dist[idx_a, idx_b]
-    if max_distance is not None:
-        keep = d <= max_distance
-        idx_a, idx_b, d = idx_a[keep], idx_b[keep], d[keep]
-    return Matches(idx_a, idx_b, (-d).astype(np.float32))
+__all__ = ["SiameseMatcher", "build_matcher", "descriptor_distances", "knn_candidates", "mutual_best", "mutual_nn",
+           "ratio_test"]
 
 
 def ratio_test(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8, mutual: bool = True) -> Matches:

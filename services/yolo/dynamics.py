@@ -15,7 +15,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from twohr.errors import ConfigError
+from twohr.errors import ConfigError, validation_problems
 from twohr.features import Detections
 
 Level = Literal["high", "medium", "low"]
@@ -115,5 +115,4 @@ def load_dynamics_table(path: str | Path | None = None) -> DynamicsTable:
     try:
         return DynamicsTable.model_validate(data)
     except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'table'}: {e['msg']}" for e in exc.errors())
-        raise ConfigError(f"{where}: {problems}") from None
+        raise ConfigError(f"{where}: {validation_problems(exc, empty_location='table')}") from None

@@ -8,6 +8,7 @@ from pydantic import ValidationError
 
 from twohr.config import DetectorConfig
 from twohr.dataset import RGBDSequence
+from twohr_lab.features.evaluation import nearest_neighbours
 from twohr_services.detector.core import (
     FASTDetector,
     ORBDetector,
@@ -21,7 +22,6 @@ from twohr_services.detector.core import (
     select_keypoints,
     twohr_filter,
 )
-from twohr_services.detector.evaluation import nearest_neighbours
 
 # ----------------------------------------------------------------------------- K-means and the 2HR filter
 

@@ -1,0 +1,321 @@
+"""``twohr bench``: throughput, per-stage latency and memory of the pipeline, and the ablation table.
+
+A lab study over :mod:`twohr_services.pipeline` (``run_sequence``, the front end). Timings are medians
+over several runs, each against a baseline measured in the same process at the same time (this machine is shared).
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import resource
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from twohr.config import PipelineConfig, load_config, merge_overrides
+from twohr.evaluation import evaluate
+from twohr.models import REPO_ROOT
+from twohr.trajectory import Trajectory
+from twohr_services.pipeline import FrontEnd, StageOutput, run_sequence
+
+#: The ablation variants: name -> config overrides on top of the user's config.
+ABLATIONS: dict[str, dict[str, object]] = {
+    "ORB + mutual NN": {"detector.features": "orb", "yolo.enabled": False, "matcher.method": "mutual_nn"},
+    "R2D2 raw + mutual NN": {"detector.features": "r2d2", "yolo.enabled": False, "matcher.method": "mutual_nn"},
+    "2HR + mutual NN": {"detector.features": "2hr", "yolo.enabled": False, "matcher.method": "mutual_nn"},
+    "2HR + YOLO + mutual NN": {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "mutual_nn"},
+    "2HR + YOLO + Siamese (full)": {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "siamese"},
+}
+
+
+def peak_rss_mib() -> float:
+    """Peak resident memory of this process so far, MiB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _percentiles(values: list[float]) -> dict[str, float]:
+    arr = np.asarray(values, float)
+    return {"median": round(float(np.median(arr)), 2), "p90": round(float(np.percentile(arr, 90)), 2),
+            "p99": round(float(np.percentile(arr, 99)), 2)}
+
+
+#: Where ORB-SLAM3's vocabulary and settings for the dev camera live (``../shared/baselines`` beside the repo);
+#: override with $PYORBSLAM3_VOCAB and $TWOHR_ORBSLAM3_SETTINGS.
+BASELINES_DIR = REPO_ROOT.parent / "shared" / "baselines"
+
+
+def orbslam3_files() -> tuple[Path, Path] | None:
+    """(vocabulary, settings) for ORB-SLAM3 RGB-D, or None when pyorbslam3 or the files are missing."""
+    try:
+        import pyorbslam3  # noqa: F401  (GPL-3.0, an optional benchmark comparison, not a dependency)
+    except ImportError:
+        return None
+    vocab = Path(os.environ.get("PYORBSLAM3_VOCAB", BASELINES_DIR / "ORBvoc_generic_nobonn_k10L6.txt"))
+    settings = Path(os.environ.get("TWOHR_ORBSLAM3_SETTINGS", BASELINES_DIR / "orbslam3_bonn_rgbd.yaml"))
+    return (vocab, settings) if vocab.is_file() and settings.is_file() else None
+
+
+def orbslam3_run(sequence, start: int, stop: int, files: tuple[Path, Path]) -> dict:
+    """ORB-SLAM3 RGB-D (pyorbslam3) on the same frames: ms per ``track_rgbd`` call and its trajectory's ATE.
+    Frames are read before timing; only the tracking calls are timed, as ORB-SLAM3's own examples do."""
+    import pyorbslam3
+
+    slam = pyorbslam3.Slam(str(files[0]), str(files[1]), pyorbslam3.Sensor.RGBD)
+    stamps, poses, ms = [], [], []
+    try:
+        for frame in sequence.frames(start, stop):
+            raw_depth = (frame.depth * sequence.camera.depth_factor).astype(np.float32)
+            t0 = time.perf_counter()
+            result = slam.track_rgbd(frame.rgb, raw_depth, frame.stamp)
+            ms.append((time.perf_counter() - t0) * 1000)
+            if result.pose_valid:
+                stamps.append(frame.stamp)
+                poses.append(np.asarray(result.pose_wc, np.float64))
+    finally:
+        slam.shutdown()
+    out = {"ms_per_frame": _percentiles(ms), "tracked_percent": round(100 * len(poses) / max(1, len(ms)), 1)}
+    if sequence.has_ground_truth() and len(poses) >= 3:
+        extrinsic = sequence.default_gt_extrinsic()
+        report, _ = evaluate(sequence.ground_truth(extrinsic), Trajectory(np.array(stamps), np.array(poses)),
+                             gt_extrinsic=extrinsic)
+        out["ate_rmse"] = round(report.ate.rmse, 4)
+    return out
+
+
+def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 0, runs: int = 3,
+               baseline: PipelineConfig | None = None, progress: bool = True) -> dict:
+    """Run the pipeline ``runs`` times over the same frames; each run is paired with a run of ``baseline``
+    (default: the ORB ablation) so that the ratio survives a noisy machine."""
+    baseline = baseline or load_config(None, ABLATIONS["ORB + mutual NN"])
+    stop = min(len(sequence), start + frames)
+    results = {"pipeline": [], "baseline": []}
+    orbslam3 = orbslam3_files()
+    orbslam3_runs: list[dict] = []
+    ate_runs: list[float] = []
+    stage_ms: dict[str, list[float]] = {"ms_detector": [], "ms_yolo": [], "ms_tracker": [], "ms_total": []}
+    latency: dict[str, list[float]] = {"keyframe_frames": [], "other_frames": []}
+    keyframe_ms: dict[str, list[float]] = {"ms_detector": [], "ms_yolo": [], "ms_mapping": [], "lag_frames": []}
+    for _ in range(runs):
+        for label, conf in (("pipeline", config), ("baseline", baseline)):
+            run = run_sequence(sequence, conf, start=start, stop=stop, progress=progress)
+            results[label].append(len(run.stats) / run.wall_s)
+            if label == "pipeline":
+                if sequence.has_ground_truth() and len(run.trajectory) >= 3:
+                    extrinsic = sequence.default_gt_extrinsic()
+                    ate_runs.append(evaluate(sequence.ground_truth(extrinsic), run.trajectory,
+                                             gt_extrinsic=extrinsic)[0].ate.rmse)
+                for key in stage_ms:
+                    stage_ms[key] += [getattr(s, key) for s in run.stats]
+                for s in run.stats:
+                    latency["keyframe_frames" if s.keyframe else "other_frames"].append(s.ms_total)
+                for job in run.keyframe_log:
+                    for key in keyframe_ms:
+                        keyframe_ms[key].append(getattr(job, key))
+        if orbslam3 is not None:
+            orbslam3_runs.append(orbslam3_run(sequence, start, stop, orbslam3))
+    fps = float(np.median(results["pipeline"]))
+    base = float(np.median(results["baseline"]))
+    comparison: dict[str, object] = {"orbslam3": "not run: pip install pyorbslam3 and put its vocabulary and "
+                                                 "settings in ../shared/baselines (or set PYORBSLAM3_VOCAB)"}
+    if orbslam3_runs:
+        orb_ms = float(np.median([r["ms_per_frame"]["median"] for r in orbslam3_runs]))
+        comparison = {"orbslam3": {
+            "ms_per_frame_median": round(orb_ms, 2), "runs": orbslam3_runs,
+            "ratio_ms_per_frame": round((1000 / fps) / orb_ms, 3),
+            "note": "ours: wall time per frame over the whole run; ORB-SLAM3: its track_rgbd call"}}
+    return {**comparison, "ate_rmse_runs": [round(a, 4) for a in ate_runs],
+            "ate_rmse_median": round(float(np.median(ate_runs)), 4) if ate_runs else None,
+        "sequence": sequence.name, "frames": stop - start, "runs": runs,
+        "fps_median": round(fps, 3), "fps_runs": [round(f, 3) for f in results["pipeline"]],
+        "baseline_fps_median": round(base, 3), "baseline": "ORB + mutual NN on the same tracker",
+        "speed_ratio_to_baseline": round(fps / base, 4),
+        "stages_ms": {k.removeprefix("ms_"): _percentiles(v) for k, v in stage_ms.items()},
+        "per_frame_latency_ms": {k: _percentiles(v) for k, v in latency.items() if v},
+        "keyframe_jobs": {k.removeprefix("ms_"): _percentiles(v) for k, v in keyframe_ms.items() if v},
+        "mode": config.pipeline.mode,
+        "peak_rss_mib": round(peak_rss_mib(), 1),
+        "machine": {"cpus": __import__("os").cpu_count(), "platform": platform.platform()},
+    }
+
+
+@dataclass
+class FrontCache:
+    """Front-end outputs (keypoints, dynamic masks and their timings) of every frame in a range, kept in memory
+    and shared between runs that differ only after the front end: keypoints by detector config, masks by yolo
+    config. The one cache of the in-process studies (ablations, sensitivity, the tracker bench)."""
+
+    keypoints: dict[tuple, dict[int, tuple]] = field(default_factory=dict)
+    masks: dict[tuple, dict[int, tuple]] = field(default_factory=dict)
+
+    def outputs(self, sequence, config: PipelineConfig, stop: int, progress: bool, start: int = 0,
+                step: int = 1) -> dict[int, StageOutput]:
+        """Frame index -> :class:`StageOutput` of frames ``start:stop:step``, running the networks only once."""
+        frames = (start, stop, step)
+        det_key = (config.detector.model_dump_json(), frames)
+        yolo_key = (config.yolo.model_dump_json(), frames) if config.yolo.enabled else None
+        need_det = det_key not in self.keypoints
+        need_yolo = yolo_key is not None and yolo_key not in self.masks
+        if need_det or need_yolo:
+            from tqdm import tqdm
+
+            front = FrontEnd(config)
+            det, masks = self.keypoints.setdefault(det_key, {}), self.masks.setdefault(yolo_key, {})
+            for frame in tqdm(sequence.frames(start, stop, step), total=len(range(start, stop, step)),
+                              disable=not progress, unit="frame",
+                              desc=f"front end {config.detector.features}{' + yolo' if yolo_key else ''}"):
+                if need_det:
+                    t0 = time.perf_counter()
+                    det[frame.index] = (front.detector.detect(frame.rgb), (time.perf_counter() - t0) * 1000)
+                if need_yolo:
+                    t0 = time.perf_counter()
+                    regions = front.masker(frame.rgb, frame.depth)
+                    masks[frame.index] = (regions.mask, len(regions.dynamic), (time.perf_counter() - t0) * 1000)
+        out = {}
+        for index, (kp, ms_det) in self.keypoints[det_key].items():
+            mask, objects, ms_yolo = self.masks[yolo_key][index] if yolo_key else (None, 0, 0.0)
+            out[index] = StageOutput(kp, mask, objects, ms_det, ms_yolo)
+        return out
+
+
+def ablations(sequence, base: PipelineConfig, variants: dict[str, dict] | None = None, stop: int | None = None,
+              repeats: int = 3, progress: bool = True) -> list[dict]:
+    """ATE RMSE, S.D., % of frames tracked and ms/frame for each variant on one sequence.
+
+    The networks are deterministic, so each front end runs once; the tracker runs twice, and where
+    the two runs differ it runs ``repeats`` times and the median is reported."""
+    variants = variants or ABLATIONS
+    stop = len(sequence) if stop is None else min(stop, len(sequence))
+    gt = sequence.ground_truth(sequence.default_gt_extrinsic())
+    cache = FrontCache()
+    rows = []
+    for name, overrides in variants.items():
+        config = load_config(None, merge_overrides(base.model_dump(mode="json"), overrides))
+        config.pipeline.mode = "every_frame"  # the variants share cached front-end outputs of every frame
+        fronts = cache.outputs(sequence, config, stop, progress)
+
+        def once(config=config, fronts=fronts):
+            run = run_sequence(sequence, config, stop=stop, progress=False, front_cache=fronts)
+            report, _ = evaluate(gt, run.trajectory, gt_extrinsic=sequence.default_gt_extrinsic())
+            return report.ate.rmse, report.ate.std, run
+
+        runs = [once(), once()]
+        deterministic = np.allclose(runs[0][2].trajectory.poses, runs[1][2].trajectory.poses)
+        if not deterministic:
+            runs += [once() for _ in range(repeats - 2)]
+        rmse = [r[0] for r in runs]
+        pick = runs[int(np.argsort(rmse)[len(rmse) // 2])]
+        run = pick[2]
+        rows.append({
+            "variant": name, "ate_rmse": round(float(np.median(rmse)), 4), "ate_std": round(pick[1], 4),
+            "runs": 1 if deterministic else len(runs), "deterministic": deterministic,
+            "tracked_percent": round(run.tracked_percent, 1),
+            "ms_per_frame": round(float(np.median([s.ms_total for s in run.stats])), 1),
+            "ms_detector": round(float(np.median([s.ms_detector for s in run.stats])), 1),
+            "ms_yolo": round(float(np.median([s.ms_yolo for s in run.stats])), 1),
+            "ms_tracker": round(float(np.median([s.ms_tracker for s in run.stats])), 1),
+        })
+    return rows
+
+
+def static_camera_row(sequence) -> dict:
+    """The sanity baseline: a camera that never moves."""
+    from twohr.evaluation import static_trajectory
+
+    report, _ = evaluate(sequence.ground_truth(sequence.default_gt_extrinsic()), static_trajectory(sequence.stamps),
+                         gt_extrinsic=sequence.default_gt_extrinsic())
+    return {"variant": "static camera (sanity)", "ate_rmse": round(report.ate.rmse, 4),
+            "ate_std": round(report.ate.std, 4), "runs": 1, "deterministic": True, "tracked_percent": 100.0,
+            "ms_per_frame": 0.0}
+
+
+def format_table(rows: list[dict]) -> str:
+    lines = ["| variant | ATE RMSE (m) | S.D. (m) | tracked % | ms/frame | runs |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['variant']} | {r['ate_rmse']:.4f} | {r['ate_std']:.4f} | {r['tracked_percent']:.1f} | "
+                     f"{r['ms_per_frame']:.0f} | {r['runs']}{'' if r['deterministic'] else ' (median)'} |")
+    return "\n".join(lines)
+
+
+def session_latency(router: str, gateway_url: str, sequence_name: str, frames: int = 60, rate: float = 0.0,
+                    config_overrides: dict | None = None, record: bool = False, robot_id: str = "bench",
+                    timeout: float = 600.0) -> dict:
+    """Run one session on an already-running system (``twohr up`` or the compose stack) and measure it
+    from outside: an independent Zenoh client of ``router`` receives the poses while ``POST /sessions``
+    on ``gateway_url`` drives the run. Frame -> pose latency is pose arrival minus the source's send
+    time (same host clock)."""
+    import threading
+
+    import httpx
+
+    from twohr import keys
+    from twohr.bus import BusConfig, open_session
+    from twohr.messages import PoseMsg, decode
+
+    received: list[tuple[float, PoseMsg]] = []
+    lock = threading.Lock()
+
+    def on_pose(sample) -> None:
+        now = time.time()
+        pose, _ = decode(sample.payload.to_bytes(), PoseMsg)
+        with lock:
+            received.append((now, pose))
+
+    listener = open_session(BusConfig(connect=[router]))
+    sub = listener.declare_subscriber(keys.all_robots("pose"), on_pose)
+    try:
+        with httpx.Client(base_url=gateway_url, timeout=30) as client:
+            response = client.post("/sessions", json={"sequence": sequence_name, "robot_id": robot_id,
+                                                      "max_frames": frames, "rate": rate, "record": record,
+                                                      "config": config_overrides or {}})
+            response.raise_for_status()
+            session_id = response.json()["id"]
+            deadline = time.time() + timeout
+            while (info := client.get(f"/sessions/{session_id}").json())["state"] in ("starting", "running"):
+                if time.time() > deadline:
+                    raise TimeoutError(f"session {session_id} did not finish within {timeout:.0f} s")
+                time.sleep(0.2)
+            time.sleep(0.5)  # the listener's last samples may still be in flight
+    finally:
+        sub.undeclare()
+        listener.close()
+    with lock:
+        mine = sorted(((t, p) for t, p in received if p.session_id == session_id), key=lambda tp: tp[0])
+    latencies = [1000 * (t - p.frame_sent_at) for t, p in mine]
+    span = mine[-1][0] - min(p.frame_sent_at for _, p in mine) if mine else float("nan")
+    sent = int(info.get("frames_sent") or frames)  # "frames" in the session info counts poses received
+    return {"session": info, "frames": len(mine), "frame_indices": [p.frame_index for _, p in mine],
+            "rate": rate, "dropped_percent": round(100 * (1 - len({p.frame_index for _, p in mine}) / max(1, sent)), 2),
+            "latency_ms": {"p50": round(float(np.percentile(latencies, 50)), 1) if mine else None,
+                           "p99": round(float(np.percentile(latencies, 99)), 1) if mine else None},
+            "fps": round(len(mine) / span, 3) if mine else 0.0}
+
+
+def bus_latency(sequence_root, config_overrides: dict, frames: int = 60, rate: float = 0.0,
+                timeout: float = 600.0) -> dict:
+    """Frame -> pose latency (p50, p99) and throughput of the whole system over Zenoh (``twohr up`` as
+    local processes), for the same frames and config as an in-process run."""
+    import tempfile
+
+    from twohr.bus import free_port
+    from twohr_services.launcher_cli import start_system
+
+    router, port = f"tcp/127.0.0.1:{free_port()}", free_port()
+    recordings = tempfile.mkdtemp(prefix="twohr_bench_")
+    t_start = time.time()
+    router_session, group = start_system(router, [str(sequence_root.parent)], recordings, "127.0.0.1", port)
+    startup_s = time.time() - t_start
+    try:
+        result = session_latency(router, f"http://127.0.0.1:{port}", sequence_root.name, frames, rate,
+                                 config_overrides, timeout=timeout)
+    finally:
+        group.stop()
+        router_session.close()
+    return {"startup_s": round(startup_s, 1), **latency_summary(result)}
+
+
+def latency_summary(result: dict) -> dict:
+    """The numbers of a :func:`session_latency` result, without the per-frame detail."""
+    return {k: result[k] for k in ("frames", "rate", "dropped_percent", "latency_ms", "fps")}

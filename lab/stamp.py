@@ -1,0 +1,44 @@
+"""Provenance of a study's outputs: the commit and the exact command that made them."""
+
+from __future__ import annotations
+
+import json
+import shlex
+import subprocess
+import sys
+from datetime import UTC, datetime
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def _git(*args: str) -> str | None:
+    try:
+        done = subprocess.run(["git", "-C", str(REPO_ROOT), *args], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return done.stdout.strip() if done.returncode == 0 else None
+
+
+def provenance(argv: list[str] | None = None, program: str = "twohr") -> dict[str, object]:
+    """The commit (with ``+dirty`` for uncommitted changes), the command line and the time, as a dict."""
+    argv = sys.argv[1:] if argv is None else argv
+    commit = _git("rev-parse", "HEAD") or "unknown (not a git checkout)"
+    if _git("status", "--porcelain", "--untracked-files=no"):
+        commit += "+dirty"
+    return {"commit": commit, "command": " ".join([program, shlex.join(argv)]).strip(),
+            "made_at": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")}
+
+
+def write_stamp(out: str | Path, argv: list[str] | None = None, program: str = "twohr") -> Path:
+    """Write ``stamp.json`` (see :func:`provenance`) into the output folder ``out``."""
+    path = Path(out) / "stamp.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(provenance(argv, program), indent=2) + "\n")
+    return path
+
+
+def stamp_line(argv: list[str] | None = None, program: str = "twohr") -> str:
+    """One Markdown line for the top of a report: ``Made by `command` at commit X.``"""
+    stamp = provenance(argv, program)
+    return f"Made by `{stamp['command']}` at commit {stamp['commit']}, {stamp['made_at']}."
