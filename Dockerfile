@@ -25,8 +25,8 @@ RUN PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 /opt/twohr/bin/pip instal
 FROM ${BASE_IMAGE}
 ENV PYTHONUNBUFFERED=1 PATH=/opt/twohr/bin:$PATH MPLCONFIGDIR=/tmp/matplotlib \
     TWOHR_MODEL_MIRROR=/models TWOHR_CACHE=/cache TWOHR_ZENOH_ROUTER=tcp/router:7447
-RUN useradd --create-home --uid 10001 twohr && mkdir -p /cache /recordings /data /models \
-    && chown twohr /cache /recordings
+RUN useradd --create-home --uid 10001 twohr && mkdir -p /cache /recordings /data /models /run/twohr \
+    && chown twohr /cache /recordings /run/twohr
 COPY --from=build /opt/twohr /opt/twohr
 USER twohr
 CMD ["twohr", "--help"]

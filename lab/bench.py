@@ -239,19 +239,19 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def session_latency(router: str, gateway_url: str, sequence_name: str, frames: int = 60, rate: float = 0.0,
+def session_latency(bus, gateway_url: str, sequence_name: str, frames: int = 60, rate: float = 0.0,
                     config_overrides: dict | None = None, record: bool = False, robot_id: str = "bench",
-                    timeout: float = 600.0) -> dict:
+                    timeout: float = 600.0, api_token: str | None = None) -> dict:
     """Run one session on an already-running system (``twohr up`` or the compose stack) and measure it
-    from outside: an independent Zenoh client of ``router`` receives the poses while ``POST /sessions``
-    on ``gateway_url`` drives the run. Frame -> pose latency is pose arrival minus the source's send
-    time (same host clock)."""
+    from outside: an independent Zenoh client (``bus``, a BusConfig with client credentials) receives the
+    poses while ``POST /sessions`` on ``gateway_url`` drives the run. Frame -> pose latency is pose arrival
+    minus the source's send time (same host clock)."""
     import threading
 
     import httpx
 
     from twohr import keys
-    from twohr.bus import BusConfig, open_session
+    from twohr.bus import open_session
     from twohr.messages import PoseMsg, decode
 
     received: list[tuple[float, PoseMsg]] = []
@@ -263,10 +263,11 @@ def session_latency(router: str, gateway_url: str, sequence_name: str, frames: i
         with lock:
             received.append((now, pose))
 
-    listener = open_session(BusConfig(connect=[router]))
+    listener = open_session(bus)
     sub = listener.declare_subscriber(keys.all_robots("pose"), on_pose)
+    headers = {"Authorization": f"Bearer {api_token}"} if api_token else {}
     try:
-        with httpx.Client(base_url=gateway_url, timeout=30) as client:
+        with httpx.Client(base_url=gateway_url, timeout=30, headers=headers) as client:
             response = client.post("/sessions", json={"sequence": sequence_name, "robot_id": robot_id,
                                                       "max_frames": frames, "rate": rate, "record": record,
                                                       "config": config_overrides or {}})
@@ -305,14 +306,13 @@ def bus_latency(sequence_root, config_overrides: dict, frames: int = 60, rate: f
     router, port = f"tcp/127.0.0.1:{free_port()}", free_port()
     recordings = tempfile.mkdtemp(prefix="twohr_bench_")
     t_start = time.time()
-    router_session, group = start_system(router, [str(sequence_root.parent)], recordings, "127.0.0.1", port)
+    system = start_system(router, [str(sequence_root.parent)], recordings, "127.0.0.1", port)
     startup_s = time.time() - t_start
     try:
-        result = session_latency(router, f"http://127.0.0.1:{port}", sequence_root.name, frames, rate,
+        result = session_latency(system.bus(), f"http://127.0.0.1:{port}", sequence_root.name, frames, rate,
                                  config_overrides, timeout=timeout)
     finally:
-        group.stop()
-        router_session.close()
+        system.stop()
     return {"startup_s": round(startup_s, 1), **latency_summary(result)}
 
 

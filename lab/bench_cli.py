@@ -32,9 +32,12 @@ def _bench(args: argparse.Namespace) -> int:
         local = [run_sequence(sequence, config, stop=frames, progress=not args.quiet) for _ in range(args.runs)]
         lat = np.concatenate([[s.ms_total for s in r.stats] for r in local])
         if args.gateway:  # an already-running stack, e.g. the compose containers
-            bus_runs = [bench.latency_summary(bench.session_latency(args.router, args.gateway, sequence.root.name,
-                                                                    frames, args.rate, config_overrides=overrides))
-                        for _ in range(args.runs)]
+            from twohr.bus import BusConfig
+
+            bus = BusConfig(config_file=args.zenoh_config) if args.zenoh_config else BusConfig(connect=[args.router])
+            bus_runs = [bench.latency_summary(bench.session_latency(
+                bus, args.gateway, sequence.root.name, frames, args.rate, config_overrides=overrides,
+                api_token=args.api_token)) for _ in range(args.runs)]
         else:
             bus_runs = [bench.bus_latency(sequence.root, overrides, frames, args.rate) for _ in range(args.runs)]
         report["bus"] = {
@@ -98,6 +101,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --bus: measure the system already running behind this gateway (e.g. the compose "
                    "stack, http://127.0.0.1:8080) instead of starting twohr up; its data root must hold --sequence")
     p.add_argument("--router", default="tcp/127.0.0.1:7447", help="with --gateway: that system's Zenoh router")
+    p.add_argument("--zenoh-config", default=None, metavar="FILE", help="with --gateway: the Zenoh client config "
+                   "(endpoint and credentials) of that system, e.g. the one twohr up writes")
+    p.add_argument("--api-token", default=None, help="with --gateway: its HTTP API token")
     p.add_argument("--rate", type=float, default=1.0,
                    help="with --bus: source speed, 1 = the camera's real rate (30 Hz for the dev sequence), "
                    "0 = as fast as the pipeline answers (at most two frames in flight)")

@@ -39,6 +39,20 @@ def test_compose_mirrors_the_topology():
     assert (REPO / "Dockerfile").is_file()
 
 
+def test_every_container_joins_the_bus_with_its_own_role():
+    """The router makes the credentials in the secrets volume; each service reads its own role's password and
+    waits for the router to be healthy; the gateway requires the generated API token."""
+    services = COMPOSE["services"]
+    assert "--secrets" in services["router"]["command"] and "--insecure" not in services["router"]["command"]
+    for name in [*PIPELINE_SERVICES, "gateway"]:
+        env = services[name]["environment"]
+        assert env["TWOHR_ZENOH_USER"] == name, name
+        assert env["TWOHR_ZENOH_PASSWORD_FILE"] == f"/run/twohr/{name}.password"
+        assert "secrets:/run/twohr:ro" in services[name]["volumes"], name
+        assert services[name]["depends_on"]["router"]["condition"] == "service_healthy"
+    assert services["gateway"]["command"][-2:] == ["--api-token-file", "/run/twohr/api-token"]
+
+
 def test_volumes_match_service_flags():
     services = COMPOSE["services"]
     mounts = {name: {re.sub(r"\$\{[^}]*\}", "HOST", v).split(":")[1] for v in svc.get("volumes", [])}
@@ -74,8 +88,9 @@ def test_override_files_publish_ports_or_use_the_host_network():
     """Ports live in the override file that `docker compose up` reads by itself; the host file replaces it,
     because compose cannot publish ports under network_mode: host."""
     ports = yaml.safe_load((REPO / "docker-compose.override.yml").read_text())["services"]
-    assert ports == {"router": {"ports": ["${TWOHR_ROUTER_PORT:-7447}:7447"]},
-                     "gateway": {"ports": ["${TWOHR_GATEWAY_PORT:-8080}:8080"]}}
+    # published on loopback unless TWOHR_*_BIND says otherwise
+    assert ports == {"router": {"ports": ["${TWOHR_ROUTER_BIND:-127.0.0.1}:${TWOHR_ROUTER_PORT:-7447}:7447"]},
+                     "gateway": {"ports": ["${TWOHR_GATEWAY_BIND:-127.0.0.1}:${TWOHR_GATEWAY_PORT:-8080}:8080"]}}
     assert all("ports" not in svc and "networks" not in svc for svc in COMPOSE["services"].values())
 
     host = yaml.safe_load((REPO / "docker-compose.host.yml").read_text())["services"]

@@ -16,7 +16,8 @@ import httpx
 import pytest
 
 from conftest import REPO
-from twohr.bus import free_port
+from twohr.bus import BusConfig, free_port, open_session
+from twohr.errors import TwohrError
 from twohr_lab.bench import latency_summary, session_latency
 from twohr_services.launcher_cli import PIPELINE_SERVICES
 from twohr_services.recorder.core import topic_counts
@@ -25,6 +26,7 @@ COMPOSE = os.environ.get("TWOHR_COMPOSE")
 pytestmark = pytest.mark.skipif(not COMPOSE, reason="needs a Docker engine: run `make compose-test`")
 
 FRAMES = 60
+TOKEN = "compose-test-token"
 PROJECT = f"twohr-test-{os.getpid()}"
 SERVICES = ["router", *PIPELINE_SERVICES, "gateway"]
 
@@ -58,7 +60,7 @@ def stack(tmp_path_factory, dev_sequence, model_mirror):
     router_port, gateway_port = free_port(), free_port()
     env = {**os.environ, "TWOHR_DATA": str(dev_sequence.parent), "TWOHR_MODELS": str(model_mirror),
            "TWOHR_RECORDINGS": str(recordings), "TWOHR_ROUTER_PORT": str(router_port),
-           "TWOHR_GATEWAY_PORT": str(gateway_port)}
+           "TWOHR_GATEWAY_PORT": str(gateway_port), "TWOHR_API_TOKEN": TOKEN}
     t0 = time.time()
     healthy = False
     try:
@@ -70,8 +72,10 @@ def stack(tmp_path_factory, dev_sequence, model_mirror):
             assert time.time() < deadline, f"not healthy after 300 s: {states}"
             time.sleep(1)
         healthy = True
+        client_config = tmp_path_factory.mktemp("client") / "client.json5"
+        client_config.write_text(compose("exec", "-T", "router", "cat", "/run/twohr/client.json5", env=env).stdout)
         yield {"router": f"tcp/127.0.0.1:{router_port}", "gateway": f"http://127.0.0.1:{gateway_port}",
-               "recordings": recordings, "startup_s": time.time() - t0}
+               "recordings": recordings, "startup_s": time.time() - t0, "client_config": client_config}
     finally:
         if not healthy:
             print(compose("logs", "--tail", "40", env=env).stdout)
@@ -80,8 +84,12 @@ def stack(tmp_path_factory, dev_sequence, model_mirror):
 
 
 def test_session_in_containers_streams_every_pose_and_records_mcap(stack, dev_sequence):
-    result = session_latency(stack["router"], stack["gateway"], dev_sequence.name, FRAMES, record=True,
-                             robot_id="compose", timeout=900)
+    # the stack is secured: no credentials, no bus; no token, no API
+    with pytest.raises(TwohrError):
+        open_session(BusConfig(connect=[stack["router"]], user=None, password=None, config_file=None)).close()
+    assert httpx.get(f"{stack['gateway']}/sessions", timeout=30).status_code == 401
+    result = session_latency(BusConfig(config_file=stack["client_config"]), stack["gateway"], dev_sequence.name,
+                             FRAMES, record=True, robot_id="compose", timeout=900, api_token=TOKEN)
     info = result["session"]
     assert info["state"] == "finished" and info["frames"] == FRAMES, info
     # the independent subscriber outside the containers saw every frame's pose, once
@@ -89,7 +97,8 @@ def test_session_in_containers_streams_every_pose_and_records_mcap(stack, dev_se
     assert info["ate_rmse"] is not None and info["ate_rmse"] < 0.05, info  # a real trajectory, not a stub
 
     # the gateway serves the file once the recorder has finalised it; the same bytes are in the mounted folder
-    served = httpx.get(f"{stack['gateway']}/sessions/{info['id']}/recording", timeout=60)
+    served = httpx.get(f"{stack['gateway']}/sessions/{info['id']}/recording", timeout=60,
+                       headers={"Authorization": f"Bearer {TOKEN}"})
     assert served.status_code == 200, served.text
     mcap = stack["recordings"] / f"{info['id']}.mcap"
     assert mcap.is_file(), sorted(p.name for p in Path(stack["recordings"]).iterdir())

@@ -125,6 +125,8 @@ def create_app(settings: GatewaySettings) -> FastAPI:
             alive.add(name)
             return
         alive.discard(name)
+        if name not in SERVICES:
+            return  # an optional service (the ros2 bridge) is not part of a session's pipeline
         for session in table.fail_active(f"the {name} service stopped during the session"):
             log.warning("session %s failed: %s", session.id, session.detail)
             send_control(session, "stop")
