@@ -23,6 +23,7 @@ COMMAND_MODULES = [
     "twohr_services.yolo.cli",
     "twohr_services.matcher.cli",
     "twohr_services.launcher_cli",
+    "twohr_services.camera_cli",
 ]
 
 
