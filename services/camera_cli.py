@@ -133,6 +133,8 @@ def _camera(args: argparse.Namespace) -> int:
         raise TwohrError(str(exc)) from None
     if args.frames is not None and args.frames < 1:
         raise TwohrError("--frames must be at least 1")
+    if args.rate < 0:
+        raise TwohrError("--rate must be 0 (as fast as possible) or a frame rate in Hz")
     if args.replay:
         payloads = replay_payloads(args.replay, args.robot, args.rate, args.frames, args.start)
     else:

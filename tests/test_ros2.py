@@ -195,6 +195,9 @@ def test_pose_outputs_publish_path_at_keyframes_or_every_n():
     # no keyframe flags: every path_every-th pose
     unflagged = [p.model_copy(update={"is_keyframe": False}) for p in poses(12, robot="r2")]
     assert sum(isinstance(m, msgs.Path) for p in unflagged for _, m in outputs.messages(p)) == 3
+    # a new session of the same robot starts a new path
+    again = [m for p in poses(6) for _, m in outputs.messages(p.model_copy(update={"session_id": "s2"}))]
+    assert [len(m.poses) for m in again if isinstance(m, msgs.Path)] == [1, 2]
 
 
 def test_ros2_mcap_opens_in_rosbags_with_the_right_counts(tmp_path):

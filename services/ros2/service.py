@@ -26,7 +26,7 @@ from twohr import keys
 from twohr.bus import BusConfig
 from twohr.messages import PoseMsg, decode, encode
 from twohr.ros2 import msgs
-from twohr.ros2.config import Ros2CameraInput, Ros2Config
+from twohr.ros2.config import Ros2Config
 from twohr.ros2.convert import CameraAssembler, PoseOutputs
 from twohr.ros2.rmw import Attachment, NodeInfo, make_gid, topic_key, topic_key_any_hash
 from twohr.service import Service, declare_publisher
@@ -43,7 +43,7 @@ class RosNode:
         self.tokens = [session.liveliness().declare_token(info.node_token())]
         self.publishers: dict[str, tuple[zenoh.Publisher, bytes, list[int]]] = {}
 
-    def _entity(self, kind, topic: str, cls: type[msgs.RosMessage]) -> str:
+    def _entity(self, kind: str, topic: str, cls: type[msgs.RosMessage]) -> str:
         token = self.info.endpoint_token(self.next_entity, kind, topic, cls)
         self.next_entity += 1
         self.tokens.append(self.session.liveliness().declare_token(token))
@@ -155,13 +155,19 @@ def command(router: str | None = None, domain_id: int = 0, extra: list[str] | No
 
 
 def load_config(args: argparse.Namespace) -> Ros2Config:
-    """The service's config: ``--config`` (YAML/JSON) first, then the flags that were given."""
+    """The service's config: ``--config`` (YAML/JSON) first, then the flags that were given.
+    Raises ValueError with a one-line reason."""
     data: dict = {}
     if args.config:
         path = Path(args.config)
         if not path.is_file():
-            raise SystemExit(f"python -m twohr_services.ros2: error: config file not found: {path}")
-        data = yaml.safe_load(path.read_text()) or {}
+            raise ValueError(f"config file not found: {path}")
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ValueError(f"{path}: not YAML/JSON: {str(exc).splitlines()[0]}") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"{path}: expected a mapping of ros2 settings")
         data = data.get("ros2", data)
     for name in ("domain_id", "namespace", "node_name", "map_frame", "camera_frame"):
         if getattr(args, name) is not None:
@@ -174,8 +180,7 @@ def load_config(args: argparse.Namespace) -> Ros2Config:
         return Ros2Config.model_validate(data)
     except ValidationError as exc:
         first = exc.errors()[0]
-        raise SystemExit(f"python -m twohr_services.ros2: error: {'.'.join(map(str, first['loc']))}: "
-                         f"{first['msg']}") from None
+        raise ValueError(f"{'.'.join(map(str, first['loc']))}: {first['msg']}") from None
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -191,9 +196,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--input-robot", help="relay a ROS 2 camera into twohr/<ROBOT>/camera")
     parser.add_argument("--input-namespace", help="ROS namespace of that camera's topics (default /)")
     args = parser.parse_args(argv)
-    config = load_config(args)
+    try:
+        config = load_config(args)
+    except ValueError as exc:
+        parser.error(str(exc))  # one line, exit code 2
     bus = BusConfig(connect=[args.router]) if args.router else BusConfig()
     Ros2Service(bus, config).run_forever()
 
-
-__all__ = ["Ros2Service", "Ros2CameraInput", "Ros2Config", "command", "main"]

@@ -34,6 +34,7 @@ def _pose(pose: PoseMsg) -> msgs.Pose:
 
 @dataclass
 class RobotPath:
+    session_id: str
     poses: deque = field(default_factory=deque)
     since_last: int = 0
     keyframes_seen: bool = False
@@ -82,7 +83,9 @@ class PoseOutputs:
         return out
 
     def _path(self, robot: str, pose: PoseMsg, stamped: msgs.PoseStamped) -> msgs.Path | None:
-        state = self.paths.setdefault(robot, RobotPath(deque(maxlen=self.config.path_max_poses)))
+        state = self.paths.get(robot)
+        if state is None or state.session_id != pose.session_id:  # a new session starts a new path
+            state = self.paths[robot] = RobotPath(pose.session_id, deque(maxlen=self.config.path_max_poses))
         state.keyframes_seen |= pose.is_keyframe
         state.since_last += 1
         due = pose.is_keyframe if state.keyframes_seen else state.since_last >= self.config.path_every
@@ -91,10 +94,6 @@ class PoseOutputs:
         state.since_last = 0
         state.poses.append(stamped)
         return msgs.Path(header=stamped.header, poses=list(state.poses))
-
-    def reset(self, robot_id: str) -> None:
-        """Forget a robot's path (a new session starts)."""
-        self.paths.pop(robot_id, None)
 
 
 # -- camera frames ---------------------------------------------------------------------------------------------

@@ -128,3 +128,21 @@ def test_ros2_camera_images_become_twohr_frames(ros2_service, dev_sequence):
 def test_command_line_for_twohr_up():
     argv = command("tcp/127.0.0.1:7447", domain_id=3)
     assert argv[1:] == ["-m", "twohr_services.ros2", "--router", "tcp/127.0.0.1:7447", "--domain", "3"]
+
+
+def test_bad_settings_exit_2_with_one_line(tmp_path):
+    import subprocess
+    import sys
+
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "twohr_services.ros2", *args], capture_output=True, text=True,
+                              timeout=60)
+
+    assert run("--help").returncode == 0
+    proc = run("--domain", "999")
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1].endswith(
+        "error: domain_id: Input should be less than or equal to 232")
+    config = tmp_path / "ros2.yaml"
+    config.write_text("ros2:\n  map_frame: 'a b'\n")
+    proc = run("--config", str(config))
+    assert proc.returncode == 2 and "map_frame" in proc.stderr.strip().splitlines()[-1]
