@@ -180,7 +180,7 @@ def poses(n, robot="r1", keyframe_every=5):
 
 
 def test_pose_outputs_publish_path_at_keyframes_or_every_n():
-    outputs = PoseOutputs(Ros2Config(path_every=4))
+    outputs = PoseOutputs(Ros2Config(path_every=10))
     published = [m for p in poses(20) for m in outputs.messages(p)]
     by_type = {}
     for topic, message in published:
@@ -193,11 +193,16 @@ def test_pose_outputs_publish_path_at_keyframes_or_every_n():
     tf = by_type[msgs.TFMessage][-1][1].transforms[0]
     assert tf.child_frame_id == "camera" and tf.transform.rotation == last.pose.orientation
     # no keyframe flags: every path_every-th pose
+    outputs = PoseOutputs(Ros2Config(path_every=4))
     unflagged = [p.model_copy(update={"is_keyframe": False}) for p in poses(12, robot="r2")]
     assert sum(isinstance(m, msgs.Path) for p in unflagged for _, m in outputs.messages(p)) == 3
+    # keyframes and the fallback together: keyframes 0, 5, 10 and 4 poses after each
+    mixed = [m for p in poses(12, robot="r3") for _, m in outputs.messages(p) if isinstance(m, msgs.Path)]
+    stamps = [m.poses[-1].header.stamp.seconds() for m in mixed]
+    assert stamps == pytest.approx([1000 + i / 30 for i in (0, 4, 5, 9, 10)])
     # a new session of the same robot starts a new path
-    again = [m for p in poses(6) for _, m in outputs.messages(p.model_copy(update={"session_id": "s2"}))]
-    assert [len(m.poses) for m in again if isinstance(m, msgs.Path)] == [1, 2]
+    again = [m for p in poses(6, robot="r3") for _, m in outputs.messages(p.model_copy(update={"session_id": "s2"}))]
+    assert [len(m.poses) for m in again if isinstance(m, msgs.Path)] == [1, 2, 3]
 
 
 def test_ros2_mcap_opens_in_rosbags_with_the_right_counts(tmp_path):

@@ -48,7 +48,7 @@ class Ros2Config(BaseModel):
     odom_topic: str = "odom"
     tf_topic: str = "tf"
     path_topic: str = "path"
-    path_every: int = Field(10, ge=1, description="publish the Path every N poses while no keyframe has been flagged")
+    path_every: int = Field(10, ge=1, description="publish the Path at keyframes and at least every N poses")
     path_max_poses: int = Field(10_000, ge=1, description="oldest Path poses are dropped beyond this")
     camera_input: Ros2CameraInput | None = Field(None, description="a live ROS 2 camera to relay into twohr")
 

@@ -37,15 +37,15 @@ class RobotPath:
     session_id: str
     poses: deque = field(default_factory=deque)
     since_last: int = 0
-    keyframes_seen: bool = False
 
 
 class PoseOutputs:
     """Turns each twohr pose of a robot into the ROS 2 messages to publish, by fully qualified topic.
 
-    Every pose gives a PoseStamped, an Odometry and a TFMessage (map -> camera). The Path (the
-    keyframe poses so far) is added at every keyframe; while the tracker has flagged none, every
-    ``path_every`` poses are appended instead. A pose with non-finite values is skipped."""
+    Every pose gives a PoseStamped, an Odometry and a TFMessage (map -> camera). A Path is added at every
+    keyframe and, since the camera-rate schedule flags only the keyframes it waits for, also whenever
+    ``path_every`` poses went by without one; each such pose is appended to it. A pose with non-finite
+    values is skipped."""
 
     def __init__(self, config: Ros2Config) -> None:
         self.config = config
@@ -86,10 +86,8 @@ class PoseOutputs:
         state = self.paths.get(robot)
         if state is None or state.session_id != pose.session_id:  # a new session starts a new path
             state = self.paths[robot] = RobotPath(pose.session_id, deque(maxlen=self.config.path_max_poses))
-        state.keyframes_seen |= pose.is_keyframe
         state.since_last += 1
-        due = pose.is_keyframe if state.keyframes_seen else state.since_last >= self.config.path_every
-        if not due:
+        if not pose.is_keyframe and state.since_last < self.config.path_every:
             return None
         state.since_last = 0
         state.poses.append(stamped)
