@@ -14,8 +14,10 @@ depth ``Image`` and ``CameraInfo`` are paired by stamp and republished as twohr 
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import yaml
@@ -32,20 +34,24 @@ from twohr.ros2.rmw import Attachment, NodeInfo, make_gid, topic_key, topic_key_
 from twohr.service import Service, declare_publisher
 
 
+#: the camera input's roles and the message type each is subscribed with
+CAMERA_ROLES: tuple[tuple[str, type[msgs.RosMessage]], ...] = (
+    ("color", msgs.Image), ("color_compressed", msgs.CompressedImage), ("depth", msgs.Image), ("info", msgs.CameraInfo))
+
+
 class RosNode:
     """One ROS 2 node of this Zenoh session: its liveliness tokens and its publishers, each with a GID and a
-    sequence counter for the attachments."""
+    sequence counter for the attachments. Node and entity ids come from one counter per session, as in rmw_zenoh."""
 
-    def __init__(self, session: zenoh.Session, info: NodeInfo, first_entity_id: int) -> None:
+    def __init__(self, session: zenoh.Session, info: NodeInfo, entity_ids: Iterator[int]) -> None:
         self.session = session
         self.info = info
-        self.next_entity = first_entity_id
+        self.entity_ids = entity_ids
         self.tokens = [session.liveliness().declare_token(info.node_token())]
         self.publishers: dict[str, tuple[zenoh.Publisher, bytes, list[int]]] = {}
 
     def _entity(self, kind: str, topic: str, cls: type[msgs.RosMessage]) -> str:
-        token = self.info.endpoint_token(self.next_entity, kind, topic, cls)
-        self.next_entity += 1
+        token = self.info.endpoint_token(next(self.entity_ids), kind, topic, cls)
         self.tokens.append(self.session.liveliness().declare_token(token))
         return token
 
@@ -79,13 +85,13 @@ class Ros2Service(Service):
         self.config = config or Ros2Config(enabled=True)
         self.outputs = PoseOutputs(self.config)
         self.nodes: dict[str, RosNode] = {}  # by namespace
+        self.entity_ids = itertools.count()
         self.published: dict[str, int] = {}
         self.camera = CameraAssembler(self.config.camera_input) if self.config.camera_input else None
         self.inputs: dict[str, tuple[str, type[msgs.RosMessage]]] = {}  # key prefix -> (role, type)
         if self.config.camera_input:
             topics = self.config.camera_input.topics()
-            for role, cls in (("color", msgs.Image), ("color_compressed", msgs.CompressedImage),
-                              ("depth", msgs.Image), ("info", msgs.CameraInfo)):
+            for role, cls in CAMERA_ROLES:
                 prefix = topic_key_any_hash(self.config.domain_id, topics[role], cls)[:-1]
                 self.inputs[prefix] = (role, cls)
 
@@ -95,8 +101,8 @@ class Ros2Service(Service):
     def _node(self, namespace: str) -> RosNode:
         if namespace not in self.nodes:
             info = NodeInfo(domain_id=self.config.domain_id, session_id=str(self.session.zid()),
-                            node_id=len(self.nodes), namespace=namespace, name=self.config.node_name)
-            self.nodes[namespace] = RosNode(self.session, info, first_entity_id=1000 * (len(self.nodes) + 1))
+                            node_id=next(self.entity_ids), namespace=namespace, name=self.config.node_name)
+            self.nodes[namespace] = RosNode(self.session, info, self.entity_ids)
         return self.nodes[namespace]
 
     def on_start(self) -> None:
@@ -104,8 +110,7 @@ class Ros2Service(Service):
         if camera:
             node = self._node(camera.namespace.rstrip("/") or "/")
             topics = camera.topics()
-            for role, cls in (("color", msgs.Image), ("color_compressed", msgs.CompressedImage),
-                              ("depth", msgs.Image), ("info", msgs.CameraInfo)):
+            for role, cls in CAMERA_ROLES:
                 node.subscription(topics[role], cls)
 
     def handle(self, key: str, payload: bytes) -> None:

@@ -84,9 +84,10 @@ def test_poses_become_ros2_samples_that_rosbags_decodes(ros2_service):
     tokens = sorted(str(reply.ok.key_expr) for reply in client.liveliness().get("@ros2_lv/0/**", timeout=2)
                     if reply.ok is not None)
     zid = str(service.session.zid())
-    node = f"@ros2_lv/0/{zid}/1/1/NN/%/%live1/twohr"
-    assert node in tokens
+    nodes = [t.split("/") for t in tokens if t.endswith("/NN/%/%live1/twohr")]
+    assert len(nodes) == 1 and nodes[0][:3] == ["@ros2_lv", "0", zid] and nodes[0][3] == nodes[0][4]
     publishers = [t for t in tokens if "/MP/%/%live1/twohr/" in t]
+    assert {t.split("/")[3] for t in publishers} == {nodes[0][3]}  # the node's own publishers
     assert sorted(t.split("/")[9] for t in publishers) == ["%live1%odom", "%live1%path", "%live1%pose", "%live1%tf"]
     assert all(t.endswith("/::,10:,:,:,,") for t in publishers)
     camera_subscriptions = [t for t in tokens if "/MS/%/%cam1/twohr/" in t]
