@@ -33,7 +33,6 @@ from twohr.ros2.convert import CameraAssembler, PoseOutputs
 from twohr.ros2.rmw import Attachment, NodeInfo, make_gid, topic_key, topic_key_any_hash
 from twohr.service import Service, declare_publisher
 
-
 #: the camera input's roles and the message type each is subscribed with
 CAMERA_ROLES: tuple[tuple[str, type[msgs.RosMessage]], ...] = (
     ("color", msgs.Image), ("color_compressed", msgs.CompressedImage), ("depth", msgs.Image), ("info", msgs.CameraInfo))
