@@ -24,6 +24,7 @@ COMMAND_MODULES = [
     "twohr_lab.masks.cli",
     "twohr_lab.matching.cli",
     "twohr_services.launcher_cli",
+    "twohr_services.camera_cli",
 ]
 
 

@@ -1,0 +1,173 @@
+"""``twohr camera``: the camera driver. Publishes RGB-D frames on ``twohr/<robot>/camera`` as a live camera does.
+
+``--replay SEQ`` plays a recorded TUM-layout sequence at a fixed frame rate (the stand-in for a
+camera in tests and demos); ``--realsense`` streams an Intel RealSense (``pip install
+'twohr[realsense]'``) with depth aligned to colour. Every frame is a ``twohr.Frame`` message
+(``twohr.messages.FrameMsg``) with the intrinsics and the depth scale (``camera.depth_factor``,
+depth units per metre) in its header; the source service relays it into a live session.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from twohr.errors import TwohrError
+
+log = logging.getLogger(__name__)
+
+
+def open_bus(zenoh_config: str | None, router: str | None):
+    """A Zenoh session from a client config file, a router endpoint, or the default (``$TWOHR_ZENOH_ROUTER``,
+    else ``tcp/127.0.0.1:7447``)."""
+    import zenoh
+
+    from twohr.bus import BusConfig
+
+    if zenoh_config:
+        path = Path(zenoh_config)
+        if not path.is_file():
+            raise TwohrError(f"Zenoh config not found: {path}")
+        try:
+            config = zenoh.Config.from_file(str(path))
+        except Exception as exc:  # zenoh raises its own error type for any parse or validation failure
+            raise TwohrError(f"invalid Zenoh config {path}: {str(exc).splitlines()[0]}") from None
+    else:
+        config = (BusConfig(connect=[router]) if router else BusConfig()).zenoh_config()
+    try:
+        return zenoh.open(config)
+    except Exception as exc:  # e.g. a client whose router does not answer
+        raise TwohrError(f"cannot open the Zenoh session: {str(exc).splitlines()[0]}") from None
+
+
+class RatePacer:
+    """Waits so that frame ``i`` goes out ``i / rate`` seconds after the first (0 = no waiting)."""
+
+    def __init__(self, rate: float) -> None:
+        self.rate = rate
+        self.start: float | None = None
+        self.count = 0
+
+    def wait(self, _stamp: float = 0.0) -> None:
+        if self.rate > 0:
+            if self.start is None:
+                self.start = time.monotonic()
+            delay = self.start + self.count / self.rate - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+        self.count += 1
+
+
+def replay_payloads(sequence_dir: str, robot: str, rate: float, frames: int | None, start: int) -> Iterator[bytes]:
+    """Encoded frame messages of a recorded sequence, paced at ``rate`` frames per second."""
+    from twohr.dataset import RGBDSequence
+    from twohr.ros2.convert import LIVE_SESSION
+    from twohr_services.source.core import frame_payloads
+
+    sequence = RGBDSequence(sequence_dir)
+    if not 0 <= start < len(sequence):
+        raise TwohrError(f"--start {start} is outside the sequence's {len(sequence)} frames")
+    items = frame_payloads(sequence, LIVE_SESSION, robot, start=start, max_frames=frames, pace=RatePacer(rate).wait)
+    return (item.payload for item in items)
+
+
+def realsense_payloads(robot: str, width: int, height: int, fps: int, frames: int | None) -> Iterator[bytes]:
+    """Frames from the first Intel RealSense: depth aligned to colour, intrinsics and depth scale from the device.
+    Raises :class:`TwohrError` at once when pyrealsense2 or the camera is missing."""
+    try:
+        import pyrealsense2 as rs
+    except ImportError:
+        raise TwohrError("pyrealsense2 is not installed: pip install 'twohr[realsense]'") from None
+    if len(rs.context().query_devices()) == 0:
+        raise TwohrError("no RealSense camera found: check the USB cable and permissions (udev rules)")
+    return _realsense_stream(rs, robot, width, height, fps, frames)
+
+
+def _realsense_stream(rs, robot: str, width: int, height: int, fps: int, frames: int | None) -> Iterator[bytes]:
+    import numpy as np
+
+    from twohr.dataset import CameraIntrinsics
+    from twohr.messages import FrameMsg, encode
+    from twohr.ros2.convert import LIVE_SESSION
+
+    pipeline, config = rs.pipeline(), rs.config()
+    config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
+    config.enable_stream(rs.stream.depth, width, height, rs.format.z16, fps)
+    try:
+        profile = pipeline.start(config)
+    except RuntimeError as exc:
+        raise TwohrError(f"cannot start the RealSense at {width}x{height} {fps} Hz: {exc}") from None
+    try:
+        depth_scale = profile.get_device().first_depth_sensor().get_depth_scale()  # metres per depth unit
+        intr = profile.get_stream(rs.stream.color).as_video_stream_profile().get_intrinsics()
+        opencv_model = intr.model == rs.distortion.brown_conrady and any(intr.coeffs)
+        camera = CameraIntrinsics(fx=intr.fx, fy=intr.fy, cx=intr.ppx, cy=intr.ppy, width=intr.width,
+                                  height=intr.height, depth_factor=1.0 / depth_scale,
+                                  distortion=list(intr.coeffs)[:5] if opencv_model else [])
+        align = rs.align(rs.stream.color)
+        index = 0
+        while frames is None or index < frames:
+            aligned = align.process(pipeline.wait_for_frames())
+            color, depth = aligned.get_color_frame(), aligned.get_depth_frame()
+            if not color or not depth:
+                continue
+            message = FrameMsg(session_id=LIVE_SESSION, robot_id=robot, frame_index=index,
+                               stamp=color.get_timestamp() / 1000.0, camera=camera, sent_at=time.time())
+            arrays = {"rgb": np.asanyarray(color.get_data()), "depth": np.asanyarray(depth.get_data())}
+            yield encode(message, arrays, {"rgb": "jpeg", "depth": "png"})
+            index += 1
+    finally:
+        pipeline.stop()
+
+
+def _camera(args: argparse.Namespace) -> int:
+    from twohr import keys
+    from twohr.service import declare_publisher
+
+    try:
+        key = keys.key(args.robot, keys.RAW_CAMERA)
+    except ValueError as exc:
+        raise TwohrError(str(exc)) from None
+    if args.frames is not None and args.frames < 1:
+        raise TwohrError("--frames must be at least 1")
+    if args.rate < 0:
+        raise TwohrError("--rate must be 0 (as fast as possible) or a frame rate in Hz")
+    if args.replay:
+        payloads = replay_payloads(args.replay, args.robot, args.rate, args.frames, args.start)
+    else:
+        payloads = realsense_payloads(args.robot, args.width, args.height, args.fps, args.frames)
+    session = open_bus(args.zenoh_config, args.router)
+    sent, t0 = 0, time.monotonic()
+    try:
+        publisher = declare_publisher(session, key)
+        for payload in payloads:
+            publisher.put(payload)
+            sent += 1
+        elapsed = time.monotonic() - t0
+        print(f"published {sent} frames on {key} in {elapsed:.1f} s ({sent / max(elapsed, 1e-9):.1f} FPS)")
+    finally:
+        session.close()
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("camera", help="camera driver: publish RGB-D frames on twohr/<robot>/camera",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--replay", metavar="SEQ", help="play a recorded TUM-layout sequence as a camera would")
+    source.add_argument("--realsense", action="store_true", help="stream the first Intel RealSense camera")
+    p.add_argument("--robot", default="robot1", help="robot id: frames go to twohr/<robot>/camera (default robot1)")
+    p.add_argument("--rate", type=float, default=30.0, help="replay frame rate in Hz; 0 = as fast as possible "
+                   "(default 30)")
+    p.add_argument("--frames", type=int, default=None, help="stop after N frames (default: all / until Ctrl-C)")
+    p.add_argument("--start", type=int, default=0, help="replay from this frame index (default 0)")
+    p.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh client configuration to open the session "
+                   "from (default: connect to $TWOHR_ZENOH_ROUTER or tcp/127.0.0.1:7447)")
+    p.add_argument("--router", help="router endpoint to connect to, instead of --zenoh-config")
+    p.add_argument("--width", type=int, default=640, help="RealSense stream width (default 640)")
+    p.add_argument("--height", type=int, default=480, help="RealSense stream height (default 480)")
+    p.add_argument("--fps", type=int, default=30, help="RealSense frame rate (default 30)")
+    p.set_defaults(func=_camera)

@@ -1,0 +1,149 @@
+"""The ros2 service on a real Zenoh router: poses out as rmw_zenoh samples (checked with rosbags), liveliness
+tokens, attachments, and a ROS 2 camera in as twohr frames."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+from rosbags.typesys import Stores, get_typestore
+
+from twohr import keys
+from twohr.bus import open_session, wait_for_services
+from twohr.dataset import RGBDSequence
+from twohr.messages import FrameMsg, PoseMsg, decode, encode
+from twohr.ros2 import msgs
+from twohr.ros2.config import Ros2CameraInput, Ros2Config
+from twohr.ros2.convert import frame_to_ros
+from twohr.ros2.rmw import Attachment, topic_key
+from twohr.service import declare_publisher
+from twohr_services.ros2.service import Ros2Service, command
+
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+
+
+def wait_until(condition, timeout=15.0):
+    deadline = time.monotonic() + timeout
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return condition()
+
+
+@pytest.fixture
+def ros2_service(bus_config):
+    config = Ros2Config(enabled=True, camera_input=Ros2CameraInput(robot_id="cam1", namespace="/cam1"))
+    service = Ros2Service(bus_config, config)
+    stop = threading.Event()
+    thread = threading.Thread(target=service.run, args=(stop,), daemon=True)
+    thread.start()
+    client = open_session(bus_config)
+    wait_for_services(client, ["ros2"], timeout=15)
+    yield service, client
+    stop.set()
+    thread.join(timeout=10)
+    client.close()
+
+
+def test_poses_become_ros2_samples_that_rosbags_decodes(ros2_service):
+    service, client = ros2_service
+    samples = []
+    subscriber = client.declare_subscriber("0/**", lambda s: samples.append(
+        (str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes() if s.attachment is not None else None)))
+    publisher = declare_publisher(client, keys.key("live1", "pose"))
+    n = 12
+    for i in range(n):
+        publisher.put(encode(PoseMsg(session_id="s1", robot_id="live1", frame_index=i, stamp=50.0 + i / 30,
+                                     position=[0.01 * i, 0.0, 0.2], orientation=[0.0, 0.0, 0.0, 1.0],
+                                     status="tracking", is_keyframe=i % 4 == 0)))
+    assert wait_until(lambda: len(samples) >= 3 * n + 3)
+    time.sleep(0.3)
+    subscriber.undeclare()
+
+    by_key: dict[str, list] = {}
+    for key, payload, attachment in samples:
+        by_key.setdefault(key, []).append((payload, attachment))
+    expected = {topic_key(0, "/live1/pose", msgs.PoseStamped): n, topic_key(0, "/live1/odom", msgs.Odometry): n,
+                topic_key(0, "/live1/tf", msgs.TFMessage): n, topic_key(0, "/live1/path", msgs.Path): 3}
+    assert {k: len(v) for k, v in by_key.items()} == expected
+    pose_key = topic_key(0, "/live1/pose", msgs.PoseStamped)
+    assert pose_key.startswith("0/live1/pose/geometry_msgs::msg::dds_::PoseStamped_/RIHS01_")
+    for key, items in by_key.items():
+        ros_type = next(cls.ros_type for cls in (msgs.PoseStamped, msgs.Odometry, msgs.TFMessage, msgs.Path)
+                        if cls.dds_type() in key)
+        decoded = [TYPESTORE.deserialize_cdr(payload, ros_type) for payload, _ in items]
+        attachments = [Attachment.decode(attachment) for _, attachment in items]
+        assert [a.sequence_number for a in attachments] == list(range(1, len(items) + 1))
+        assert len({a.source_gid for a in attachments}) == 1
+        if ros_type == "geometry_msgs/msg/PoseStamped":
+            assert [m.pose.position.x for m in decoded] == pytest.approx([0.01 * i for i in range(n)])
+            assert decoded[0].header.frame_id == "map" and decoded[5].header.stamp.sec == 50
+        if ros_type == "nav_msgs/msg/Path":
+            assert [len(m.poses) for m in decoded] == [1, 2, 3]
+    assert service.health()["published"]["geometry_msgs/msg/PoseStamped"] == n
+
+    tokens = sorted(str(reply.ok.key_expr) for reply in client.liveliness().get("@ros2_lv/0/**", timeout=2)
+                    if reply.ok is not None)
+    zid = str(service.session.zid())
+    nodes = [t.split("/") for t in tokens if t.endswith("/NN/%/%live1/twohr")]
+    assert len(nodes) == 1 and nodes[0][:3] == ["@ros2_lv", "0", zid] and nodes[0][3] == nodes[0][4]
+    publishers = [t for t in tokens if "/MP/%/%live1/twohr/" in t]
+    assert {t.split("/")[3] for t in publishers} == {nodes[0][3]}  # the node's own publishers
+    assert sorted(t.split("/")[9] for t in publishers) == ["%live1%odom", "%live1%path", "%live1%pose", "%live1%tf"]
+    assert all(t.endswith("/::,10:,:,:,,") for t in publishers)
+    camera_subscriptions = [t for t in tokens if "/MS/%/%cam1/twohr/" in t]
+    assert len(camera_subscriptions) == 4
+
+
+def test_ros2_camera_images_become_twohr_frames(ros2_service, dev_sequence):
+    _, client = ros2_service
+    received = []
+    subscriber = client.declare_subscriber(keys.key("cam1", keys.RAW_CAMERA),
+                                           lambda s: received.append(decode(s.payload.to_bytes(), FrameMsg)))
+    sequence = RGBDSequence(dev_sequence)
+    topics = Ros2CameraInput(robot_id="cam1", namespace="/cam1").topics()
+    color_pub = declare_publisher(client, topic_key(0, topics["color"], msgs.Image))
+    depth_pub = declare_publisher(client, topic_key(0, topics["depth"], msgs.Image))
+    info_pub = declare_publisher(client, topic_key(0, topics["info"], msgs.CameraInfo))
+    n = 4
+    originals = []
+    for index in range(n):
+        frame = sequence.read(index)
+        raw = np.round(frame.depth * sequence.camera.depth_factor).astype(np.uint16)
+        color, depth, info = frame_to_ros(frame.stamp, frame.rgb, raw, sequence.camera)
+        info_pub.put(msgs.serialize(info))
+        depth_pub.put(msgs.serialize(depth))
+        color_pub.put(msgs.serialize(color))
+        originals.append(frame)
+    assert wait_until(lambda: len(received) >= n)
+    subscriber.undeclare()
+    assert len(received) == n
+    for frame, (message, arrays) in zip(originals, received, strict=True):
+        assert message.robot_id == "cam1" and message.stamp == pytest.approx(frame.stamp)
+        assert message.camera.fx == pytest.approx(sequence.camera.fx) and message.camera.cx == pytest.approx(
+            sequence.camera.cx)
+        assert arrays["depth"].dtype == np.uint16 and arrays["depth"].shape == frame.depth.shape
+        assert np.abs(arrays["depth"] / 1000.0 - frame.depth).max() <= 0.0006
+        assert np.abs(arrays["rgb"].astype(int) - frame.rgb).mean() < 3  # JPEG on the twohr camera key
+
+
+def test_command_line_for_twohr_up():
+    argv = command("tcp/127.0.0.1:7447", domain_id=3)
+    assert argv[1:] == ["-m", "twohr_services.ros2", "--router", "tcp/127.0.0.1:7447", "--domain", "3"]
+
+
+def test_bad_settings_exit_2_with_one_line(tmp_path):
+    import subprocess
+    import sys
+
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "twohr_services.ros2", *args], capture_output=True, text=True,
+                              timeout=60)
+
+    assert run("--help").returncode == 0
+    proc = run("--domain", "999")
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1].endswith(
+        "error: domain_id: Input should be less than or equal to 232")
+    config = tmp_path / "ros2.yaml"
+    config.write_text("ros2:\n  map_frame: 'a b'\n")
+    proc = run("--config", str(config))
+    assert proc.returncode == 2 and "map_frame" in proc.stderr.strip().splitlines()[-1]

@@ -1,0 +1,227 @@
+"""twohr messages to and from ROS 2 messages: poses out (PoseStamped, Odometry, TF, Path), camera frames in.
+
+Pure functions and small stateful builders; no bus inside. The service adapter and the ROS 2 MCAP
+writer both call :class:`PoseOutputs`, so a live ROS 2 graph and a recording carry the same messages.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..dataset import CameraIntrinsics
+from ..messages import FrameMsg, MessageError, PoseMsg
+from . import msgs
+from .config import Ros2CameraInput, Ros2Config
+
+#: the session id a camera driver puts on frames it publishes; the source relay replaces it with the live session's
+LIVE_SESSION = "live"
+#: depth units per metre of the frames made from ROS images (16UC1 is millimetres by REP 118)
+ROS_DEPTH_FACTOR = 1000.0
+
+
+def _header(stamp: float, frame_id: str) -> msgs.Header:
+    return msgs.Header(stamp=msgs.Time.from_seconds(stamp), frame_id=frame_id)
+
+
+def _pose(pose: PoseMsg) -> msgs.Pose:
+    (x, y, z), (qx, qy, qz, qw) = pose.position, pose.orientation
+    return msgs.Pose(position=msgs.Point(x=x, y=y, z=z), orientation=msgs.Quaternion(x=qx, y=qy, z=qz, w=qw))
+
+
+@dataclass
+class RobotPath:
+    session_id: str
+    poses: deque = field(default_factory=deque)
+    since_last: int = 0
+
+
+class PoseOutputs:
+    """Turns each twohr pose of a robot into the ROS 2 messages to publish, by fully qualified topic.
+
+    Every pose gives a PoseStamped, an Odometry and a TFMessage (map -> camera). A Path is added at every
+    keyframe and, since the camera-rate schedule flags only the keyframes it waits for, also whenever
+    ``path_every`` poses went by without one; each such pose is appended to it. A pose with non-finite
+    values is skipped."""
+
+    def __init__(self, config: Ros2Config) -> None:
+        self.config = config
+        self.paths: dict[str, RobotPath] = {}
+
+    def topics(self, robot_id: str) -> dict[type[msgs.RosMessage], str]:
+        c = self.config
+        return {msgs.PoseStamped: c.topic(robot_id, c.pose_topic), msgs.Odometry: c.topic(robot_id, c.odom_topic),
+                msgs.TFMessage: c.topic(robot_id, c.tf_topic), msgs.Path: c.topic(robot_id, c.path_topic)}
+
+    def messages(self, pose: PoseMsg) -> list[tuple[str, msgs.RosMessage]]:
+        """``(topic, message)`` pairs for one pose, in publishing order."""
+        if not np.all(np.isfinite(pose.position + pose.orientation)):
+            return []
+        robot = pose.robot_id
+        topics = self.topics(robot)
+        map_frame = self.config.frame(robot, self.config.map_frame)
+        camera_frame = self.config.frame(robot, self.config.camera_frame)
+        header = _header(pose.stamp, map_frame)
+        body = _pose(pose)
+        stamped = msgs.PoseStamped(header=header, pose=body)
+        odometry = msgs.Odometry(header=header, child_frame_id=camera_frame,
+                                 pose=msgs.PoseWithCovariance(pose=body))
+        transform = msgs.TransformStamped(
+            header=header, child_frame_id=camera_frame,
+            transform=msgs.Transform(translation=msgs.Vector3(**body.position.model_dump()),
+                                     rotation=body.orientation))
+        out: list[tuple[str, msgs.RosMessage]] = [
+            (topics[msgs.PoseStamped], stamped), (topics[msgs.Odometry], odometry),
+            (topics[msgs.TFMessage], msgs.TFMessage(transforms=[transform])),
+        ]
+        path = self._path(robot, pose, stamped)
+        if path is not None:
+            out.append((topics[msgs.Path], path))
+        return out
+
+    def _path(self, robot: str, pose: PoseMsg, stamped: msgs.PoseStamped) -> msgs.Path | None:
+        state = self.paths.get(robot)
+        if state is None or state.session_id != pose.session_id:  # a new session starts a new path
+            state = self.paths[robot] = RobotPath(pose.session_id, deque(maxlen=self.config.path_max_poses))
+        state.since_last += 1
+        if not pose.is_keyframe and state.since_last < self.config.path_every:
+            return None
+        state.since_last = 0
+        state.poses.append(stamped)
+        return msgs.Path(header=stamped.header, poses=list(state.poses))
+
+
+# -- camera frames ---------------------------------------------------------------------------------------------
+
+_COLOR = {"rgb8": (3, None), "bgr8": (3, cv2.COLOR_BGR2RGB), "rgba8": (4, cv2.COLOR_RGBA2RGB),
+          "bgra8": (4, cv2.COLOR_BGRA2RGB), "mono8": (1, cv2.COLOR_GRAY2RGB)}
+
+
+def _rows(image: msgs.Image, channels: int, dtype: np.dtype) -> np.ndarray:
+    dtype = np.dtype(dtype).newbyteorder(">" if image.is_bigendian else "<")
+    row = image.width * channels * dtype.itemsize
+    if image.step < row or len(image.data) < image.step * image.height:
+        raise MessageError(f"{image.encoding} image {image.width}x{image.height}: step {image.step}, "
+                           f"{len(image.data)} bytes do not hold it")
+    rows = np.frombuffer(image.data, np.uint8, count=image.step * image.height).reshape(image.height, image.step)
+    pixels = rows[:, :row].copy().view(dtype).reshape(image.height, image.width, channels)
+    return pixels.astype(dtype.newbyteorder("="))
+
+
+def color_image(image: msgs.Image | msgs.CompressedImage) -> np.ndarray:
+    """An (H, W, 3) uint8 RGB array from a colour ``Image`` (rgb8, bgr8, rgba8, bgra8, mono8) or a
+    JPEG/PNG ``CompressedImage``; raises :class:`MessageError` on anything else."""
+    if isinstance(image, msgs.CompressedImage):
+        decoded = cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_COLOR)
+        if decoded is None:
+            raise MessageError(f"corrupt compressed colour image (format {image.format!r})")
+        return cv2.cvtColor(decoded, cv2.COLOR_BGR2RGB)
+    if image.encoding not in _COLOR:
+        raise MessageError(f"unsupported colour encoding {image.encoding!r}: use one of {sorted(_COLOR)}")
+    channels, conversion = _COLOR[image.encoding]
+    pixels = _rows(image, channels, np.uint8)
+    pixels = pixels[:, :, 0] if channels == 1 else pixels
+    return np.ascontiguousarray(pixels if conversion is None else cv2.cvtColor(pixels, conversion))
+
+
+def depth_image(image: msgs.Image) -> np.ndarray:
+    """An (H, W) uint16 depth array in millimetres (0 = no reading) from a 16UC1 (mm) or 32FC1 (m) ``Image``."""
+    if image.encoding in ("16UC1", "mono16"):
+        return _rows(image, 1, np.uint16)[:, :, 0]
+    if image.encoding == "32FC1":
+        metres = _rows(image, 1, np.float32)[:, :, 0]
+        metres = np.where(np.isfinite(metres) & (metres > 0), metres, 0.0)
+        return np.clip(np.round(metres * ROS_DEPTH_FACTOR), 0, 65535).astype(np.uint16)
+    raise MessageError(f"unsupported depth encoding {image.encoding!r}: use 16UC1 (mm) or 32FC1 (m)")
+
+
+def intrinsics(info: msgs.CameraInfo) -> CameraIntrinsics:
+    """Pinhole intrinsics (and plumb-bob distortion, if any) of a ``CameraInfo``, depth in millimetres."""
+    fx, _, cx, _, fy, cy = info.k[:6]
+    if fx <= 0 or fy <= 0 or info.width <= 0 or info.height <= 0:
+        raise MessageError(f"CameraInfo without a calibration (K = {info.k}, {info.width}x{info.height})")
+    distortion = [float(v) for v in info.d[:5]] if any(info.d) else []
+    if distortion and info.distortion_model not in ("plumb_bob", "rational_polynomial"):
+        raise MessageError(f"unsupported distortion model {info.distortion_model!r}")
+    distortion += [0.0] * (5 - len(distortion)) if distortion else []
+    return CameraIntrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=info.width, height=info.height,
+                            depth_factor=ROS_DEPTH_FACTOR, distortion=distortion)
+
+
+class CameraAssembler:
+    """Pairs colour and depth images by stamp (within ``max_dt``) and adds the latest ``CameraInfo``:
+    each complete pair becomes one twohr frame for ``twohr/<robot>/camera``. Unpaired images older
+    than a paired one are dropped and counted."""
+
+    def __init__(self, config: Ros2CameraInput, keep: int = 8) -> None:
+        self.config = config
+        self.info: msgs.CameraInfo | None = None
+        self.colors: deque[tuple[float, msgs.Image | msgs.CompressedImage]] = deque(maxlen=keep)
+        self.depths: deque[tuple[float, msgs.Image]] = deque(maxlen=keep)
+        self.frames = 0
+        self.unpaired = 0
+        self.without_info = 0
+
+    def add_info(self, info: msgs.CameraInfo) -> None:
+        self.info = info
+
+    def add_color(self, image: msgs.Image | msgs.CompressedImage) -> tuple[FrameMsg, dict] | None:
+        self.colors.append((image.header.stamp.seconds(), image))
+        return self._pair()
+
+    def add_depth(self, image: msgs.Image) -> tuple[FrameMsg, dict] | None:
+        self.depths.append((image.header.stamp.seconds(), image))
+        return self._pair()
+
+    def _pair(self) -> tuple[FrameMsg, dict] | None:
+        best = None
+        for i, (tc, _) in enumerate(self.colors):
+            for j, (td, _) in enumerate(self.depths):
+                if abs(tc - td) <= self.config.max_dt and (best is None or abs(tc - td) < best[0]):
+                    best = (abs(tc - td), i, j)
+        if best is None:
+            return None
+        _, i, j = best
+        stamp, color = self.colors[i]
+        _, depth = self.depths[j]
+        self.unpaired += i + j  # everything older than the pair will never be paired now
+        for _ in range(i + 1):
+            self.colors.popleft()
+        for _ in range(j + 1):
+            self.depths.popleft()
+        if self.info is None:
+            self.without_info += 1
+            return None
+        return self.frame(stamp, color, depth, self.info)
+
+    def frame(self, stamp: float, color: msgs.Image | msgs.CompressedImage, depth: msgs.Image,
+              info: msgs.CameraInfo) -> tuple[FrameMsg, dict]:
+        """One twohr frame (message and arrays) from a colour image, its aligned depth and the camera info."""
+        rgb, depth_mm, camera = color_image(color), depth_image(depth), intrinsics(info)
+        if rgb.shape[:2] != depth_mm.shape or rgb.shape[:2] != (camera.height, camera.width):
+            raise MessageError(f"colour {rgb.shape[1]}x{rgb.shape[0]}, depth {depth_mm.shape[1]}x{depth_mm.shape[0]} "
+                               f"and CameraInfo {camera.width}x{camera.height} differ: depth must be aligned to colour")
+        message = FrameMsg(session_id=LIVE_SESSION, robot_id=self.config.robot_id, frame_index=self.frames,
+                           stamp=stamp, camera=camera)
+        self.frames += 1
+        return message, {"rgb": rgb, "depth": depth_mm}
+
+
+def frame_to_ros(stamp: float, rgb: np.ndarray, depth: np.ndarray, camera: CameraIntrinsics, frame_id: str = "camera"
+                 ) -> tuple[msgs.Image, msgs.Image, msgs.CameraInfo]:
+    """A twohr frame as a ROS 2 camera would publish it: rgb8 colour, 16UC1 depth in mm, CameraInfo."""
+    header = _header(stamp, frame_id)
+    height, width = depth.shape
+    millimetres = np.clip(np.round(depth.astype(np.float64) * ROS_DEPTH_FACTOR / camera.depth_factor), 0, 65535)
+    color = msgs.Image(header=header, height=height, width=width, encoding="rgb8", step=width * 3,
+                       data=np.ascontiguousarray(rgb, np.uint8).tobytes())
+    depth_msg = msgs.Image(header=header, height=height, width=width, encoding="16UC1", step=width * 2,
+                           data=millimetres.astype("<u2").tobytes())
+    k = [camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy, 0.0, 0.0, 1.0]
+    p = [camera.fx, 0.0, camera.cx, 0.0, 0.0, camera.fy, camera.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+    info = msgs.CameraInfo(header=header, height=height, width=width, distortion_model="plumb_bob",
+                           d=list(camera.distortion) or [0.0] * 5, k=k, p=p)
+    return color, depth_msg, info

@@ -1,0 +1,268 @@
+"""ROS 2 interop core: CDR checked against rosbags (an independent implementation), official RIHS01 hashes,
+rmw_zenoh's documented key expressions, liveliness tokens and attachments, ROS 2 MCAP files, camera frames."""
+
+import struct
+from typing import ClassVar
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
+from twohr.dataset import RGBDSequence
+from twohr.messages import PoseMsg
+from twohr.ros2 import msgs
+from twohr.ros2.bag import Ros2BagWriter
+from twohr.ros2.cdr import CdrError
+from twohr.ros2.config import Ros2CameraInput, Ros2Config
+from twohr.ros2.convert import CameraAssembler, PoseOutputs, frame_to_ros
+from twohr.ros2.rmw import DEFAULT_QOS, Attachment, NodeInfo, qualified_name, topic_key
+
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+DESIGN = "ros2/rmw_zenoh docs/design.md (commit 99a6a2bd10b949052f4f12c5854825dc005e95a5)"
+
+#: Official RIHS01 hashes (REP 2011) as the rosidl generator of ROS 2 Jazzy emits them, the values that
+#: `ros2 topic info -v` reports and that rmw_zenoh puts in its keys. Sources:
+#: - std_msgs/msg/String: rmw_zenoh's design document, examples of key expressions and liveliness tokens [DESIGN]
+#: - tf2_msgs/msg/TFMessage: `ros2 topic info /robot1/tf --verbose` on a Jazzy robot (nav2 + create3), public notes
+#: - the others: rosidl-generated type hashes published in public ROS 2 client libraries and their tests
+#:   (e.g. roslibrust's `ros2_hash_checks` for sensor_msgs/msg/CameraInfo, an rmw_zenoh key
+#:   `0/robot1/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_3cc9…` for nav_msgs/msg/Odometry)
+OFFICIAL_HASHES = {
+    "std_msgs/msg/String": "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18",
+    "builtin_interfaces/msg/Time": "RIHS01_b106235e25a4c5ed35098aa0a61a3ee9c9b18d197f398b0e4206cea9acf9c197",
+    "std_msgs/msg/Header": "RIHS01_f49fb3ae2cf070f793645ff749683ac6b06203e41c891e17701b1cb597ce6a01",
+    "geometry_msgs/msg/PoseStamped": "RIHS01_10f3786d7d40fd2b54367835614bff85d4ad3b5dab62bf8bca0cc232d73b4cd8",
+    "nav_msgs/msg/Odometry": "RIHS01_3cc97dc7fb7502f8714462c526d369e35b603cfc34d946e3f2eda2766dfec6e0",
+    "tf2_msgs/msg/TFMessage": "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087",
+    "nav_msgs/msg/Path": "RIHS01_1957a5bb3cee5da65c4e52e52b65a93df227efce4c20f8458b36e73066ca334b",
+    "sensor_msgs/msg/Image": "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47",
+    "sensor_msgs/msg/CompressedImage": "RIHS01_15640771531571185e2efc8a100baf923961a4d15d5569652e6cb6691e8e371a",
+    "sensor_msgs/msg/CameraInfo": "RIHS01_b3dfd68ff46c9d56c80fd3bd4ed22c7a4ddce8c8348f2f59c299e73118e7e275",
+}
+
+
+class String(msgs.RosMessage):
+    """std_msgs/String, only to reproduce the design document's examples."""
+
+    ros_type: ClassVar[str] = "std_msgs/msg/String"
+    type_hash: ClassVar[str] = OFFICIAL_HASHES["std_msgs/msg/String"]
+    definition: ClassVar[str] = "string data"
+    data: str = ""
+
+
+def header(stamp=1700000000.123456789, frame="map"):
+    return msgs.Header(stamp=msgs.Time.from_seconds(stamp), frame_id=frame)
+
+
+def sample_messages():
+    pose = msgs.Pose(position=msgs.Point(x=1.5, y=-2.25, z=3.0),
+                     orientation=msgs.Quaternion(x=0.1, y=-0.2, z=0.3, w=0.927))
+    stamped = msgs.PoseStamped(header=header(), pose=pose)
+    transform = msgs.TransformStamped(header=header(), child_frame_id="camera",
+                                      transform=msgs.Transform(translation=msgs.Vector3(x=1, y=2, z=3),
+                                                               rotation=pose.orientation))
+    rng = np.random.default_rng(0)
+    return [
+        header(),
+        stamped,
+        msgs.Odometry(header=header(), child_frame_id="camera",
+                      pose=msgs.PoseWithCovariance(pose=pose, covariance=list(rng.normal(size=36))),
+                      twist=msgs.TwistWithCovariance(twist=msgs.Twist(linear=msgs.Vector3(x=0.5)))),
+        msgs.TFMessage(transforms=[transform, transform.model_copy(update={"child_frame_id": "odom"})]),
+        msgs.Path(header=header(), poses=[stamped] * 3),
+        msgs.Path(header=header(frame="")),  # empty sequence and empty string
+        msgs.Image(header=header(frame="cam"), height=3, width=5, encoding="rgb8", step=15,
+                   data=rng.integers(0, 255, 45, dtype=np.uint8).tobytes()),
+        msgs.CompressedImage(header=header(frame="cam"), format="jpeg", data=b"\xff\xd8jpeg"),
+        msgs.CameraInfo(header=header(frame="cam"), height=480, width=640, distortion_model="plumb_bob",
+                        d=[0.1, -0.2, 0.001, 0.002, 0.05], k=[525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1],
+                        p=[525.0, 0, 319.5, 0, 0, 525.0, 239.5, 0, 0, 0, 1, 0], binning_x=1,
+                        roi=msgs.RegionOfInterest(x_offset=2, width=600, do_rectify=True)),
+    ]
+
+
+def plain(value):
+    """A rosbags message (nested dataclasses, numpy arrays) as plain Python values."""
+    if hasattr(value, "__dataclass_fields__"):
+        return {k: plain(getattr(value, k)) for k in value.__dataclass_fields__ if k != "__msgtype__"}
+    if isinstance(value, np.ndarray):
+        return value.tobytes() if value.dtype == np.uint8 else value.tolist()
+    if isinstance(value, list):
+        return [plain(v) for v in value]
+    return value
+
+
+@pytest.mark.parametrize("message", sample_messages(), ids=lambda m: m.ros_type)
+def test_every_type_round_trips_through_rosbags(message):
+    data = msgs.serialize(message)
+    assert data[:4] == b"\x00\x01\x00\x00"
+    theirs = TYPESTORE.deserialize_cdr(data, message.ros_type)  # rosbags' independent CDR decoder
+    assert plain(theirs) == message.model_dump()
+    assert TYPESTORE.serialize_cdr(theirs, message.ros_type) == data  # byte for byte
+    assert msgs.deserialize(type(message), TYPESTORE.serialize_cdr(theirs, message.ros_type)) == message
+
+
+def test_malformed_cdr_is_rejected():
+    data = msgs.serialize(sample_messages()[6])
+    for bad in (b"", b"\x00\x01", b"\x01\x00\x00\x00" + data[4:], data[:-10], data + b"\x00" * 16):
+        with pytest.raises(CdrError):
+            msgs.deserialize(msgs.Image, bad)
+    with pytest.raises(CdrError):
+        msgs.deserialize(msgs.Image, data[:12] + struct.pack("<I", 2**31) + data[16:])  # frame_id length
+
+
+def test_type_hashes_are_the_official_ones():
+    # rosbags computes RIHS01 independently; on std_msgs/String it reproduces the value of rmw_zenoh's design doc
+    assert TYPESTORE.hash_rihs01("std_msgs/msg/String") == OFFICIAL_HASHES["std_msgs/msg/String"]
+    published = [cls for cls in msgs.TYPES.values() if cls.type_hash]
+    assert {cls.ros_type for cls in published} == set(OFFICIAL_HASHES) - {"std_msgs/msg/String"} | {
+        "geometry_msgs/msg/TransformStamped"}
+    for cls in published:
+        assert cls.type_hash == TYPESTORE.hash_rihs01(cls.ros_type), cls.ros_type
+        if cls.ros_type in OFFICIAL_HASHES:
+            assert cls.type_hash == OFFICIAL_HASHES[cls.ros_type], cls.ros_type
+
+
+def test_key_expressions_match_the_design_document():
+    # the design document's three examples, verbatim
+    assert topic_key(0, qualified_name("/", "chatter"), String) == (
+        "0/chatter/std_msgs::msg::dds_::String_/"
+        "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18")
+    assert topic_key(0, qualified_name("/robot1", "chatter"), String) == (
+        "0/robot1/chatter/std_msgs::msg::dds_::String_/"
+        "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18")
+    config = Ros2Config()
+    assert topic_key(0, config.topic("live1", "pose"), msgs.PoseStamped) == (
+        "0/live1/pose/geometry_msgs::msg::dds_::PoseStamped_/" + OFFICIAL_HASHES["geometry_msgs/msg/PoseStamped"])
+    assert msgs.TFMessage.dds_type() == "tf2_msgs::msg::dds_::TFMessage_"
+    for bad in ("a//b", "1abc", "with space", "/"):
+        with pytest.raises(ValueError):
+            qualified_name("/", bad)
+
+
+def test_liveliness_tokens_match_the_design_document():
+    listener = NodeInfo(domain_id=2, session_id="aac3178e146ba6f1fc6e6a4085e77f21", node_id=0, namespace="/",
+                        name="listener")
+    assert listener.node_token() == "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
+    assert listener.endpoint_token(10, "MS", "/chatter", String) == (
+        "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/10/MS/%/%/listener/%chatter/std_msgs::msg::dds_::String_/"
+        "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/::,10:,:,:,,")
+    talker = NodeInfo(domain_id=2, session_id="8b20917502ee955ac4476e0266340d5c", namespace="/", name="talker")
+    assert talker.endpoint_token(10, "MP", "/chatter", String, qos="::,7:,:,:,,") == (
+        "@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/std_msgs::msg::dds_::String_/"
+        "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/::,7:,:,:,,")
+    assert DEFAULT_QOS == "::,10:,:,:,,"
+    ours = NodeInfo(session_id="ab", node_id=1, namespace="/live1", name="twohr")
+    assert ours.endpoint_token(7, "MP", "/live1/pose", msgs.PoseStamped).startswith(
+        "@ros2_lv/0/ab/1/7/MP/%/%live1/twohr/%live1%pose/geometry_msgs::msg::dds_::PoseStamped_/RIHS01_10f3")
+
+
+def test_attachment_layout_matches_the_design_document():
+    gid = bytes(range(16))
+    data = Attachment(sequence_number=42, source_timestamp_ns=1_700_000_000_123_456_789, source_gid=gid).encode()
+    # 8 bytes int64 LE sequence number, 8 bytes int64 LE timestamp, 1 byte GID length (16), 16 bytes GID
+    assert len(data) == 33
+    assert struct.unpack_from("<qqB", data) == (42, 1_700_000_000_123_456_789, 16) and data[17:] == gid
+    assert Attachment.decode(data).sequence_number == 42
+    for bad in (data[:-1], data[:16] + b"\x08" + gid):
+        with pytest.raises(Exception, match="attachment"):
+            Attachment.decode(bad)
+
+
+def poses(n, robot="r1", keyframe_every=5):
+    for i in range(n):
+        angle = i * 0.05
+        yield PoseMsg(session_id="s1", robot_id=robot, frame_index=i, stamp=1000.0 + i / 30,
+                      position=[0.1 * i, -0.02 * i, 0.5], orientation=[0.0, np.sin(angle / 2), 0.0, np.cos(angle / 2)],
+                      status="tracking", is_keyframe=i % keyframe_every == 0)
+
+
+def test_pose_outputs_publish_path_at_keyframes_or_every_n():
+    outputs = PoseOutputs(Ros2Config(path_every=10))
+    published = [m for p in poses(20) for m in outputs.messages(p)]
+    by_type = {}
+    for topic, message in published:
+        by_type.setdefault(type(message), []).append((topic, message))
+    assert len(by_type[msgs.PoseStamped]) == len(by_type[msgs.Odometry]) == len(by_type[msgs.TFMessage]) == 20
+    paths = by_type[msgs.Path]
+    assert [len(p.poses) for _, p in paths] == [1, 2, 3, 4] and paths[0][0] == "/r1/path"
+    last = by_type[msgs.PoseStamped][-1][1]
+    assert last.header.frame_id == "map" and last.pose.position.x == pytest.approx(1.9)
+    tf = by_type[msgs.TFMessage][-1][1].transforms[0]
+    assert tf.child_frame_id == "camera" and tf.transform.rotation == last.pose.orientation
+    # no keyframe flags: every path_every-th pose
+    outputs = PoseOutputs(Ros2Config(path_every=4))
+    unflagged = [p.model_copy(update={"is_keyframe": False}) for p in poses(12, robot="r2")]
+    assert sum(isinstance(m, msgs.Path) for p in unflagged for _, m in outputs.messages(p)) == 3
+    # keyframes and the fallback together: keyframes 0, 5, 10 and 4 poses after each
+    mixed = [m for p in poses(12, robot="r3") for _, m in outputs.messages(p) if isinstance(m, msgs.Path)]
+    stamps = [m.poses[-1].header.stamp.seconds() for m in mixed]
+    assert stamps == pytest.approx([1000 + i / 30 for i in (0, 4, 5, 9, 10)])
+    # a new session of the same robot starts a new path
+    again = [m for p in poses(6, robot="r3") for _, m in outputs.messages(p.model_copy(update={"session_id": "s2"}))]
+    assert [len(m.poses) for m in again if isinstance(m, msgs.Path)] == [1, 2, 3]
+
+
+def test_ros2_mcap_opens_in_rosbags_with_the_right_counts(tmp_path):
+    path = tmp_path / "session.mcap"
+    with Ros2BagWriter(path) as bag:
+        for pose in poses(23):
+            bag.write_pose(pose)
+    with AnyReader([path], default_typestore=TYPESTORE) as reader:
+        counts = {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+        assert counts == {"/r1/pose": ("geometry_msgs/msg/PoseStamped", 23), "/r1/odom": ("nav_msgs/msg/Odometry", 23),
+                          "/r1/tf": ("tf2_msgs/msg/TFMessage", 23), "/r1/path": ("nav_msgs/msg/Path", 5)}
+        xs = [reader.deserialize(raw, c.msgtype).pose.position.x
+              for c, _, raw in reader.messages() if c.topic == "/r1/pose"]
+    assert xs == pytest.approx([0.1 * i for i in range(23)])
+
+
+def test_camera_frames_from_ros_images_of_real_frames(dev_sequence):
+    sequence = RGBDSequence(dev_sequence)
+    assembler = CameraAssembler(Ros2CameraInput(robot_id="cam1"))
+    frames = []
+    for index in range(3):
+        frame = sequence.read(index)
+        raw_depth = np.round(frame.depth * sequence.camera.depth_factor).astype(np.uint16)
+        color, depth, info = frame_to_ros(frame.stamp, frame.rgb, raw_depth, sequence.camera)
+        color, depth, info = (msgs.deserialize(type(m), msgs.serialize(m)) for m in (color, depth, info))
+        if index == 0:
+            assert assembler.add_color(color) is None and assembler.add_depth(depth) is None  # no CameraInfo yet
+            continue
+        assembler.add_info(info)
+        assert assembler.add_depth(depth) is None
+        frames.append((frame, assembler.add_color(color)))
+    assert assembler.without_info == 1 and len(frames) == 2
+    for frame, (message, arrays) in frames:
+        assert message.robot_id == "cam1" and message.stamp == pytest.approx(frame.stamp)
+        assert message.camera.fx == pytest.approx(sequence.camera.fx) and message.camera.depth_factor == 1000.0
+        np.testing.assert_array_equal(arrays["rgb"], frame.rgb)
+        metres = arrays["depth"].astype(np.float32) / 1000.0
+        assert np.abs(metres - frame.depth).max() <= 0.0006  # Bonn's 0.2 mm units rounded to mm
+
+
+def test_camera_input_conversions_reject_bad_images():
+    from twohr.messages import MessageError
+    from twohr.ros2.convert import color_image, depth_image
+
+    bgr = msgs.Image(height=1, width=2, encoding="bgr8", step=6, data=bytes([1, 2, 3, 4, 5, 6]))
+    assert color_image(bgr).tolist() == [[[3, 2, 1], [6, 5, 4]]]
+    metres = msgs.Image(height=1, width=3, encoding="32FC1", step=12,
+                        data=np.array([1.2345, np.nan, -1], "<f4").tobytes())
+    assert depth_image(metres).tolist() == [[1234, 0, 0]]
+    for bad in (bgr.model_copy(update={"encoding": "yuv422"}), bgr.model_copy(update={"data": b"\x00"})):
+        with pytest.raises(MessageError):
+            color_image(bad)
+    with pytest.raises(MessageError):
+        color_image(msgs.CompressedImage(format="jpeg", data=b"not a jpeg"))
+
+
+def test_config_validates_names_and_frames():
+    config = Ros2Config(namespace="/fleet/{robot}", domain_id=7)
+    assert config.topic("r1", "pose") == "/fleet/r1/pose" and config.robot_namespace("r1") == "/fleet/r1"
+    for bad in ({"domain_id": 300}, {"namespace": "/bad name"}, {"map_frame": "a b"}, {"unknown": 1},
+                {"camera_input": {"robot_id": "bad id"}}):
+        with pytest.raises(ValidationError):
+            Ros2Config(**bad)
