@@ -153,6 +153,8 @@ class KeyframePipeline:
         self._yolo_requested = -(10**9)
         self._last_index = 0
         self._job_index = 0  # the frame of the latest keyframe job
+        self.map_version = 0
+        """counts the map updates taken; a live view sends the map points again when it changes"""
 
     def _dynamic_mask(self, job: tuple[Frame, object]) -> tuple[int, np.ndarray, int]:
         """YOLO worker: the dynamic mask of one frame (the frames after it reuse it, see :meth:`_mask`)."""
@@ -173,6 +175,7 @@ class KeyframePipeline:
         if update is None:
             return
         self.frames.apply(update)
+        self.map_version += 1
         t = update.timings
         self.keyframe_log.append(KeyframeLog(update.frame_index, update.result.status, update.keyframe_id >= 0,
                                              int(t["keypoints"]), int(t["kept"]), t["detector"], t["yolo"],
@@ -241,6 +244,10 @@ class KeyframePipeline:
             ms_total=ms_total, reason=result.reason, mask_age=mask_age,
         )
         return result, stats
+
+    def map_points(self) -> np.ndarray:
+        """(N, 3) world positions of the map's usable landmarks, as of the latest map update taken."""
+        return self.frames.landmarks[self.frames.usable]
 
     def finish(self) -> None:
         """Let the mapping worker finish its job (its bundle adjustment refines the trajectory), then stop."""

@@ -25,6 +25,7 @@ from twohr.messages import (
     DynamicsMsg,
     FrameMsg,
     KeypointsMsg,
+    LandmarksMsg,
     MatchesMsg,
     MatchRequestMsg,
     MessageError,
@@ -105,6 +106,13 @@ class SessionTrack:
     last_index: int = -1
     pipeline: KeyframePipeline | None = None  # the keyframes schedule
     dropped: int = 0  # frames dropped because newer ones were waiting
+    map_sent: int = -1  # the map version last published on ``landmarks``
+
+    def map_points(self) -> tuple[int, np.ndarray]:
+        """(version, (N, 3) world points) of the session's map; the version changes when the map does."""
+        if self.pipeline is not None:
+            return self.pipeline.map_version, self.pipeline.map_points()
+        return len(self.tracker.keyframes), self.tracker.map.good_positions()
 
 
 class TrackerService(Service):
@@ -211,6 +219,7 @@ class TrackerService(Service):
         result, stats = track.pipeline.process(frame, source=payload)
         self._publish_pose(header.session_id, header.robot_id, header.frame_index, header.stamp, result,
                            stats.keypoints, header.sent_at, {"tracker": stats.ms_total})
+        self._publish_map(track, header.session_id, header.robot_id, header.frame_index, header.stamp)
 
     def _track_frame(self, track: SessionTrack, session_id: str, robot_id: str, index: int,
                      entry: PendingFrame) -> None:
@@ -220,6 +229,16 @@ class TrackerService(Service):
         result = track.tracker.track(entry.stamp, kept, entry.depth)
         elapsed = {**entry.elapsed, "tracker": (time.perf_counter() - t0) * 1000}
         self._publish_pose(session_id, robot_id, index, entry.stamp, result, len(kept), entry.sent_at, elapsed)
+        self._publish_map(track, session_id, robot_id, index, entry.stamp)
+
+    def _publish_map(self, track: SessionTrack, session_id: str, robot_id: str, index: int, stamp: float) -> None:
+        """The map points on ``landmarks``, whenever a keyframe has changed the map."""
+        version, points = track.map_points()
+        if version == track.map_sent or not len(points):
+            return
+        track.map_sent = version
+        message = LandmarksMsg(session_id=session_id, robot_id=robot_id, frame_index=index, stamp=stamp)
+        self.publish(keys.key(robot_id, "landmarks"), encode(message, {"points": points.astype(np.float32)}))
 
     def _publish_pose(self, session_id: str, robot_id: str, index: int, stamp: float, result, num_keypoints: int,
                       sent_at: float, elapsed: dict[str, float]) -> None:
