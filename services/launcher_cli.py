@@ -61,8 +61,10 @@ def _wait_http(url: str, timeout: float) -> None:
 
 
 def start_system(router: str, data_roots: list[str], recordings: str, host: str, port: int,
-                 api_token: str | None = None, timeout: float = 120.0, log_level: str = "INFO"):
-    """Start the router, the services and the gateway; returns (router session, ProcessGroup) once healthy."""
+                 api_token: str | None = None, timeout: float = 120.0, log_level: str = "INFO",
+                 foxglove_port: int | None = None, record_descriptors: bool = False):
+    """Start the router, the services and the gateway; returns (router session, ProcessGroup) once healthy.
+    ``foxglove_port`` turns on the gateway's Foxglove live view on ``host``."""
     from twohr.bus import BusConfig, open_session, start_router, wait_for_services
 
     router_session = start_router([router])
@@ -71,10 +73,12 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
     try:
         roots = [arg for root in data_roots for arg in ("--data-root", root)]
         for name in PIPELINE_SERVICES:
-            extra = {"source": roots, "recorder": ["--recordings", recordings]}.get(name, [])
+            extra = {"source": roots, "recorder": ["--recordings", recordings] + (
+                ["--record-descriptors"] if record_descriptors else [])}.get(name, [])
             group.start(name, [f"twohr_services.{name}", *extra], env)
         gateway_args = ["twohr_services.gateway", "--host", host, "--port", str(port), "--recordings", recordings,
-                        *roots] + (["--api-token", api_token] if api_token else [])
+                        *roots, "--foxglove-port", str(foxglove_port or 0)] + (
+                            ["--api-token", api_token] if api_token else [])
         group.start("gateway", gateway_args, env)
         client = open_session(BusConfig(connect=[router]))
         try:
@@ -98,11 +102,16 @@ def _up(args: argparse.Namespace) -> int:
     print(f"starting router on {args.router} and services {', '.join(PIPELINE_SERVICES)} + gateway …", flush=True)
     try:
         router, group = start_system(args.router, args.data_root or [str(Path.cwd())], args.recordings, args.host,
-                                     args.port, args.api_token, args.timeout)
+                                     args.port, args.api_token, args.timeout, foxglove_port=args.foxglove_port or None,
+                                     record_descriptors=args.record_descriptors)
     except (TimeoutError, RuntimeError) as exc:
         raise TwohrError(str(exc)) from None
     print(f"all healthy in {time.monotonic() - t0:.1f} s — gateway http://{args.host}:{args.port} "
           f"(docs at /docs); poses on twohr/<robot>/pose; Ctrl-C stops everything", flush=True)
+    if args.foxglove_port:
+        from twohr.foxglove_live import view_url
+
+        print(f"live view: {view_url(args.host, args.foxglove_port)}", flush=True)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -160,6 +169,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1", help="gateway host")
     p.add_argument("--port", type=int, default=8080, help="gateway port")
     p.add_argument("--api-token", default=None, help="require this bearer token on /sessions")
+    p.add_argument("--foxglove-port", type=int, default=8765,
+                   help="Foxglove WebSocket live view on the gateway host (default 8765; 0 turns it off)")
+    p.add_argument("--record-descriptors", action="store_true",
+                   help="keep the raw keypoint descriptors in every recording (large)")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for every service to be healthy")
     p.set_defaults(func=_up)
 

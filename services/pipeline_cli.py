@@ -93,8 +93,21 @@ def _run(args: argparse.Namespace) -> int:
 
     config, sequence = _load(args)
     out = Path(args.out or f"runs/{sequence.name}")
-    result = run_sequence(sequence, config, start=args.start, stop=None if args.frames is None else
-                          args.start + args.frames * args.step, step=args.step, progress=not args.quiet)
+    view = None
+    if getattr(args, "view", False):
+        from twohr.foxglove_live import view_url
+
+        from .live_run import PipelineLiveView
+
+        view = PipelineLiveView(sequence.camera, args.view_host, args.view_port)
+        print(f"live view: {view_url(args.view_host, view.view.port)}", flush=True)
+    try:
+        result = run_sequence(sequence, config, start=args.start, stop=None if args.frames is None else
+                              args.start + args.frames * args.step, step=args.step, progress=not args.quiet,
+                              on_frame=view)
+    finally:
+        if view is not None:
+            view.close()
     summary = write_run(out, sequence, config, result)
     print_summary(summary, out)
     return 0
@@ -191,6 +204,13 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def _add_view_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--view", action="store_true", help="stream the run live to Foxglove (a Foxglove WebSocket "
+                   "server: image, keypoints, mask, pose, path, map points, calibration, tf)")
+    p.add_argument("--view-host", default="127.0.0.1", help="with --view: interface to listen on")
+    p.add_argument("--view-port", type=int, default=8765, help="with --view: port (default 8765; 0 = any free)")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run the full pipeline on a sequence; writes trajectory, stats and evaluation",
                        description="The whole pipeline in one process. By default (pipeline.mode=keyframes) every "
@@ -200,6 +220,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "the TUM trajectory (camera-to-world), per-frame stats and, with ground truth, the ATE "
                        "report and plot.")
     _add_run_options(p)
+    _add_view_options(p)
     p.set_defaults(func=_run)
 
     p = sub.add_parser("bench", help="throughput and per-stage latency (or --ablations: the accuracy table)",

@@ -33,6 +33,14 @@ def topics(robot_id: str) -> dict[str, str]:
             "path": f"/{robot_id}/path", "map": f"/{robot_id}/map", "tf": TF_TOPIC}
 
 
+#: the Foxglove message type of each kind of topic in :func:`topics`
+TOPIC_TYPES: dict[str, type] = {
+    "image": fm.CompressedImage, "keypoints": fm.ImageAnnotations, "dynamic_mask": fm.ImageAnnotations,
+    "calibration": fm.CameraCalibration, "pose": fm.PoseInFrame, "path": fm.PosesInFrame, "map": fm.PointCloud,
+    "tf": fm.FrameTransforms,
+}
+
+
 def camera_frame(robot_id: str) -> str:
     return f"{robot_id}/camera"
 

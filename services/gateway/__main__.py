@@ -16,11 +16,15 @@ parser.add_argument("--router", default=None, help="Zenoh router endpoint (defau
 parser.add_argument("--data-root", action="append", default=None, help="folder sequences may come from (repeatable)")
 parser.add_argument("--recordings", default="recordings", help="folder the recorder writes MCAP files to")
 parser.add_argument("--api-token", default=None, help="require 'Authorization: Bearer TOKEN' on /sessions")
+parser.add_argument("--foxglove-port", type=int, default=8765,
+                    help="port of the Foxglove WebSocket live view on --host (default 8765; 0 turns it off)")
 args = parser.parse_args()
 settings = GatewaySettings(
     data_roots=[Path(r) for r in (args.data_root or ["data"])],
     recordings=Path(args.recordings),
     api_token=args.api_token,
     bus=BusConfig(connect=[args.router]) if args.router else BusConfig(),
+    foxglove_host=args.host,
+    foxglove_port=args.foxglove_port or None,
 )
 uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")

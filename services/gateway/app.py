@@ -33,6 +33,8 @@ from twohr.paths import resolve_under_roots
 from twohr.service import declare_publisher
 from twohr.trajectory import tum_text
 
+from .live import BusLiveView
+from .page import mount_page
 from .sessions import PoseOut, Session, SessionInfo, SessionRequest, SessionTable
 
 log = logging.getLogger("twohr.gateway")
@@ -49,6 +51,8 @@ class GatewaySettings(BaseModel):
     bus: BusConfig = Field(default_factory=BusConfig)
     idle_timeout: float = Field(15.0, gt=0, description="a session whose source is done and that gets no pose "
                                 "for this long is finished")
+    foxglove_host: str = Field("127.0.0.1", description="interface of the Foxglove live view")
+    foxglove_port: int | None = Field(None, ge=0, le=65535, description="Foxglove live view port; None = off")
 
 
 def validate_models(config: PipelineConfig) -> None:
@@ -98,7 +102,8 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         req = session.request
         control = ControlMsg(session_id=session.id, robot_id=req.robot_id, frame_index=-1, stamp=time.time(),
                              command=command, sequence=str(session.folder), rate=req.rate,
-                             max_frames=req.max_frames, record=req.record, config=config or PipelineConfig())
+                             max_frames=req.max_frames, record=req.record, record_descriptors=req.record_descriptors,
+                             record_frames=req.record_frames, config=config or PipelineConfig())
         key = keys.key(req.robot_id, keys.CONTROL)
         publishers = bus_state.setdefault("publishers", {})
         if key not in publishers:
@@ -127,12 +132,15 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         bus_state["session"] = zsession
         subs = [zsession.declare_subscriber(keys.all_robots("pose"), on_pose),
                 zsession.declare_subscriber(keys.all_robots("status"), on_status)]
+        live = BusLiveView(zsession, settings.foxglove_host, settings.foxglove_port) if settings.foxglove_port else None
         stop = threading.Event()
         thread = threading.Thread(target=monitor, args=(stop,), daemon=True)
         thread.start()
         yield
         stop.set()
         thread.join(timeout=2)
+        if live is not None:
+            live.close()
         for sub in subs:
             sub.undeclare()
         zsession.close()
@@ -140,6 +148,8 @@ def create_app(settings: GatewaySettings) -> FastAPI:
     app = FastAPI(title="twohr gateway", version="1", lifespan=lifespan,
                   description="Start, follow and stop twohr SLAM sessions. Poses stream on Zenoh at "
                   "twohr/<robot>/pose.")
+
+    mount_page(app, settings.foxglove_port)
 
     def require_token(request: Request) -> None:
         if settings.api_token is None:

@@ -155,6 +155,7 @@ class KeyframePipeline:
         self._job_index = 0  # the frame of the latest keyframe job
         self.map_version = 0
         """counts the map updates taken; a live view sends the map points again when it changes"""
+        self.mask: np.ndarray | None = None
 
     def _dynamic_mask(self, job: tuple[Frame, object]) -> tuple[int, np.ndarray, int]:
         """YOLO worker: the dynamic mask of one frame (the frames after it reuse it, see :meth:`_mask`)."""
@@ -214,6 +215,7 @@ class KeyframePipeline:
         self._take(update, frame.index)
         t_mask = time.perf_counter()
         mask, mask_age, objects = self._mask(frame, source)
+        self.mask = mask  # the dynamic mask this frame was tracked with, for live views
         ms_yolo = (time.perf_counter() - t_mask) * 1000
         gray = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
         result = self.frames.track(frame.stamp, gray, frame.depth, mask)
@@ -263,6 +265,13 @@ class KeyframePipeline:
     def trajectory(self) -> Trajectory:
         """Every frame's pose, re-attached to its keyframe as bundle adjustment left it."""
         return self.frames.trajectory(self.mapper.tracker.keyframe_poses)
+
+
+def map_snapshot(schedule: KeyframePipeline | Tracker) -> tuple[int, np.ndarray]:
+    """(version, (N, 3) world points) of a schedule's map; the version changes when the map does (keyframes)."""
+    if isinstance(schedule, KeyframePipeline):
+        return schedule.map_version, schedule.map_points()
+    return len(schedule.keyframes), schedule.map.good_positions()
 
 
 def online_trajectory(results: Iterable[TrackResult]) -> Trajectory:

@@ -36,7 +36,7 @@ from twohr.messages import (
 from twohr.service import Service, serve
 
 from .core import Tracker
-from .keyframes import KeyframePipeline, Stages
+from .keyframes import KeyframePipeline, Stages, map_snapshot
 
 
 class RemoteStage:
@@ -108,11 +108,6 @@ class SessionTrack:
     dropped: int = 0  # frames dropped because newer ones were waiting
     map_sent: int = -1  # the map version last published on ``landmarks``
 
-    def map_points(self) -> tuple[int, np.ndarray]:
-        """(version, (N, 3) world points) of the session's map; the version changes when the map does."""
-        if self.pipeline is not None:
-            return self.pipeline.map_version, self.pipeline.map_points()
-        return len(self.tracker.keyframes), self.tracker.map.good_positions()
 
 
 class TrackerService(Service):
@@ -233,7 +228,7 @@ class TrackerService(Service):
 
     def _publish_map(self, track: SessionTrack, session_id: str, robot_id: str, index: int, stamp: float) -> None:
         """The map points on ``landmarks``, whenever a keyframe has changed the map."""
-        version, points = track.map_points()
+        version, points = map_snapshot(track.pipeline or track.tracker)
         if version == track.map_sent or not len(points):
             return
         track.map_sent = version
