@@ -67,14 +67,14 @@ class FoxgloveListener:
     """A Foxglove WebSocket client (subprotocol ``foxglove.websocket.v1``) on its own thread: it subscribes to
     every channel the server advertises and counts the messages of each topic (and keeps the latest one)."""
 
-    def __init__(self, url: str, timeout: float = 10.0) -> None:
+    def __init__(self, url: str, subprotocol: str = "foxglove.websocket.v1", timeout: float = 10.0) -> None:
         import threading
 
         from websockets.sync.client import connect
 
-        # foxglove-sdk 0.30 servers speak "foxglove.sdk.v1", older ones (and the spec) "foxglove.websocket.v1"
-        self.ws = connect(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"], max_size=None,
-                          open_timeout=timeout).__enter__()
+        # the protocol's name in its spec is "foxglove.websocket.v1"; foxglove-sdk 0.30 calls it "foxglove.sdk.v1"
+        self.ws = connect(url, subprotocols=[subprotocol], max_size=None, open_timeout=timeout).__enter__()
+        assert self.ws.subprotocol == subprotocol
         self.channels: dict[int, dict] = {}
         self.subscriptions: dict[int, int] = {}
         self.counts: dict[str, int] = {}
@@ -138,8 +138,8 @@ def foxglove_listener():
     """Opens :class:`FoxgloveListener` clients on a URL; closes them after the test."""
     opened = []
 
-    def open_listener(url: str) -> FoxgloveListener:
-        opened.append(FoxgloveListener(url))
+    def open_listener(url: str, subprotocol: str = "foxglove.websocket.v1") -> FoxgloveListener:
+        opened.append(FoxgloveListener(url, subprotocol))
         return opened[-1]
 
     yield open_listener

@@ -1,18 +1,75 @@
 """A Foxglove WebSocket server (foxglove-sdk's ``start_server``) for the live view of any number of robots.
 
 Open it in Foxglove: ``https://app.foxglove.dev/?ds=foxglove-websocket&ds.url=ws://HOST:PORT``. Channels are
-advertised as their first message arrives; the messages come from :class:`~.foxglove_convert.FoxgloveConverter`
-(the same as in recordings). The gateway feeds it from the bus, ``twohr run --view`` from the pipeline.
+advertised as their first message arrives (or all of a robot's at once, :meth:`LiveView.advertise`); the
+messages come from :class:`~.foxglove_convert.FoxgloveConverter` (the same as in recordings). The gateway feeds
+it from the bus, ``twohr run --view`` from the pipeline.
+
+foxglove-sdk 0.30 names the WebSocket subprotocol ``foxglove.sdk.v1`` and turns away clients that offer only
+its former, otherwise identical name ``foxglove.websocket.v1`` (Lichtblick, older Foxglove Studio, the ws-protocol
+clients). :class:`SubprotocolBridge` in front of the SDK's server accepts both names.
 """
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import threading
 
 import foxglove
 import foxglove.channels
 
 from .foxglove_convert import TOPIC_TYPES, FoxgloveConverter, topics
+
+SDK_PROTOCOL = b"foxglove.sdk.v1"
+LEGACY_PROTOCOL = b"foxglove.websocket.v1"
+
+
+class SubprotocolBridge:
+    """A TCP relay on ``host:port`` to the SDK's server on ``127.0.0.1:target_port`` that renames the legacy
+    subprotocol in the opening handshake (both ways) and then passes the bytes through untouched."""
+
+    def __init__(self, host: str, port: int, target_port: int) -> None:
+        self.target_port = target_port
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, name="foxglove-bridge", daemon=True)
+        self.thread.start()
+        self.server = asyncio.run_coroutine_threadsafe(
+            asyncio.start_server(self._relay, host, port), self.loop).result(10)
+        self.port = self.server.sockets[0].getsockname()[1]
+
+    async def _relay(self, client_in: asyncio.StreamReader, client_out: asyncio.StreamWriter) -> None:
+        server_out = None
+        try:
+            request = await client_in.readuntil(b"\r\n\r\n")
+            legacy = LEGACY_PROTOCOL in request and SDK_PROTOCOL not in request
+            if legacy:
+                request = request.replace(LEGACY_PROTOCOL, SDK_PROTOCOL)
+            server_in, server_out = await asyncio.open_connection("127.0.0.1", self.target_port)
+            server_out.write(request)
+            response = await server_in.readuntil(b"\r\n\r\n")
+            client_out.write(response.replace(SDK_PROTOCOL, LEGACY_PROTOCOL) if legacy else response)
+            await asyncio.gather(self._pipe(client_in, server_out), self._pipe(server_in, client_out))
+        except (OSError, asyncio.IncompleteReadError, asyncio.LimitOverrunError):
+            pass  # a client that went away or never spoke HTTP
+        finally:
+            for writer in (client_out, server_out):
+                if writer is not None:
+                    writer.close()
+
+    @staticmethod
+    async def _pipe(source: asyncio.StreamReader, sink: asyncio.StreamWriter) -> None:
+        with contextlib.suppress(OSError):
+            while data := await source.read(1 << 16):
+                sink.write(data)
+                await sink.drain()
+        with contextlib.suppress(OSError):
+            sink.close()
+
+    def close(self) -> None:
+        self.server.close()
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(timeout=2)
 
 
 def view_url(host: str, port: int) -> str:
@@ -26,8 +83,9 @@ class LiveView:
     def __init__(self, host: str = "127.0.0.1", port: int = 8765, jpeg_quality: int | None = None,
                  path_every: int = 5) -> None:
         self.context = foxglove.Context()  # its own channels and sinks: no other logging reaches this server
-        self.server = foxglove.start_server(name="twohr", host=host, port=port, context=self.context)
-        self.host, self.port = host, self.server.port
+        self.server = foxglove.start_server(name="twohr", host="127.0.0.1", port=0, context=self.context)
+        self.bridge = SubprotocolBridge(host, port, self.server.port)
+        self.host, self.port = host, self.bridge.port
         self.converter = FoxgloveConverter(jpeg_quality, path_every)
         self.channels: dict[str, object] = {}
         self.lock = threading.Lock()
@@ -69,4 +127,5 @@ class LiveView:
         self.log(messages)
 
     def close(self) -> None:
+        self.bridge.close()
         self.server.stop()

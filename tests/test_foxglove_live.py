@@ -29,8 +29,9 @@ def test_live_view_advertises_and_streams_every_channel(dev_sequence, foxglove_l
         view.log(convert.pose("r1", first.stamp, [0, 0, 0], [0, 0, 0, 1]))
         view.log(convert.landmarks("r1", first.stamp, np.zeros((5, 3))))
         view.log(convert.keypoints("r1", first.stamp, np.array([[10.0, 20.0]])))
-        client = foxglove_listener(f"ws://127.0.0.1:{view.port}")
-        wait_for(lambda: len(client.subscriptions) == 7)
+        client = foxglove_listener(f"ws://127.0.0.1:{view.port}")  # the protocol's name in its spec
+        sdk_client = foxglove_listener(f"ws://127.0.0.1:{view.port}", "foxglove.sdk.v1")  # its name in the SDK
+        wait_for(lambda: len(client.subscriptions) == 7 and len(sdk_client.subscriptions) == 7)
         assert client.topics() == {
             "/r1/camera/image": "foxglove.CompressedImage", "/r1/camera/calibration": "foxglove.CameraCalibration",
             "/r1/pose": "foxglove.PoseInFrame", "/tf": "foxglove.FrameTransforms", "/r1/path": "foxglove.PosesInFrame",
@@ -43,6 +44,8 @@ def test_live_view_advertises_and_streams_every_channel(dev_sequence, foxglove_l
         wait_for(lambda: client.counts.get("/r1/map", 0) == 5)
         assert client.counts["/r1/camera/image"] == 5 and client.counts["/r1/camera/calibration"] == 5
         assert client.counts["/r1/pose"] == 5 and client.counts["/tf"] == 5
+        wait_for(lambda: sdk_client.counts.get("/r1/map", 0) == 5)
+        assert sdk_client.counts == client.counts
         image = client.decode("/r1/camera/image")
         assert image.format == "jpeg" and image.data[:2] == b"\xff\xd8"
         assert client.decode("/r1/pose").pose.position.x == pytest.approx(0.5)

@@ -141,7 +141,8 @@ function render(info) {
   q("sequence").textContent = info.sequence;
   q("state").textContent = info.state;
   q("state").className = "state state-" + info.state;
-  q("frames").textContent = info.frames_total ? `${info.frames} / ${info.frames_total}` : String(info.frames);
+  // poses received; once the source is done, out of the frames it sent
+  q("frames").textContent = info.frames_sent === null ? String(info.frames) : `${info.frames} / ${info.frames_sent}`;
   q("fps").textContent = info.fps.toFixed(1);
   q("tracking").textContent = info.latest_pose ? info.latest_pose.status : "–";
   q("ate").textContent = info.ate_rmse === null ? "–" : `${info.ate_rmse.toFixed(3)} m`;
