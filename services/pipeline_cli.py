@@ -24,10 +24,10 @@ def write_run(out: Path, sequence, config, result) -> dict:
     import yaml
 
     from twohr.evaluation import evaluate
-    from twohr.plots import plot_trajectories
     from twohr.trajectory import write_tum
 
     from .pipeline import stats_rows
+    from .run_report import keyframe_indices, plot_run_timeline, plot_run_trajectory, write_report_html
     from .tracker.core import TRACKED_STATUSES
 
     out.mkdir(parents=True, exist_ok=True)
@@ -56,6 +56,8 @@ def write_run(out: Path, sequence, config, result) -> dict:
             **{f"{key}_median": round(float(_median([getattr(job, key) for job in log])), 2)
                for key in ("ms_detector", "ms_yolo", "ms_mapping", "lag_frames")},
         }
+    title = f"twohr on {sequence.name}"
+    evaluation = None
     if sequence.has_ground_truth() and len(result.trajectory) >= 3:
         extrinsic = sequence.default_gt_extrinsic()
         for name, gt_extrinsic in (("ate", extrinsic), ("ate_raw_gt", "none")):
@@ -63,9 +65,14 @@ def write_run(out: Path, sequence, config, result) -> dict:
                 report, arrays = evaluate(sequence.ground_truth(gt_extrinsic), traj, gt_extrinsic=gt_extrinsic)
                 summary[f"{name}{label}"] = report.model_dump()
                 if name == "ate" and not label:
-                    plot_trajectories(out / "trajectory.png", arrays["gt"], arrays["est"], arrays["ate"],
-                                      title=f"twohr on {sequence.name}: ATE RMSE {report.ate.rmse:.3f} m")
+                    evaluation, title = arrays, f"{title}: ATE RMSE {report.ate.rmse:.3f} m"
+    keyframes = keyframe_indices(result)
+    if len(result.trajectory):
+        plot_run_trajectory(out / "trajectory.png", result.trajectory, result.stats, title, evaluation, keyframes)
+    if result.stats:
+        plot_run_timeline(out / "timeline.png", result.stats, f"twohr on {sequence.name}: per frame", keyframes)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    write_report_html(out, sequence.name, summary)
     return summary
 
 
@@ -84,8 +91,8 @@ def print_summary(summary: dict, out: Path) -> None:
               f"'{a['gt_extrinsic']}'); raw marker GT {r['ate']['rmse']:.4f} m; online poses "
               f"{summary['ate_online']['ate']['rmse']:.4f} m; RPE 1 s {a['rpe_1s']['rmse']:.4f} m; "
               f"GT coverage {a['gt_coverage']:.1f} %")
-    print(f"outputs in {out}/: trajectory.txt, trajectory_online.txt, stats.csv, summary.json"
-          + (", trajectory.png" if "ate" in summary else ""))
+    print(f"outputs in {out}/: report.html, trajectory.png, timeline.png, trajectory.txt, trajectory_online.txt, "
+          "stats.csv, summary.json, config.yaml")
 
 
 def _run(args: argparse.Namespace) -> int:
