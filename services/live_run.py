@@ -6,7 +6,7 @@ them to the shared converter (:mod:`twohr.foxglove_convert`) and server (:class:
 
 from __future__ import annotations
 
-from twohr.dataset import CameraIntrinsics, Frame
+from twohr.dataset import Frame, RGBDSequence
 from twohr.foxglove_live import LiveView
 from twohr.geometry import rot_to_quat
 
@@ -18,16 +18,20 @@ class PipelineLiveView:
     """An ``on_frame`` callback for :func:`~twohr_services.pipeline.run_sequence` that streams each frame's image,
     tracked keypoints, dynamic mask, pose, path and (when a keyframe changed it) the map to a :class:`LiveView`."""
 
-    def __init__(self, camera: CameraIntrinsics, host: str = "127.0.0.1", port: int = 8765,
-                 robot_id: str = "run", jpeg_quality: int = 80) -> None:
-        self.view = LiveView(host, port, jpeg_quality=jpeg_quality)
+    def __init__(self, sequence: RGBDSequence, host: str = "127.0.0.1", port: int = 8765,
+                 robot_id: str = "run") -> None:
+        self.view = LiveView(host, port, jpeg_quality=None)
         self.view.advertise(robot_id)
-        self.camera, self.robot_id = camera, robot_id
+        self.sequence, self.robot_id = sequence, robot_id
         self.map_sent = -1
 
     def __call__(self, frame: Frame, result: TrackResult, stats: FrameStats, pipeline) -> None:
         convert, robot, t = self.view.converter, self.robot_id, frame.stamp
-        messages = [*convert.frame(robot, t, self.camera, rgb=frame.rgb),
+        # the colour image's own file, as the source sends it: no encoding on the per-frame path
+        path = self.sequence.records[frame.index].rgb_path
+        image = convert.frame(robot, t, self.sequence.camera, encoded=path.read_bytes(),
+                              encoding="png" if path.suffix.lower() == ".png" else "jpeg")
+        messages = [*image,
                     *convert.pose(robot, t, result.pose[:3, 3], rot_to_quat(result.pose[:3, :3]))]
         keyframes = isinstance(pipeline, KeyframePipeline)
         # the keyframes schedule tracks the map's points by optical flow; every_frame reports its inliers

@@ -13,11 +13,18 @@ clients). :class:`SubprotocolBridge` in front of the SDK's server accepts both n
 from __future__ import annotations
 
 import asyncio
+import base64
 import contextlib
+import json
+import logging
+import struct
 import threading
 
 import foxglove
 import foxglove.channels
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
 
 from .foxglove_convert import TOPIC_TYPES, FoxgloveConverter, topics
 
@@ -82,6 +89,7 @@ class LiveView:
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8765, jpeg_quality: int | None = None,
                  path_every: int = 5) -> None:
+        logging.getLogger("foxglove").setLevel(logging.WARNING)  # not a line per client and start
         self.context = foxglove.Context()  # its own channels and sinks: no other logging reaches this server
         self.server = foxglove.start_server(name="twohr", host="127.0.0.1", port=0, context=self.context)
         self.bridge = SubprotocolBridge(host, port, self.server.port)
@@ -129,3 +137,61 @@ class LiveView:
     def close(self) -> None:
         self.bridge.close()
         self.server.stop()
+
+
+class FoxgloveClient:
+    """A Foxglove WebSocket client on its own thread: it subscribes to every channel the server advertises and
+    counts the messages of each topic (and keeps the latest one). For tests, the bench and quick checks."""
+
+    def __init__(self, url: str, subprotocol: str = "foxglove.websocket.v1", timeout: float = 10.0) -> None:
+        # the protocol's name in its spec is "foxglove.websocket.v1"; foxglove-sdk 0.30 calls it "foxglove.sdk.v1"
+        self.ws = connect(url, subprotocols=[subprotocol], max_size=None, open_timeout=timeout).__enter__()
+        if self.ws.subprotocol != subprotocol:
+            raise ConnectionError(f"{url} answered with subprotocol {self.ws.subprotocol!r}, not {subprotocol!r}")
+        self.channels: dict[int, dict] = {}
+        self.subscriptions: dict[int, int] = {}
+        self.counts: dict[str, int] = {}
+        self.latest: dict[str, bytes] = {}
+        self.server_info: dict | None = None
+        self.thread = threading.Thread(target=self._run, name="foxglove-client", daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        try:
+            for message in self.ws:
+                if isinstance(message, str):
+                    body = json.loads(message)
+                    if body["op"] == "serverInfo":
+                        self.server_info = body
+                    elif body["op"] == "advertise":
+                        new = []
+                        for channel in body["channels"]:
+                            self.channels[channel["id"]] = channel
+                            subscription = len(self.subscriptions) + 1
+                            self.subscriptions[subscription] = channel["id"]
+                            new.append({"id": subscription, "channelId": channel["id"]})
+                        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                elif message[0] == 1:  # message data: opcode, subscription id (u32), log time (u64), payload
+                    subscription = struct.unpack_from("<I", message, 1)[0]
+                    topic = self.channels[self.subscriptions[subscription]]["topic"]
+                    self.counts[topic] = self.counts.get(topic, 0) + 1
+                    self.latest[topic] = bytes(message[13:])
+        except ConnectionClosed:
+            pass
+
+    def topics(self) -> dict[str, str]:
+        """Advertised topic -> schema name."""
+        return {c["topic"]: c["schemaName"] for c in list(self.channels.values())}
+
+    def decode(self, topic: str):
+        """The latest message on ``topic``, decoded with the protobuf schema the server advertised."""
+        channel = next(c for c in list(self.channels.values()) if c["topic"] == topic)
+        pool = descriptor_pool.DescriptorPool()
+        for file in descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(channel["schema"])).file:
+            pool.Add(file)
+        cls = message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"]))
+        return cls.FromString(self.latest[topic])
+
+    def close(self) -> None:
+        self.ws.close()
+        self.thread.join(5)

@@ -1,5 +1,6 @@
 """`twohr run --view`: the in-process pipeline streams to a Foxglove WebSocket client while it runs."""
 
+import json
 import subprocess
 import sys
 import time
@@ -33,3 +34,18 @@ def test_twohr_run_view_streams_every_channel(dev_sequence, tmp_path, foxglove_l
     cloud = client.decode("/run/map")
     assert len(cloud.data) // cloud.point_stride > 100
     assert "ATE RMSE" in out
+
+
+def test_bench_view_measures_the_live_view_against_the_same_run(dev_sequence, tmp_path):
+    out = tmp_path / "bench"
+    result = subprocess.run([sys.executable, "-m", "twohr_services.cli", "bench", "--view", "--sequence",
+                             str(dev_sequence), "--frames", "20", "--runs", "1", "--quiet", "--out", str(out)],
+                            capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    report = json.loads((out / "bench.json").read_text())["view"]
+    assert report["frames"] == 20 and report["runs"] == 1
+    for label in ("without_view", "with_view"):
+        assert len(report["cpu_ms_per_frame"][label]) == 1 and report["cpu_ms_per_frame"][label][0] > 0
+    received = report["viewer_received_per_run"][0]  # the viewer got every frame's image and pose
+    assert received["/run/camera/image"] == 20 and received["/run/pose"] == 20 and received["/run/map"] >= 1
+    assert "ms/frame with it and a viewer subscribed" in result.stdout
