@@ -26,6 +26,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
+from .errors import TwohrError
 from .foxglove_convert import TOPIC_TYPES, FoxgloveConverter, topics
 
 SDK_PROTOCOL = b"foxglove.sdk.v1"
@@ -41,8 +42,12 @@ class SubprotocolBridge:
         self.loop = asyncio.new_event_loop()
         self.thread = threading.Thread(target=self.loop.run_forever, name="foxglove-bridge", daemon=True)
         self.thread.start()
-        self.server = asyncio.run_coroutine_threadsafe(
-            asyncio.start_server(self._relay, host, port), self.loop).result(10)
+        try:
+            self.server = asyncio.run_coroutine_threadsafe(
+                asyncio.start_server(self._relay, host, port), self.loop).result(10)
+        except OSError as exc:
+            self.loop.call_soon_threadsafe(self.loop.stop)
+            raise TwohrError(f"live view: cannot listen on {host}:{port}: {exc.strerror or exc}") from None
         self.port = self.server.sockets[0].getsockname()[1]
 
     async def _relay(self, client_in: asyncio.StreamReader, client_out: asyncio.StreamWriter) -> None:
@@ -73,10 +78,19 @@ class SubprotocolBridge:
         with contextlib.suppress(OSError):
             sink.close()
 
-    def close(self) -> None:
+    async def _shutdown(self) -> None:
         self.server.close()
+        tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            asyncio.run_coroutine_threadsafe(self._shutdown(), self.loop).result(5)
         self.loop.call_soon_threadsafe(self.loop.stop)
         self.thread.join(timeout=2)
+        self.loop.close()
 
 
 def view_url(host: str, port: int) -> str:
@@ -92,7 +106,11 @@ class LiveView:
         logging.getLogger("foxglove").setLevel(logging.WARNING)  # not a line per client and start
         self.context = foxglove.Context()  # its own channels and sinks: no other logging reaches this server
         self.server = foxglove.start_server(name="twohr", host="127.0.0.1", port=0, context=self.context)
-        self.bridge = SubprotocolBridge(host, port, self.server.port)
+        try:
+            self.bridge = SubprotocolBridge(host, port, self.server.port)
+        except TwohrError:
+            self.server.stop()
+            raise
         self.host, self.port = host, self.bridge.port
         self.converter = FoxgloveConverter(jpeg_quality, path_every)
         self.channels: dict[str, object] = {}

@@ -1,5 +1,6 @@
 """The Foxglove live view on real frames: a WebSocket client speaking Foxglove's protocol sees every channel."""
 
+import socket
 import time
 
 import numpy as np
@@ -7,6 +8,7 @@ import pytest
 
 from twohr.bus import free_port
 from twohr.dataset import RGBDSequence
+from twohr.errors import TwohrError
 from twohr.foxglove_live import LiveView
 
 
@@ -54,3 +56,12 @@ def test_live_view_advertises_and_streams_every_channel(dev_sequence, foxglove_l
         assert client.decode("/r1/camera/calibration").K[0] == pytest.approx(seq.camera.fx)
     finally:
         view.close()
+
+
+def test_a_taken_port_is_one_clear_error():
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(TwohrError, match=f"live view: cannot listen on 127.0.0.1:{port}"):
+            LiveView(port=port)
