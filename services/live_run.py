@@ -40,8 +40,8 @@ class PipelineLiveView:
             messages += convert.keypoints(robot, t, tracked)
         if keyframes and pipeline.mask is not None:
             messages += convert.dynamic_mask(robot, t, pipeline.mask)
-        version, points = map_snapshot(pipeline if keyframes else pipeline.tracker)
-        if version != self.map_sent and len(points):
+        version, points = map_snapshot(pipeline if keyframes else pipeline.tracker, since=self.map_sent)
+        if points is not None and len(points):
             self.map_sent = version
             messages += convert.landmarks(robot, t, points)
         self.view.log(messages)

@@ -267,11 +267,14 @@ class KeyframePipeline:
         return self.frames.trajectory(self.mapper.tracker.keyframe_poses)
 
 
-def map_snapshot(schedule: KeyframePipeline | Tracker) -> tuple[int, np.ndarray]:
-    """(version, (N, 3) world points) of a schedule's map; the version changes when the map does (keyframes)."""
+def map_snapshot(schedule: KeyframePipeline | Tracker, since: int = -1) -> tuple[int, np.ndarray | None]:
+    """(version, (N, 3) world points) of a schedule's map; the version changes when the map does (keyframes).
+    The points are None when the version is still ``since``."""
     if isinstance(schedule, KeyframePipeline):
-        return schedule.map_version, schedule.map_points()
-    return len(schedule.keyframes), schedule.map.good_positions()
+        version = schedule.map_version
+        return version, None if version == since else schedule.map_points()
+    version = len(schedule.keyframes)
+    return version, None if version == since else schedule.map.good_positions()
 
 
 def online_trajectory(results: Iterable[TrackResult]) -> Trajectory:

@@ -228,8 +228,8 @@ class TrackerService(Service):
 
     def _publish_map(self, track: SessionTrack, session_id: str, robot_id: str, index: int, stamp: float) -> None:
         """The map points on ``landmarks``, whenever a keyframe has changed the map."""
-        version, points = map_snapshot(track.pipeline or track.tracker)
-        if version == track.map_sent or not len(points):
+        version, points = map_snapshot(track.pipeline or track.tracker, since=track.map_sent)
+        if points is None or not len(points):
             return
         track.map_sent = version
         message = LandmarksMsg(session_id=session_id, robot_id=robot_id, frame_index=index, stamp=stamp)
