@@ -61,3 +61,19 @@ def bus_config(zenoh_router):
     from twohr.bus import BusConfig
 
     return BusConfig(connect=[zenoh_router])
+
+
+@pytest.fixture
+def foxglove_listener():
+    """Opens :class:`twohr.foxglove_live.FoxgloveClient` clients on a URL; closes them after the test."""
+    from twohr.foxglove_live import FoxgloveClient
+
+    opened = []
+
+    def open_listener(url: str, subprotocol: str = "foxglove.websocket.v1") -> FoxgloveClient:
+        opened.append(FoxgloveClient(url, subprotocol))
+        return opened[-1]
+
+    yield open_listener
+    for listener in opened:
+        listener.close()

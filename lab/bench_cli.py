@@ -51,6 +51,15 @@ def _bench(args: argparse.Namespace) -> int:
                       "dropped_percent_median": float(np.median([r["dropped_percent"] for r in bus_runs]))},
         }
         print(json.dumps(report["bus"], indent=2))
+    elif args.view:
+        result = bench.view_cost(sequence, config, frames=args.frames or 60, start=args.start, runs=args.runs,
+                                 progress=not args.quiet)
+        report["view"] = result
+        median = result["cpu_ms_per_frame_median"]
+        print(f"{result['frames']} frames x {result['runs']} runs: CPU {median['without_view']} ms/frame without "
+              f"the live view, {median['with_view']} ms/frame with it and a viewer subscribed: "
+              f"+{result['view_cpu_ms_per_frame']} ms ({result['view_cpu_percent']} %); "
+              f"FPS {result['fps_median']}")
     elif args.ablations:
         rows = bench.ablations(sequence, config, stop=args.frames, progress=not args.quiet)
         rows.append(bench.static_camera_row(sequence))
@@ -95,6 +104,8 @@ def register(sub: argparse._SubParsersAction) -> None:
             action.required = False
     p.add_argument("--runs", type=int, default=3, help="repetitions for throughput (median reported)")
     p.add_argument("--ablations", action="store_true", help="the ablation table instead of throughput")
+    p.add_argument("--view", action="store_true", help="CPU time per frame with the Foxglove live view (twohr run "
+                   "--view, one viewer subscribed to every channel) against the same run without it")
     p.add_argument("--bus", action="store_true", help="frame->pose latency and FPS over Zenoh (twohr up as local "
                    "processes) against in-process, same frames and config (--set overrides go to both)")
     p.add_argument("--gateway", default=None, metavar="URL",

@@ -64,7 +64,12 @@ def _eval(args: argparse.Namespace) -> int:
 
     name, left, right = load_gt_extrinsic(args.gt_extrinsic)
     gt = read_tum(args.gt).transformed(left, right)
-    est = read_tum(args.est)
+    if Path(args.est).suffix == ".mcap":
+        from .recorder.core import recorded_trajectory
+
+        est = recorded_trajectory(args.est, args.robot)
+    else:
+        est = read_tum(args.est)
     try:
         report, arrays = evaluate(gt, est, align=args.align, max_dt=args.max_dt, gt_extrinsic=name)
     except ValueError as exc:
@@ -139,9 +144,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="ATE/RPE of a trajectory against ground truth (TUM/evo conventions)",
                        description="ATE after Umeyama alignment and translational RPE, as evo_ape/evo_rpe "
-                       "compute them. Trajectories are TUM text files.")
+                       "compute them. Trajectories are TUM text files; --est may also be a session recording "
+                       "(.mcap), whose poses are scored.")
     p.add_argument("--gt", required=True, help="ground-truth trajectory (TUM format)")
-    p.add_argument("--est", required=True, help="estimated trajectory (TUM format)")
+    p.add_argument("--est", required=True, help="estimated trajectory (TUM format, or a twohr .mcap recording)")
+    p.add_argument("--robot", default=None, help="with an .mcap holding several robots: whose poses to score")
     p.add_argument("--align", choices=["se3", "sim3", "none"], default="se3", help="alignment (default se3)")
     p.add_argument("--max-dt", type=float, default=0.02, help="association window in seconds (default 0.02)")
     p.add_argument("--gt-extrinsic", default="none",

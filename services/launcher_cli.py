@@ -159,10 +159,12 @@ class System:
 
 def start_system(router: str, data_roots: list[str], recordings: str, host: str, port: int,
                  api_token: str | None = None, timeout: float = 120.0, log_level: str = "INFO",
-                 secure: bool = True, ros2_domain: int = 0) -> System:
+                 secure: bool = True, ros2_domain: int = 0, foxglove_port: int | None = None,
+                 record_descriptors: bool = False) -> System:
     """Start the router, the services and the gateway; returns the :class:`System` once every part is healthy.
     With ``secure`` (the default) the router admits only generated per-role credentials and enforces the
-    access-control list; ``api_token`` (None: no token) guards the HTTP API."""
+    access-control list; ``api_token`` (None: no token) guards the HTTP API. ``foxglove_port`` turns on the
+    gateway's Foxglove live view on ``host``."""
     from twohr.access import Credentials, access_control
     from twohr.bus import RouterSecurity, start_router, wait_for_services
 
@@ -188,10 +190,11 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
     try:
         roots = [arg for root in data_roots for arg in ("--data-root", root)]
         for name in PIPELINE_SERVICES:
-            extra = {"source": roots, "recorder": ["--recordings", recordings]}.get(name, [])
+            extra = {"source": roots, "recorder": ["--recordings", recordings] + (
+                ["--record-descriptors"] if record_descriptors else [])}.get(name, [])
             system.group.start(name, [f"twohr_services.{name}", *extra], env(name))
         gateway_args = ["twohr_services.gateway", "--host", host, "--port", str(port), "--recordings", recordings,
-                        *roots]
+                        *roots, "--foxglove-port", str(foxglove_port or 0)]
         gateway_env = env("gateway") | ({"TWOHR_API_TOKEN": api_token} if api_token else {})
         system.group.start("gateway", gateway_args, gateway_env)
         from twohr.bus import open_session
@@ -226,7 +229,8 @@ def _up(args: argparse.Namespace) -> int:
     try:
         system = start_system(args.router, args.data_root or [str(Path.cwd())], args.recordings, args.host,
                               args.port, token, args.timeout, secure=not args.insecure,
-                              ros2_domain=args.ros2_domain)
+                              ros2_domain=args.ros2_domain, foxglove_port=args.foxglove_port or None,
+                              record_descriptors=args.record_descriptors)
     except (TimeoutError, RuntimeError) as exc:
         raise TwohrError(str(exc)) from None
     print(f"all healthy in {time.monotonic() - t0:.1f} s — gateway http://{args.host}:{args.port} "
@@ -239,6 +243,10 @@ def _up(args: argparse.Namespace) -> int:
             print(f"HTTP API token (generated): {token}   use: -H 'Authorization: Bearer {token}'", flush=True)
         client_config = write_client_config(Path(args.write_client_config), args.router, system.credentials)
         print(f"Zenoh client config for outside clients: {client_config}", flush=True)
+    if args.foxglove_port:
+        from twohr.foxglove_live import view_url
+
+        print(f"live view: {view_url(args.host, args.foxglove_port)}", flush=True)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -335,6 +343,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--expose", action="store_true", help="allow a --router endpoint that other hosts can reach")
     p.add_argument("--insecure", action="store_true", help="no bus authentication, access control or API token "
                    "(local experiments only)")
+    p.add_argument("--foxglove-port", type=int, default=8765,
+                   help="Foxglove WebSocket live view on the gateway host (default 8765; 0 turns it off)")
+    p.add_argument("--record-descriptors", action="store_true",
+                   help="keep the raw keypoint descriptors in every recording (large)")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for every service to be healthy")
     p.set_defaults(func=_up)
 

@@ -12,6 +12,7 @@ Two schedules (``pipeline.mode``):
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -129,10 +130,12 @@ class RunResult:
 
 
 def run_sequence(sequence, config: PipelineConfig, start: int = 0, stop: int | None = None, step: int = 1,
-                 progress: bool = True, front_cache: dict[int, StageOutput] | None = None) -> RunResult:
+                 progress: bool = True, front_cache: dict[int, StageOutput] | None = None,
+                 on_frame: Callable[[Frame, TrackResult, FrameStats, object], None] | None = None) -> RunResult:
     """Run the pipeline over a sequence (``twohr.dataset.RGBDSequence``). Corrupt frames are skipped
     and counted. ``front_cache`` (frame index -> StageOutput) reuses or collects front-end outputs
-    (``every_frame`` mode only)."""
+    (``every_frame`` mode only). ``on_frame(frame, result, stats, pipeline)`` is called after each frame
+    (e.g. a live view)."""
     from tqdm import tqdm
 
     keyframes = config.pipeline.mode == "keyframes"
@@ -160,6 +163,8 @@ def run_sequence(sequence, config: PipelineConfig, start: int = 0, stop: int | N
             result, row = pipeline.process(frame, front)
         results.append(result)
         stats.append(row)
+        if on_frame is not None:
+            on_frame(frame, result, row, pipeline)
         bar.set_postfix(status=row.status, kept=row.kept, inliers=row.inliers, refresh=False)
         bar.update(1)
     bar.update(bar.total - bar.n)

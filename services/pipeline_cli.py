@@ -24,10 +24,10 @@ def write_run(out: Path, sequence, config, result) -> dict:
     import yaml
 
     from twohr.evaluation import evaluate
-    from twohr.plots import plot_trajectories
     from twohr.trajectory import write_tum
 
     from .pipeline import stats_rows
+    from .run_report import keyframe_indices, plot_run_timeline, plot_run_trajectory, write_report_html
     from .tracker.core import TRACKED_STATUSES
 
     out.mkdir(parents=True, exist_ok=True)
@@ -56,6 +56,8 @@ def write_run(out: Path, sequence, config, result) -> dict:
             **{f"{key}_median": round(float(_median([getattr(job, key) for job in log])), 2)
                for key in ("ms_detector", "ms_yolo", "ms_mapping", "lag_frames")},
         }
+    title = f"twohr on {sequence.name}"
+    evaluation = None
     if sequence.has_ground_truth() and len(result.trajectory) >= 3:
         extrinsic = sequence.default_gt_extrinsic()
         for name, gt_extrinsic in (("ate", extrinsic), ("ate_raw_gt", "none")):
@@ -63,9 +65,14 @@ def write_run(out: Path, sequence, config, result) -> dict:
                 report, arrays = evaluate(sequence.ground_truth(gt_extrinsic), traj, gt_extrinsic=gt_extrinsic)
                 summary[f"{name}{label}"] = report.model_dump()
                 if name == "ate" and not label:
-                    plot_trajectories(out / "trajectory.png", arrays["gt"], arrays["est"], arrays["ate"],
-                                      title=f"twohr on {sequence.name}: ATE RMSE {report.ate.rmse:.3f} m")
+                    evaluation, title = arrays, f"{title}: ATE RMSE {report.ate.rmse:.3f} m"
+    keyframes = keyframe_indices(result)
+    if len(result.trajectory):
+        plot_run_trajectory(out / "trajectory.png", result.trajectory, result.stats, title, evaluation, keyframes)
+    if result.stats:
+        plot_run_timeline(out / "timeline.png", result.stats, f"twohr on {sequence.name}: per frame", keyframes)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    write_report_html(out, sequence.name, summary)
     return summary
 
 
@@ -84,8 +91,8 @@ def print_summary(summary: dict, out: Path) -> None:
               f"'{a['gt_extrinsic']}'); raw marker GT {r['ate']['rmse']:.4f} m; online poses "
               f"{summary['ate_online']['ate']['rmse']:.4f} m; RPE 1 s {a['rpe_1s']['rmse']:.4f} m; "
               f"GT coverage {a['gt_coverage']:.1f} %")
-    print(f"outputs in {out}/: trajectory.txt, trajectory_online.txt, stats.csv, summary.json"
-          + (", trajectory.png" if "ate" in summary else ""))
+    print(f"outputs in {out}/: report.html, trajectory.png, timeline.png, trajectory.txt, trajectory_online.txt, "
+          "stats.csv, summary.json, config.yaml")
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -93,8 +100,21 @@ def _run(args: argparse.Namespace) -> int:
 
     config, sequence = _load(args)
     out = Path(args.out or f"runs/{sequence.name}")
-    result = run_sequence(sequence, config, start=args.start, stop=None if args.frames is None else
-                          args.start + args.frames * args.step, step=args.step, progress=not args.quiet)
+    view = None
+    if getattr(args, "view", False):
+        from twohr.foxglove_live import view_url
+
+        from .live_run import PipelineLiveView
+
+        view = PipelineLiveView(sequence, args.view_host, args.view_port)
+        print(f"live view: {view_url(args.view_host, view.view.port)}", flush=True)
+    try:
+        result = run_sequence(sequence, config, start=args.start, stop=None if args.frames is None else
+                              args.start + args.frames * args.step, step=args.step, progress=not args.quiet,
+                              on_frame=view)
+    finally:
+        if view is not None:
+            view.close()
     summary = write_run(out, sequence, config, result)
     print_summary(summary, out)
     return 0
@@ -126,6 +146,13 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def _add_view_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--view", action="store_true", help="stream the run live to Foxglove (a Foxglove WebSocket "
+                   "server: image, keypoints, mask, pose, path, map points, calibration, tf)")
+    p.add_argument("--view-host", default="127.0.0.1", help="with --view: interface to listen on")
+    p.add_argument("--view-port", type=int, default=8765, help="with --view: port (default 8765; 0 = any free)")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run the full pipeline on a sequence; writes trajectory, stats and evaluation",
                        description="The whole pipeline in one process. By default (pipeline.mode=keyframes) every "
@@ -135,6 +162,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "the TUM trajectory (camera-to-world), per-frame stats and, with ground truth, the ATE "
                        "report and plot.")
     _add_run_options(p)
+    _add_view_options(p)
     p.set_defaults(func=_run)
 
     p = sub.add_parser("demo", help="the main job end to end on the dev sequence, with a printed result")

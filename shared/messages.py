@@ -25,6 +25,8 @@ from pydantic import BaseModel, Field, ValidationError
 from .config import PipelineConfig
 from .dataset import CameraIntrinsics
 from .errors import TwohrError
+from .geometry import make_pose, quat_to_rot
+from .trajectory import Trajectory
 
 MAGIC = b"2HR"
 WIRE_VERSION = 1
@@ -120,6 +122,13 @@ class PoseMsg(Message):
     elapsed_ms: dict[str, float] = Field(default_factory=dict)
 
 
+class LandmarksMsg(Message):
+    """The tracker's map points in world coordinates, published at keyframes: ``points`` (N, 3) float32."""
+
+    schema_name: ClassVar[str] = "twohr.Landmarks"
+    required_arrays: ClassVar[tuple[str, ...]] = ("points",)
+
+
 class StatusMsg(Message):
     """Session lifecycle and service health: ``state`` is started, running, finished, stopped or error."""
 
@@ -139,12 +148,15 @@ class ControlMsg(Message):
     rate: float = Field(0.0, ge=0, description="playback speed: 1 = real time, 0 = as fast as the pipeline keeps up")
     max_frames: int | None = Field(None, ge=1)
     record: bool = Field(True, description="write the session to MCAP")
+    record_descriptors: bool = Field(False, description="also record the raw keypoint descriptors (large)")
+    record_frames: bool = Field(False, description="also record the raw RGB-D frames verbatim, for exact replay")
     config: PipelineConfig = Field(default_factory=PipelineConfig)
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.schema_name: cls
-    for cls in (FrameMsg, KeypointsMsg, DynamicsMsg, MatchesMsg, MatchRequestMsg, PoseMsg, StatusMsg, ControlMsg)
+    for cls in (FrameMsg, KeypointsMsg, DynamicsMsg, MatchesMsg, MatchRequestMsg, PoseMsg, LandmarksMsg, StatusMsg,
+                ControlMsg)
 }
 
 
@@ -256,3 +268,10 @@ def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None
     Raises :class:`MessageError` if anything is off."""
     message, parts = split(payload, expect)
     return message, {spec.name: _decode_array(spec, blob) for spec, blob in parts if only is None or spec.name in only}
+
+
+def pose_trajectory(poses: list[PoseMsg]) -> Trajectory:
+    """Pose messages as a camera-to-world trajectory, ordered by frame index."""
+    ordered = sorted(poses, key=lambda p: p.frame_index)
+    matrices = [make_pose(quat_to_rot(np.array(p.orientation)), p.position) for p in ordered]
+    return Trajectory(np.array([p.stamp for p in ordered]), np.array(matrices).reshape(-1, 4, 4))

@@ -99,10 +99,10 @@ def test_post_session_streams_every_pose_and_matches_twohr_run(system, dev_seque
 
     (tmp_path / "rec.mcap").write_bytes(recording.content)
     counts = topic_counts(tmp_path / "rec.mcap")
-    for stream in ("frames", "keypoints", "dynamics", "pose"):
+    for stream in ("keypoints", "dynamics", "pose"):
         assert counts[f"/twohr/robot_a/{stream}"] == FRAMES, (stream, counts)
     assert counts["/twohr/robot_a/matches"] >= FRAMES - 1
-    assert counts["/robot_a/camera/rgb"] == FRAMES and counts["/tf"] == FRAMES
+    assert counts["/robot_a/camera/image"] == FRAMES and counts["/tf"] == FRAMES
 
 
 def test_bad_requests_get_clear_4xx(system, dev_sequence):
@@ -214,6 +214,6 @@ def test_camera_rate_schedule_over_the_bus(system, dev_sequence, tmp_path):
     path = tmp_path / "camera_rate.mcap"
     path.write_bytes(recording.content)
     counts = topic_counts(path)
-    assert counts["/twohr/robot_k/frames"] == frames and counts["/twohr/robot_k/pose"] == len(indices), counts
+    assert counts["/robot_k/camera/image"] == frames and counts["/twohr/robot_k/pose"] == len(indices), counts
     # the detector ran on the keyframes the tracker asked for, not on every frame
     assert 1 <= counts.get("/twohr/robot_k/keypoints", 0) < frames / 2, counts

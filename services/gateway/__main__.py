@@ -18,6 +18,8 @@ parser.add_argument("--recordings", default="recordings", help="folder the recor
 parser.add_argument("--api-token", default=None, help="require 'Authorization: Bearer TOKEN' on /sessions "
                     "(default $TWOHR_API_TOKEN)")
 parser.add_argument("--api-token-file", default=None, help="read the token from this file (as compose does)")
+parser.add_argument("--foxglove-port", type=int, default=8765,
+                    help="port of the Foxglove WebSocket live view on --host (default 8765; 0 turns it off)")
 args = parser.parse_args()
 settings = GatewaySettings(
     data_roots=[Path(r) for r in (args.data_root or ["data"])],
@@ -25,5 +27,7 @@ settings = GatewaySettings(
     **({"api_token": Path(args.api_token_file).read_text().strip()} if args.api_token_file else
        {"api_token": args.api_token} if args.api_token else {}),
     bus=BusConfig(connect=[args.router]) if args.router else BusConfig(),
+    foxglove_host=args.host,
+    foxglove_port=args.foxglove_port or None,
 )
 uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")

@@ -41,6 +41,8 @@ from twohr.paths import resolve_under_roots
 from twohr.service import declare_publisher
 from twohr.trajectory import tum_text
 
+from .live import BusLiveView
+from .page import mount_page
 from .sessions import ACTIVE, PoseOut, Session, SessionInfo, SessionRequest, SessionTable
 
 log = logging.getLogger("twohr.gateway")
@@ -79,6 +81,8 @@ class GatewaySettings(BaseModel):
     stall_timeout: float = Field(45.0, gt=0, description="a running session with no pose for this long fails")
     keep_ended: int = Field(200, ge=1, description="ended sessions kept in the table (the oldest are forgotten)")
     max_request_bytes: int = Field(256 * 1024, ge=1024, description="larger request bodies get 413")
+    foxglove_host: str = Field("127.0.0.1", description="interface of the Foxglove live view")
+    foxglove_port: int | None = Field(None, ge=0, le=65535, description="Foxglove live view port; None = off")
 
 
 def validate_models(config: PipelineConfig) -> None:
@@ -137,7 +141,8 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         req = session.request
         control = ControlMsg(session_id=session.id, robot_id=req.robot_id, frame_index=-1, stamp=time.time(),
                              command=command, sequence=str(session.folder), rate=req.rate,
-                             max_frames=req.max_frames, record=req.record, config=config or PipelineConfig())
+                             max_frames=req.max_frames, record=req.record, record_descriptors=req.record_descriptors,
+                             record_frames=req.record_frames, config=config or PipelineConfig())
         key = keys.key(req.robot_id, keys.CONTROL)
         publishers = bus_state.setdefault("publishers", {})
         if key not in publishers:
@@ -171,12 +176,15 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         subs = [zsession.declare_subscriber(keys.all_robots("pose"), on_pose),
                 zsession.declare_subscriber(keys.all_robots("status"), decoded(StatusMsg, on_status)),
                 zsession.liveliness().declare_subscriber(f"{keys.ALIVE_PREFIX}/*", on_liveliness, history=True)]
+        live = BusLiveView(zsession, settings.foxglove_host, settings.foxglove_port) if settings.foxglove_port else None
         stop = threading.Event()
         thread = threading.Thread(target=monitor, args=(stop,), daemon=True)
         thread.start()
         yield
         stop.set()
         thread.join(timeout=2)
+        if live is not None:
+            live.close()
         for sub in subs:
             sub.undeclare()
         zsession.close()
@@ -184,6 +192,8 @@ def create_app(settings: GatewaySettings) -> FastAPI:
     app = FastAPI(title="twohr gateway", version="1", lifespan=lifespan,
                   description="Start, follow and stop twohr SLAM sessions. Poses stream on Zenoh at "
                   "twohr/<robot>/pose.")
+
+    mount_page(app, settings.foxglove_port)
 
     def require_token(request: Request) -> None:
         if settings.api_token is None:

@@ -28,6 +28,8 @@ class SessionRequest(BaseModel):
     robot_id: str = Field("robot1", pattern=ID_PATTERN)
     rate: float = Field(0.0, ge=0, le=100, description="1 = real time, 0 = as fast as the pipeline keeps up")
     record: bool = Field(True, description="write every stream to an MCAP file")
+    record_descriptors: bool = Field(False, description="keep the raw keypoint descriptors in the recording (large)")
+    record_frames: bool = Field(False, description="keep the raw RGB-D frames in the recording, for exact replay")
     max_frames: int | None = Field(None, ge=1, le=MAX_FRAMES, description="stop after this many frames")
     config: dict[str, Any] = Field(
         default_factory=dict, description="pipeline config overrides, nested or dotted: {'detector.max_keypoints': 800}"

@@ -1,9 +1,15 @@
-"""The recorder core: one MCAP file per session with every stream. Bytes in, file out.
+"""The recorder core: one MCAP file per session, lean enough to keep (about 50 kB per frame). Bytes in, file out.
 
-Every twohr message is stored verbatim on ``/twohr/<robot>/<stream>`` (our own schema,
-message encoding ``twohr``: exact replay). Alongside, Foxglove well-known channels make the
-file viewable as is: CompressedImage (rgb, depth), ImageAnnotations (keypoints, boxes),
-PoseInFrame and FrameTransform (``world`` -> ``<robot>/camera``).
+Two kinds of channels:
+
+* **Foxglove channels** (foxglove-sdk's typed schemas, protobuf; :mod:`twohr.foxglove_convert`): the colour
+  image once, as JPEG (``CompressedImage``), the ``CameraCalibration``, keypoint and dynamic-mask annotations
+  (``ImageAnnotations``), the pose (``PoseInFrame``), the path (``PosesInFrame``), the map points
+  (``PointCloud``) and ``/tf`` (``FrameTransforms``): the file opens in Foxglove as it is.
+* **twohr channels** ``/twohr/<robot>/<stream>`` (our own schema, message encoding ``twohr``): every message
+  verbatim except the two large ones. Raw RGB-D frames are left out (the image is on the Foxglove channel)
+  unless ``record_frames``; keypoint descriptors are emptied (shape (N, 0)) unless ``record_descriptors``.
+  The poses are always there, so ``twohr eval --est FILE.mcap`` scores a recording.
 
 Chunks are small and flushed to disk as they close, so a recorder that is killed leaves a
 file whose written chunks are still readable (``read_messages`` recovers them).
@@ -15,22 +21,37 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
 from mcap.reader import NonSeekingReader
 from mcap.writer import CompressionType, Writer
+from pydantic import BaseModel, Field
 
 from twohr import keys
-from twohr.messages import MESSAGE_TYPES, DynamicsMsg, FrameMsg, KeypointsMsg, PoseMsg, decode, split
-
-from . import foxglove
+from twohr.errors import TwohrError
+from twohr.foxglove_convert import FoxgloveConverter
+from twohr.messages import FrameMsg, KeypointsMsg, PoseMsg, decode, encode, pose_trajectory, split
+from twohr.trajectory import Trajectory
 
 WIRE_ENCODING = "twohr"
+
+
+class RecordingOptions(BaseModel):
+    """What a recording keeps beyond the standard channels."""
+
+    record_descriptors: bool = Field(False, description="keep the raw keypoint descriptors (about 0.5 MB/keyframe)")
+    record_frames: bool = Field(False, description="keep the raw RGB-D frames verbatim (about 180 kB/frame)")
+    jpeg_quality: int = Field(80, ge=10, le=100, description="JPEG quality of the recorded colour image")
+    path_every: int = Field(10, ge=1, description="record the path (all poses so far) with every n-th pose")
 
 
 class SessionRecorder:
     """Writes one session's messages into ``path`` (an ``.mcap`` file)."""
 
-    def __init__(self, path: str | Path, chunk_size: int = 256 * 1024) -> None:
+    def __init__(self, path: str | Path, options: RecordingOptions | None = None,
+                 chunk_size: int = 256 * 1024) -> None:
         self.path = Path(path)
+        self.options = options or RecordingOptions()
+        self.converter = FoxgloveConverter(self.options.jpeg_quality, self.options.path_every)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.file = open(self.path, "wb")  # noqa: SIM115 (closed in close())
         self.writer = Writer(self.file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
@@ -52,39 +73,40 @@ class SessionRecorder:
         self.writer.add_message(channel, log_time=log_time, data=data, publish_time=log_time,
                                 sequence=self.counts[topic])
 
-    def _foxglove(self, topic: str, schema: str, data: bytes, log_time: int) -> None:
-        channel = self._channel(topic, schema, "jsonschema", foxglove.schema_bytes(schema), "json")
-        self._add(channel, topic, data, log_time)
+    def _foxglove(self, topic: str, message, log_time: int) -> None:
+        schema = message.get_schema()
+        channel = self._channel(topic, schema.name, schema.encoding, schema.data, schema.encoding)
+        self._add(channel, topic, message.encode(), log_time)
+
+    def _verbatim(self, message, payload: bytes) -> bytes | None:
+        """The twohr payload to keep for a bus message (None: leave it out)."""
+        if isinstance(message, FrameMsg) and not self.options.record_frames:
+            return None
+        if isinstance(message, KeypointsMsg) and not self.options.record_descriptors:
+            _, arrays = decode(payload)
+            arrays["descriptors"] = np.zeros((len(arrays["xy"]), 0), np.float32)
+            return encode(message, arrays)
+        return payload
 
     def write(self, key: str, payload: bytes, log_time_ns: int | None = None) -> None:
         """Record one bus message; raises ``MessageError`` (and records nothing) if it is malformed."""
         robot, stream = keys.parse(key)
-        message, parts = split(payload)
+        message, _ = split(payload)
         log_time = log_time_ns if log_time_ns is not None else time.time_ns()
-        cls = type(message)
-        topic = f"/twohr/{robot}/{stream}"
-        schema = json.dumps(cls.model_json_schema()).encode()
-        self._add(self._channel(topic, cls.schema_name, "jsonschema", schema, WIRE_ENCODING), topic, payload, log_time)
-        t = message.stamp
-        if isinstance(message, FrameMsg):
-            for spec, blob in parts:
-                if spec.encoding in ("jpeg", "png"):
-                    self._foxglove(f"/{robot}/camera/{spec.name}", "foxglove.CompressedImage",
-                                   foxglove.compressed_image(t, f"{robot}/camera", blob, spec.encoding), log_time)
-        elif isinstance(message, KeypointsMsg):
-            _, arrays = decode(payload)
-            self._foxglove(f"/{robot}/camera/keypoints", "foxglove.ImageAnnotations",
-                           foxglove.keypoint_annotations(t, arrays["xy"]), log_time)
-        elif isinstance(message, DynamicsMsg):
-            _, arrays = decode(payload)
-            self._foxglove(f"/{robot}/camera/dynamics", "foxglove.ImageAnnotations",
-                           foxglove.box_annotations(t, arrays["boxes"]), log_time)
-        elif isinstance(message, PoseMsg):
-            self._foxglove(f"/{robot}/pose", "foxglove.PoseInFrame",
-                           foxglove.pose_in_frame(t, message.position, message.orientation), log_time)
-            self._foxglove("/tf", "foxglove.FrameTransform",
-                           foxglove.frame_transform(t, "world", f"{robot}/camera", message.position,
-                                                    message.orientation), log_time)
+        try:
+            converted = self.converter.convert(payload)
+        except ValueError:  # a corrupt image inside a well-formed message: keep the rest
+            converted = []
+            self.counts["unconvertible"] = self.counts.get("unconvertible", 0) + 1
+        kept = self._verbatim(message, payload)
+        if kept is not None:
+            cls = type(message)
+            topic = f"/twohr/{robot}/{stream}"
+            schema = json.dumps(cls.model_json_schema()).encode()
+            self._add(self._channel(topic, cls.schema_name, "jsonschema", schema, WIRE_ENCODING), topic, kept,
+                      log_time)
+        for topic, fox in converted:
+            self._foxglove(topic, fox, log_time)
         self.file.flush()
 
     def close(self) -> None:
@@ -116,5 +138,17 @@ def topic_counts(path: str | Path) -> dict[str, int]:
     return counts
 
 
-def known_schema(name: str) -> bool:
-    return name in MESSAGE_TYPES or name in foxglove.SCHEMAS
+def recorded_trajectory(path: str | Path, robot_id: str | None = None) -> Trajectory:
+    """The poses of a recording (its ``twohr.Pose`` messages) as a camera-to-world trajectory, ordered by frame.
+    ``robot_id`` picks one robot where a file holds several."""
+    poses: dict[str, list[PoseMsg]] = {}
+    for topic, data, _ in read_messages(path):
+        if topic.startswith("/twohr/") and topic.endswith("/pose"):
+            pose, _ = decode(data, PoseMsg)
+            poses.setdefault(pose.robot_id, []).append(pose)
+    if robot_id is not None:
+        poses = {robot_id: poses.get(robot_id, [])}
+    if len(poses) != 1 or not next(iter(poses.values())):
+        found = ", ".join(sorted(poses)) or "none"
+        raise TwohrError(f"{path}: need the poses of exactly one robot (found: {found}); pick one with --robot")
+    return pose_trajectory(next(iter(poses.values())))

@@ -20,16 +20,18 @@ from twohr.mcapfile import recover
 from twohr.messages import ControlMsg, decode, split
 from twohr.service import Service
 
-from .core import SessionRecorder
+from .core import RecordingOptions, SessionRecorder
 
 
 class RecorderService(Service):
     name = "recorder"
 
     def __init__(self, bus: BusConfig | None = None, recordings: Path = Path("recordings"),
-                 grace: float = 1.0, max_session_bytes: int = 4 << 30) -> None:
+                 grace: float = 1.0, options: RecordingOptions | None = None, max_session_bytes: int = 4 << 30
+                 ) -> None:
         super().__init__(bus, queue_size=256, policy="backpressure")
         self.recordings = recordings
+        self.options = options or RecordingOptions()
         self.grace = grace
         self.max_session_bytes = max_session_bytes
         self.open: dict[str, SessionRecorder] = {}
@@ -51,7 +53,11 @@ class RecorderService(Service):
             control, _ = decode(payload, ControlMsg)
             if control.command == "start" and control.record:
                 self._close(control.session_id)
-                self.open[control.session_id] = SessionRecorder(self.recordings / f"{control.session_id}.mcap")
+                options = self.options.model_copy(update={
+                    "record_descriptors": self.options.record_descriptors or control.record_descriptors,
+                    "record_frames": self.options.record_frames or control.record_frames})
+                self.open[control.session_id] = SessionRecorder(self.recordings / f"{control.session_id}.mcap",
+                                                                options)
             recorder = self.open.get(control.session_id)
             if recorder is not None:
                 recorder.write(key, payload, now)
@@ -96,12 +102,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--router", default=None, help="Zenoh router endpoint (default $TWOHR_ZENOH_ROUTER)")
     parser.add_argument("--recordings", default="recordings", help="folder for the MCAP files")
     parser.add_argument("--max-session-gb", type=float, default=4.0, help="a session's recording ends at this size")
+    parser.add_argument("--record-descriptors", action="store_true",
+                        help="keep the raw keypoint descriptors in every recording (large; a session can ask too)")
+    parser.add_argument("--record-frames", action="store_true",
+                        help="keep the raw RGB-D frames verbatim in every recording, for exact replay (large)")
     args = parser.parse_args(argv)
     recordings = Path(args.recordings)
     if problem := unwritable(recordings):
         parser.exit(2, f"recorder: error: {problem}\n")
     bus = BusConfig(connect=[args.router]) if args.router else BusConfig()
-    RecorderService(bus, recordings, max_session_bytes=int(args.max_session_gb * (1 << 30))).run_forever()
+    options = RecordingOptions(record_descriptors=args.record_descriptors, record_frames=args.record_frames)
+    RecorderService(bus, recordings, options=options,
+                    max_session_bytes=int(args.max_session_gb * (1 << 30))).run_forever()
 
 
 def unwritable(folder: Path) -> str | None:

@@ -153,6 +153,9 @@ class KeyframePipeline:
         self._yolo_requested = -(10**9)
         self._last_index = 0
         self._job_index = 0  # the frame of the latest keyframe job
+        self.map_version = 0
+        """counts the map updates taken; a live view sends the map points again when it changes"""
+        self.mask: np.ndarray | None = None
 
     def _dynamic_mask(self, job: tuple[Frame, object]) -> tuple[int, np.ndarray, int]:
         """YOLO worker: the dynamic mask of one frame (the frames after it reuse it, see :meth:`_mask`)."""
@@ -173,6 +176,7 @@ class KeyframePipeline:
         if update is None:
             return
         self.frames.apply(update)
+        self.map_version += 1
         t = update.timings
         self.keyframe_log.append(KeyframeLog(update.frame_index, update.result.status, update.keyframe_id >= 0,
                                              int(t["keypoints"]), int(t["kept"]), t["detector"], t["yolo"],
@@ -211,6 +215,7 @@ class KeyframePipeline:
         self._take(update, frame.index)
         t_mask = time.perf_counter()
         mask, mask_age, objects = self._mask(frame, source)
+        self.mask = mask  # the dynamic mask this frame was tracked with, for live views
         ms_yolo = (time.perf_counter() - t_mask) * 1000
         gray = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
         result = self.frames.track(frame.stamp, gray, frame.depth, mask)
@@ -242,6 +247,10 @@ class KeyframePipeline:
         )
         return result, stats
 
+    def map_points(self) -> np.ndarray:
+        """(N, 3) world positions of the map's usable landmarks, as of the latest map update taken."""
+        return self.frames.landmarks[self.frames.usable]
+
     def finish(self) -> None:
         """Let the mapping worker finish its job (its bundle adjustment refines the trajectory), then stop."""
         self._take(self._collect(self.mapping, wait=True), self._last_index)
@@ -256,6 +265,16 @@ class KeyframePipeline:
     def trajectory(self) -> Trajectory:
         """Every frame's pose, re-attached to its keyframe as bundle adjustment left it."""
         return self.frames.trajectory(self.mapper.tracker.keyframe_poses)
+
+
+def map_snapshot(schedule: KeyframePipeline | Tracker, since: int = -1) -> tuple[int, np.ndarray | None]:
+    """(version, (N, 3) world points) of a schedule's map; the version changes when the map does (keyframes).
+    The points are None when the version is still ``since``."""
+    if isinstance(schedule, KeyframePipeline):
+        version = schedule.map_version
+        return version, None if version == since else schedule.map_points()
+    version = len(schedule.keyframes)
+    return version, None if version == since else schedule.map.good_positions()
 
 
 def online_trajectory(results: Iterable[TrackResult]) -> Trajectory:

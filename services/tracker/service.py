@@ -25,6 +25,7 @@ from twohr.messages import (
     DynamicsMsg,
     FrameMsg,
     KeypointsMsg,
+    LandmarksMsg,
     MatchesMsg,
     MatchRequestMsg,
     MessageError,
@@ -35,7 +36,7 @@ from twohr.messages import (
 from twohr.service import Service, serve
 
 from .core import Tracker
-from .keyframes import KeyframePipeline, Stages
+from .keyframes import KeyframePipeline, Stages, map_snapshot
 
 
 class RemoteStage:
@@ -105,6 +106,8 @@ class SessionTrack:
     last_index: int = -1
     pipeline: KeyframePipeline | None = None  # the keyframes schedule
     dropped: int = 0  # frames dropped because newer ones were waiting
+    map_sent: int = -1  # the map version last published on ``landmarks``
+
 
 
 class TrackerService(Service):
@@ -211,6 +214,7 @@ class TrackerService(Service):
         result, stats = track.pipeline.process(frame, source=payload)
         self._publish_pose(header.session_id, header.robot_id, header.frame_index, header.stamp, result,
                            stats.keypoints, header.sent_at, {"tracker": stats.ms_total})
+        self._publish_map(track, header.session_id, header.robot_id, header.frame_index, header.stamp)
 
     def _track_frame(self, track: SessionTrack, session_id: str, robot_id: str, index: int,
                      entry: PendingFrame) -> None:
@@ -220,6 +224,16 @@ class TrackerService(Service):
         result = track.tracker.track(entry.stamp, kept, entry.depth)
         elapsed = {**entry.elapsed, "tracker": (time.perf_counter() - t0) * 1000}
         self._publish_pose(session_id, robot_id, index, entry.stamp, result, len(kept), entry.sent_at, elapsed)
+        self._publish_map(track, session_id, robot_id, index, entry.stamp)
+
+    def _publish_map(self, track: SessionTrack, session_id: str, robot_id: str, index: int, stamp: float) -> None:
+        """The map points on ``landmarks``, whenever a keyframe has changed the map."""
+        version, points = map_snapshot(track.pipeline or track.tracker, since=track.map_sent)
+        if points is None or not len(points):
+            return
+        track.map_sent = version
+        message = LandmarksMsg(session_id=session_id, robot_id=robot_id, frame_index=index, stamp=stamp)
+        self.publish(keys.key(robot_id, "landmarks"), encode(message, {"points": points.astype(np.float32)}))
 
     def _publish_pose(self, session_id: str, robot_id: str, index: int, stamp: float, result, num_keypoints: int,
                       sent_at: float, elapsed: dict[str, float]) -> None:

@@ -1,0 +1,179 @@
+// The session page: lists, starts and stops sessions through the gateway's HTTP API, and draws each trajectory.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+const rows = new Map();       // session id -> its table row
+const trajectories = new Map(); // session id -> {frames, points}
+
+function headers(json) {
+  const h = json ? { "content-type": "application/json" } : {};
+  const token = $("token").value.trim();
+  if (token) h.authorization = "Bearer " + token;
+  return h;
+}
+
+function say(text, isError) {
+  $("message").textContent = text;
+  $("message").className = isError ? "error" : "";
+}
+
+async function api(method, path, body) {
+  const response = await fetch(path, { method, headers: headers(body !== undefined),
+                                       body: body === undefined ? undefined : JSON.stringify(body) });
+  if (!response.ok) {
+    let detail = response.statusText;
+    try { detail = (await response.json()).detail || detail; } catch (e) { /* not JSON */ }
+    throw new Error(`${response.status}: ${detail}`);
+  }
+  return response;
+}
+
+async function startSession(event) {
+  event.preventDefault();
+  const body = { sequence: $("sequence").value.trim(), robot_id: $("robot").value.trim() || "robot1",
+                 rate: Number($("rate").value || 0), record: $("record").checked };
+  if ($("max-frames").value) body.max_frames = Number($("max-frames").value);
+  try {
+    const info = await (await api("POST", "/sessions", body)).json();
+    say(`started session ${info.id}`);
+    await refresh();
+  } catch (e) { say(`could not start: ${e.message}`, true); }
+}
+
+async function stopSession(id) {
+  try { await api("DELETE", `/sessions/${id}`); say(`stopped session ${id}`); await refresh(); }
+  catch (e) { say(`could not stop: ${e.message}`, true); }
+}
+
+// fetch + blob, so that downloads carry the token too
+async function download(path, filename) {
+  try {
+    const blob = await (await api("GET", path)).blob();
+    const link = document.createElement("a");
+    link.href = URL.createObjectURL(blob);
+    link.download = filename;
+    document.body.appendChild(link);
+    link.click();
+    link.remove();
+    setTimeout(() => URL.revokeObjectURL(link.href), 10000);
+  } catch (e) { say(`download failed: ${e.message}`, true); }
+}
+
+function parseTum(text) {
+  return text.split("\n").filter((l) => l && !l.startsWith("#"))
+    .map((l) => l.trim().split(/\s+/).map(Number)).filter((v) => v.length >= 4);
+}
+
+// top view: camera x to the right, camera z (forward) up
+function drawTrajectory(svg, points) {
+  const w = 160, h = 100, pad = 6;
+  svg.innerHTML = "";
+  if (points.length < 2) return;
+  const xs = points.map((p) => p[1]), zs = points.map((p) => p[3]);
+  const minX = Math.min(...xs), maxX = Math.max(...xs), minZ = Math.min(...zs), maxZ = Math.max(...zs);
+  const scale = Math.min((w - 2 * pad) / Math.max(maxX - minX, 1e-3), (h - 2 * pad) / Math.max(maxZ - minZ, 1e-3));
+  const px = (p) => [pad + (p[1] - minX) * scale, h - pad - (p[3] - minZ) * scale];
+  const ns = "http://www.w3.org/2000/svg";
+  const line = document.createElementNS(ns, "polyline");
+  line.setAttribute("points", points.map((p) => px(p).map((v) => v.toFixed(1)).join(",")).join(" "));
+  line.setAttribute("fill", "none");
+  line.setAttribute("stroke", "#2f6fde");
+  line.setAttribute("stroke-width", "1.5");
+  svg.appendChild(line);
+  for (const [p, colour] of [[points[0], "#1e8449"], [points[points.length - 1], "#c0392b"]]) {
+    const dot = document.createElementNS(ns, "circle");
+    const [cx, cy] = px(p);
+    dot.setAttribute("cx", cx); dot.setAttribute("cy", cy); dot.setAttribute("r", 3); dot.setAttribute("fill", colour);
+    svg.appendChild(dot);
+  }
+}
+
+function cell(row, name, numeric) {
+  const td = document.createElement("td");
+  td.className = name + (numeric ? " num" : "");
+  row.appendChild(td);
+  return td;
+}
+
+function newRow(info) {
+  const row = document.createElement("tr");
+  row.dataset.session = info.id;
+  for (const [name, numeric] of [["id"], ["robot"], ["sequence"], ["state"], ["frames", 1], ["fps", 1],
+                                 ["tracking"], ["ate", 1]]) cell(row, name, numeric);
+  const svg = document.createElementNS("http://www.w3.org/2000/svg", "svg");
+  svg.setAttribute("class", "traj");
+  svg.setAttribute("width", "160");
+  svg.setAttribute("height", "100");
+  cell(row, "trajectory").appendChild(svg);
+  const actions = cell(row, "actions");
+  const stop = document.createElement("button");
+  stop.textContent = "Stop";
+  stop.className = "stop";
+  stop.addEventListener("click", () => stopSession(info.id));
+  const traj = document.createElement("button");
+  traj.textContent = "Trajectory";
+  traj.className = "download-trajectory";
+  traj.addEventListener("click", () => download(`/sessions/${info.id}/trajectory`, `${info.id}_trajectory.txt`));
+  const rec = document.createElement("button");
+  rec.textContent = "Recording";
+  rec.className = "download-recording";
+  rec.addEventListener("click", () => download(`/sessions/${info.id}/recording`, `${info.id}.mcap`));
+  actions.append(stop, traj, rec);
+  $("sessions").tBodies[0].prepend(row);
+  return row;
+}
+
+async function updateTrajectory(info, row) {
+  const known = trajectories.get(info.id);
+  if (known && known.frames === info.frames) return;
+  const text = await (await api("GET", `/sessions/${info.id}/trajectory`)).text();
+  const points = parseTum(text);
+  trajectories.set(info.id, { frames: info.frames, points });
+  drawTrajectory(row.querySelector("svg"), points);
+}
+
+function render(info) {
+  const row = rows.get(info.id) || newRow(info);
+  rows.set(info.id, row);
+  const q = (name) => row.querySelector("td." + name);
+  q("id").textContent = info.id;
+  q("robot").textContent = info.robot_id;
+  q("sequence").textContent = info.sequence;
+  q("state").textContent = info.state;
+  q("state").className = "state state-" + info.state;
+  // poses received; once the source is done, out of the frames it sent
+  q("frames").textContent = info.frames_sent === null ? String(info.frames) : `${info.frames} / ${info.frames_sent}`;
+  q("fps").textContent = info.fps.toFixed(1);
+  q("tracking").textContent = info.latest_pose ? info.latest_pose.status : "–";
+  q("ate").textContent = info.ate_rmse === null ? "–" : `${info.ate_rmse.toFixed(3)} m`;
+  const active = info.state === "starting" || info.state === "running";
+  row.querySelector("button.stop").classList.toggle("hidden", !active);
+  row.querySelector("button.download-recording").classList.toggle("hidden", !info.recording || active);
+  return updateTrajectory(info, row);
+}
+
+async function refresh() {
+  try {
+    const sessions = await (await api("GET", "/sessions")).json();
+    $("empty").classList.toggle("hidden", sessions.length > 0);
+    await Promise.all(sessions.map(render));
+  } catch (e) { say(`cannot list sessions: ${e.message}`, true); }
+}
+
+async function showLiveLink() {
+  try {
+    const live = await (await fetch("/live")).json();
+    if (live.foxglove_port) {
+      const link = $("foxglove-link");
+      const ws = `ws://${location.hostname}:${live.foxglove_port}`;
+      link.href = `https://app.foxglove.dev/?ds=foxglove-websocket&ds.url=${ws}`;
+      link.title = ws;
+      link.classList.remove("hidden");
+    }
+  } catch (e) { /* no live view */ }
+}
+
+$("start-form").addEventListener("submit", startSession);
+showLiveLink();
+refresh();
+setInterval(refresh, 1000);

@@ -1,0 +1,50 @@
+"""``twohr run --view``: the in-process pipeline on a Foxglove live view, as the gateway shows a session.
+
+Composition root, like :mod:`twohr_services.pipeline`: it reads the pipeline's per-frame results and hands
+them to the shared converter (:mod:`twohr.foxglove_convert`) and server (:class:`twohr.foxglove_live.LiveView`).
+"""
+
+from __future__ import annotations
+
+from twohr.dataset import Frame, RGBDSequence
+from twohr.foxglove_live import LiveView
+from twohr.geometry import rot_to_quat
+
+from .tracker.core import TrackResult
+from .tracker.keyframes import FrameStats, KeyframePipeline, map_snapshot
+
+
+class PipelineLiveView:
+    """An ``on_frame`` callback for :func:`~twohr_services.pipeline.run_sequence` that streams each frame's image,
+    tracked keypoints, dynamic mask, pose, path and (when a keyframe changed it) the map to a :class:`LiveView`."""
+
+    def __init__(self, sequence: RGBDSequence, host: str = "127.0.0.1", port: int = 8765,
+                 robot_id: str = "run") -> None:
+        self.view = LiveView(host, port, jpeg_quality=None)
+        self.view.advertise(robot_id)
+        self.sequence, self.robot_id = sequence, robot_id
+        self.map_sent = -1
+
+    def __call__(self, frame: Frame, result: TrackResult, stats: FrameStats, pipeline) -> None:
+        convert, robot, t = self.view.converter, self.robot_id, frame.stamp
+        # the colour image's own file, as the source sends it: no encoding on the per-frame path
+        path = self.sequence.records[frame.index].rgb_path
+        image = convert.frame(robot, t, self.sequence.camera, encoded=path.read_bytes(),
+                              encoding="png" if path.suffix.lower() == ".png" else "jpeg")
+        messages = [*image,
+                    *convert.pose(robot, t, result.pose[:3, 3], rot_to_quat(result.pose[:3, :3]))]
+        keyframes = isinstance(pipeline, KeyframePipeline)
+        # the keyframes schedule tracks the map's points by optical flow; every_frame reports its inliers
+        tracked = pipeline.frames.track_xy if keyframes else result.observed_xy
+        if tracked is not None:
+            messages += convert.keypoints(robot, t, tracked)
+        if keyframes and pipeline.mask is not None:
+            messages += convert.dynamic_mask(robot, t, pipeline.mask)
+        version, points = map_snapshot(pipeline if keyframes else pipeline.tracker, since=self.map_sent)
+        if points is not None and len(points):
+            self.map_sent = version
+            messages += convert.landmarks(robot, t, points)
+        self.view.log(messages)
+
+    def close(self) -> None:
+        self.view.close()

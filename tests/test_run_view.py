@@ -1,0 +1,51 @@
+"""`twohr run --view`: the in-process pipeline streams to a Foxglove WebSocket client while it runs."""
+
+import json
+import subprocess
+import sys
+import time
+
+from twohr.bus import free_port
+
+
+def test_twohr_run_view_streams_every_channel(dev_sequence, tmp_path, foxglove_listener):
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "twohr_services.cli", "run", "--sequence", str(dev_sequence),
+                             "--out", str(tmp_path / "run"), "--frames", "90", "--quiet", "--view", "--view-port",
+                             str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("live view: https://app.foxglove.dev/?ds=foxglove-websocket&ds.url=ws://127.0.0.1:"
+                               f"{port}"), line + proc.stderr.read()
+        client = foxglove_listener(f"ws://127.0.0.1:{port}")  # before the models are loaded: no frame is missed
+        out, err = proc.communicate(timeout=600)
+        assert proc.returncode == 0, err
+    finally:
+        proc.kill()
+    time.sleep(0.2)
+    counts = client.counts
+    assert set(client.topics()) == {"/run/camera/image", "/run/camera/calibration", "/run/camera/keypoints",
+                                    "/run/camera/dynamic_mask", "/run/pose", "/run/path", "/run/map", "/tf"}
+    for topic in ("/run/camera/image", "/run/camera/calibration", "/run/pose", "/tf"):
+        assert counts.get(topic) == 90, (topic, counts)
+    assert counts["/run/path"] == 18 and 1 <= counts["/run/map"] < 90, counts
+    assert counts["/run/camera/keypoints"] >= 80 and counts["/run/camera/dynamic_mask"] >= 60, counts
+    assert len(client.decode("/run/path").poses) == 86  # sent with every 5th pose
+    cloud = client.decode("/run/map")
+    assert len(cloud.data) // cloud.point_stride > 100
+    assert "ATE RMSE" in out
+
+
+def test_bench_view_measures_the_live_view_against_the_same_run(dev_sequence, tmp_path):
+    out = tmp_path / "bench"
+    result = subprocess.run([sys.executable, "-m", "twohr_services.cli", "bench", "--view", "--sequence",
+                             str(dev_sequence), "--frames", "20", "--runs", "1", "--quiet", "--out", str(out)],
+                            capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    report = json.loads((out / "bench.json").read_text())["view"]
+    assert report["frames"] == 20 and report["runs"] == 1
+    for label in ("without_view", "with_view"):
+        assert len(report["cpu_ms_per_frame"][label]) == 1 and report["cpu_ms_per_frame"][label][0] > 0
+    received = report["viewer_received_per_run"][0]  # the viewer got every frame's image and pose
+    assert received["/run/camera/image"] == 20 and received["/run/pose"] == 20 and received["/run/map"] >= 1
+    assert "ms/frame with it and a viewer subscribed" in result.stdout
