@@ -7,9 +7,10 @@ then SIGTERM, then SIGKILL after a grace). ``docker-compose.yml`` mirrors the sa
 
 Secure by default: the router listens on loopback unless told otherwise, admits only the users
 ``twohr up`` generated for its own processes (one per role, passwords in a private folder that is
-removed at exit), and enforces each role's access-control list (``twohr.access``). The HTTP API needs
-a bearer token: ``--api-token``, or one generated and printed at start. Outside clients (camera
-drivers, other robots, ROS 2 nodes) join with the client config that ``--write-client-config`` writes.
+removed at exit), and enforces each role's access-control list (``twohr.access``). The HTTP API
+needs a bearer token (``--api-token``) whenever the gateway listens beyond loopback; one is
+generated and printed if none is given. Outside clients (camera drivers, other robots, ROS 2
+nodes) join with the client config that ``--write-client-config`` writes.
 """
 
 from __future__ import annotations
@@ -223,7 +224,8 @@ def _up(args: argparse.Namespace) -> int:
     if not args.insecure and not _loopback(args.router) and not args.expose:
         raise TwohrError(f"--router {args.router} is reachable from other hosts: add --expose to mean it "
                          "(other hosts then join with the --write-client-config file)")
-    token = None if args.insecure else (args.api_token or secrets.token_urlsafe(18))
+    # the gateway on loopback serves only this host's users; anywhere else it needs a token
+    token = args.api_token or (None if args.insecure or _loopback(args.host) else secrets.token_urlsafe(18))
     t0 = time.monotonic()
     print(f"starting router on {args.router} and services {', '.join(PIPELINE_SERVICES)} + gateway …", flush=True)
     try:
@@ -239,7 +241,7 @@ def _up(args: argparse.Namespace) -> int:
         print("WARNING: --insecure: the bus admits anyone who reaches it and the HTTP API has no token",
               file=sys.stderr, flush=True)
     else:
-        if not args.api_token:
+        if token and not args.api_token:
             print(f"HTTP API token (generated): {token}   use: -H 'Authorization: Bearer {token}'", flush=True)
         client_config = write_client_config(Path(args.write_client_config), args.router, system.credentials)
         print(f"Zenoh client config for outside clients: {client_config}", flush=True)
@@ -259,7 +261,10 @@ def _up(args: argparse.Namespace) -> int:
 
 
 def _loopback(endpoint: str) -> bool:
-    host = endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]")
+    """Whether a Zenoh endpoint (``tcp/HOST:PORT``) or a bare host is reachable from this host only."""
+    host = endpoint.split("/", 1)[-1]
+    host = host.rsplit(":", 1)[0] if "/" in endpoint else host
+    host = host.strip("[]")
     return host in ("localhost", "::1") or host.startswith("127.")
 
 
@@ -334,8 +339,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--recordings", default="recordings", help="folder for MCAP recordings")
     p.add_argument("--host", default="127.0.0.1", help="gateway host")
     p.add_argument("--port", type=int, default=8080, help="gateway port")
-    p.add_argument("--api-token", default=None, help="bearer token the HTTP API requires (default: one is "
-                   "generated and printed)")
+    p.add_argument("--api-token", default=None, help="bearer token the HTTP API requires (default: none on a "
+                   "loopback --host; on any other host one is generated and printed)")
     p.add_argument("--write-client-config", default="runs/up/zenoh-client.json5", metavar="FILE",
                    help="where to write the Zenoh client config (router endpoint and credentials) that outside "
                    "clients, camera drivers and ROS 2 nodes use (default: %(default)s, private to you)")

@@ -46,7 +46,8 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
     """Every role's grants; ROS 2 keys are granted in ``ros2_domain`` only."""
     ros2 = ros2_keys(ros2_domain)
     return {
-        "gateway": Grants(publish=_robots("control"), subscribe=_robots("pose", "status"), watch_liveliness=True),
+        # every stream: the session table follows poses and statuses, the live view shows the rest
+        "gateway": Grants(publish=_robots("control"), subscribe=[f"{PREFIX}/*/*"], watch_liveliness=True),
         "source": Grants(publish=_robots("frames", "status"), subscribe=_robots("control", "pose", "camera")),
         "detector": Grants(publish=_robots("keypoints", "status"), subscribe=_robots("control", "frames"),
                            serve=_robots("rpc/detect")),
@@ -54,14 +55,14 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
                        serve=_robots("rpc/dynamics")),
         "matcher": Grants(publish=_robots("matches", "status"), subscribe=_robots("control"),
                           serve=_robots("rpc/match")),
-        "tracker": Grants(publish=_robots("pose", "status", "map"),
+        "tracker": Grants(publish=_robots("pose", "status", "landmarks"),
                           subscribe=_robots("control", "frames", "keypoints", "dynamics"),
                           ask=_robots("rpc/detect", "rpc/dynamics", "rpc/match")),
         "recorder": Grants(publish=_robots("status"), subscribe=[f"{PREFIX}/*/*"]),
-        "ros2": Grants(publish=_robots("camera") + ros2, subscribe=_robots("pose", "map") + ros2),
+        "ros2": Grants(publish=_robots("camera") + ros2, subscribe=_robots("pose", "landmarks") + ros2),
         # what twohr hands to the outside: camera drivers, other robots, viewers, ROS 2 nodes, `twohr health`
         "client": Grants(publish=_robots("camera") + ros2,
-                         subscribe=_robots("pose", "status", "map") + ros2,
+                         subscribe=_robots("pose", "status", "landmarks") + ros2,
                          watch_liveliness=True),
     }
 

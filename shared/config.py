@@ -182,6 +182,10 @@ class RuntimeConfig(Section):
     max_frame_age_ms: float = Field(50.0, gt=0, description="live streams over the bus: a frame that has waited "
                                     "longer than this when its turn comes, with newer data queued behind it, is "
                                     "dropped (and counted) so that poses stay current")
+    max_skipped_frames: int = Field(2, ge=0, le=30, description="live streams: at most this many frames in a row "
+                                    "are dropped as stale; the next one is tracked however late, so that the "
+                                    "optical flow never has to bridge a long gap (while catching up after a "
+                                    "slow keyframe, every 3rd frame of the backlog is tracked)")
     opencv_threads: int = Field(1, ge=0, le=64, description="OpenCV's own thread pool (0 = OpenCV's default); one "
                                 "thread per stage is faster here, where the workers already fill the cores")
     prefetch: int = Field(4, ge=1, le=64, description="frames read and decoded ahead on a background thread")

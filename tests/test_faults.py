@@ -62,8 +62,8 @@ def fake_pose(session_id: str, robot: str, i: int) -> bytes:
 def test_access_control_grants_each_stream_to_one_kind_of_publisher():
     grants = role_grants()
     publishers = {stream: sorted(role for role, g in grants.items() if keys.all_robots(stream) in g.publish)
-                  for stream in ("pose", "control", "frames", "keypoints", "dynamics", "matches", "camera")}
-    assert publishers == {"pose": ["tracker"], "control": ["gateway"], "frames": ["source"],
+                  for stream in (*keys.STREAMS, keys.CONTROL, keys.RAW_CAMERA) if stream != "status"}
+    assert publishers == {"pose": ["tracker"], "landmarks": ["tracker"], "control": ["gateway"], "frames": ["source"],
                           "keypoints": ["detector"], "dynamics": ["yolo"], "matches": ["matcher"],
                           "camera": ["client", "ros2"]}
     assert "client" not in [r for r, g in grants.items() if keys.all_robots("status") in g.publish]

@@ -106,6 +106,7 @@ class SessionTrack:
     last_index: int = -1
     pipeline: KeyframePipeline | None = None  # the keyframes schedule
     dropped: int = 0  # frames dropped because newer ones were waiting
+    skipped: int = 0  # of them, in a row since the last tracked frame
     map_sent: int = -1  # the map version last published on ``landmarks``
 
 
@@ -200,13 +201,17 @@ class TrackerService(Service):
     def _track_live(self, track: SessionTrack, header: FrameMsg, payload: bytes) -> None:
         """The keyframes schedule: track this frame now; keyframe and mask work goes to the pipeline's workers.
         In a session paced by the camera, a frame that waited too long while newer ones queued is dropped:
-        fresh data wins (a paced source does not wait for poses, so nothing stalls)."""
+        fresh data wins (a paced source does not wait for poses, so nothing stalls), but never more than
+        ``max_skipped_frames`` in a row, so the optical flow keeps short steps while it catches up."""
         config = self.config_for(header.session_id)
         waited_ms = (time.time() - header.sent_at) * 1000 if header.sent_at else 0.0
-        if self.paced.get(header.session_id) and len(self.inbox) and waited_ms > config.pipeline.max_frame_age_ms:
+        stale = len(self.inbox) and waited_ms > config.pipeline.max_frame_age_ms
+        if self.paced.get(header.session_id) and stale and track.skipped < config.pipeline.max_skipped_frames:
             self.counters.add("dropped")
             track.dropped += 1
+            track.skipped += 1
             return
+        track.skipped = 0
         _, arrays = decode(payload, FrameMsg)
         depth = arrays["depth"].astype(np.float32) / np.float32(header.camera.depth_factor)
         frame = Frame(header.frame_index, header.stamp, arrays["rgb"], depth)
