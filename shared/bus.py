@@ -93,9 +93,12 @@ def open_session(conf: BusConfig | None = None) -> zenoh.Session:
     try:
         return zenoh.open(conf.zenoh_config())
     except zenoh.ZError as exc:
+        reason = str(exc).split(" at /")[0]  # drop the Rust source location
+        if conf.mode == "router":
+            raise TwohrError(f"cannot start the Zenoh router on {', '.join(conf.listen)}: {reason}") from None
         where = conf.config_file or ", ".join(conf.connect)
         who = f" as {conf.user!r}" if conf.user else " without credentials"
-        raise TwohrError(f"cannot join the Zenoh bus at {where}{who}: {exc}".split(" at /")[0]) from None
+        raise TwohrError(f"cannot join the Zenoh bus at {where}{who}: {reason}") from None
 
 
 def free_port(host: str = "127.0.0.1") -> int:
