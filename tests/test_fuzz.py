@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import struct
+import time
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -184,3 +186,180 @@ def test_valid_payloads_still_decode():
     for payload in VALID:
         message, arrays = decode(payload)
         assert message.frame_index == 3 and all(a.size for a in arrays.values())
+
+
+# -- the bus: malformed payloads on every key each role may publish, and a flood from an outside client --------
+
+ROBOT = "fuzzbot"
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory, dev_sequence):
+    from twohr.bus import free_port
+    from twohr_services.launcher_cli import start_system
+
+    recordings = tmp_path_factory.mktemp("recordings")
+    system = start_system(f"tcp/127.0.0.1:{free_port()}", [str(dev_sequence.parent)], str(recordings), "127.0.0.1",
+                          free_port(), api_token="fuzz-token", timeout=180)
+    yield {"system": system, "recordings": recordings}
+    system.stop()
+
+
+def dev_frame(dev_sequence, robot: str, session_id: str, index: int = 0) -> bytes:
+    """A real dev frame as a camera driver sends it: the JPEG and PNG bytes from disk."""
+    from twohr.dataset import RGBDSequence
+    from twohr.messages import encoded_image
+
+    sequence = RGBDSequence(dev_sequence)
+    record = sequence.records[index]
+    shape = (sequence.camera.height, sequence.camera.width)
+    return encode(FrameMsg(session_id=session_id, robot_id=robot, frame_index=index, stamp=record.stamp,
+                           camera=sequence.camera),
+                  blobs={"rgb": encoded_image("rgb", record.rgb_path.read_bytes(), "jpeg", "uint8", (*shape, 3)),
+                         "depth": encoded_image("depth", record.depth_path.read_bytes(), "png", "uint16", shape)})
+
+
+def malformed_payloads(frame: bytes) -> list[bytes]:
+    """Payloads no service may choke on; ``frame`` is a valid frame message of robot ROBOT."""
+    header, blobs = parts(frame)
+    rgb_spec, depth_spec = header["arrays"]
+    rgb_len = rgb_spec["nbytes"]
+
+    def variant(arrays=None, body=None, schema=None, tail=None) -> bytes:
+        changed = {**header, "arrays": arrays or header["arrays"], "body": {**header["body"], **(body or {})},
+                   "schema": schema or header["schema"]}
+        return assemble(changed, blobs if tail is None else tail)
+
+    rng = np.random.default_rng(7)
+    return [
+        b"", b"2HR", rng.bytes(64), rng.bytes(65536), b"2HR\x01" + struct.pack("<I", 10**6) + b"{}",
+        assemble(b"[" * 5000 + b"]" * 5000, b""),
+        frame[: len(frame) // 2], frame + b"trailing",
+        variant(body={"robot_id": "someone_else"}),  # a frame for another robot than the key's
+        variant(body={"session_id": "../../etc"}),
+        variant(body={"camera": {"fx": -1}}),
+        variant(schema="twohr.Control"),  # a frame's body as a control message
+        variant(arrays=[{**rgb_spec, "shape": [48000, 64000, 3]}, depth_spec]),  # a shape the JPEG is not
+        variant(arrays=[{**rgb_spec, "shape": [0, 2**31 - 1, 2**31 - 1]}, depth_spec]),
+        variant(tail=rng.bytes(rgb_len) + blobs[rgb_len:]),  # noise where the JPEG should be
+        variant(arrays=[{**rgb_spec, "encoding": "raw"}, depth_spec]),
+        encode(ControlMsg(session_id="nosuchsession", robot_id=ROBOT, frame_index=-1, stamp=0.0, command="stop")),
+        encode(StatusMsg(session_id="nosuchsession", robot_id=ROBOT, frame_index=-1, stamp=0.0, service="source",
+                         state="error", detail="fuzz")),
+        frame,  # well formed, for a session nobody started
+    ]
+
+
+def rss_mb(pid: int) -> float:
+    for line in open(f"/proc/{pid}/status"):
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError(f"no VmRSS for {pid}")
+
+
+def health_of_all(system) -> dict[str, dict | None]:
+    from twohr.bus import open_session, query_health
+    from twohr_services.launcher_cli import PIPELINE_SERVICES
+
+    session = open_session(system.bus("client"))
+    try:
+        return {name: query_health(session, name, timeout=5.0) for name in PIPELINE_SERVICES}
+    finally:
+        session.close()
+
+
+def children(system) -> dict[str, int]:
+    return {child.name: child.proc.pid for child in system.group.children if child.proc.poll() is None}
+
+
+def test_malformed_payloads_on_every_key_each_role_may_publish(stack, dev_sequence):
+    """Each role, with its own credentials, sends every malformed payload on every key it may publish (and asks
+    every query it may ask with them). No process dies, every service still answers its health query, and every
+    query is answered at once (with an error), not left to time out."""
+    from twohr.access import role_grants
+    from twohr.bus import open_session
+    from twohr.service import declare_publisher
+
+    system = stack["system"]
+    pids = children(system)
+    before = health_of_all(system)
+    payloads = malformed_payloads(dev_frame(dev_sequence, ROBOT, "nosuchsession"))
+    sent, asked, answered = Counter(), 0, 0
+    for role, grants in role_grants().items():
+        session = open_session(system.bus(role))
+        try:
+            for pattern in grants.publish:
+                if pattern.startswith("@"):  # liveliness tokens, not data
+                    continue
+                key = pattern.replace("**", "fuzz/topic").replace("*", ROBOT, 1)
+                publisher = declare_publisher(session, key, wait_for_subscribers=1.0)
+                for payload in payloads:
+                    publisher.put(payload)
+                    sent[key.split("/", 2)[-1]] += 1
+                publisher.undeclare()
+            for pattern in grants.ask:
+                key = pattern.replace("*", ROBOT, 1)
+                for payload in payloads:
+                    asked += 1
+                    replies = list(session.get(key, payload=payload, timeout=10.0))
+                    answered += bool(replies)
+        finally:
+            session.close()
+    time.sleep(3.0)  # let the services work through their queues
+    after = health_of_all(system)
+    deaths = [name for name, pid in pids.items() if children(system).get(name) != pid]
+    silent = [name for name, health in after.items() if health is None]
+    received = {name: after[name]["received"] - before[name]["received"] for name in after if after[name]}
+    errors = {name: after[name]["errors"] - before[name]["errors"] for name in after if after[name]}
+    print(f"bus fuzzing: {sum(sent.values())} messages sent ({dict(sent)}), {asked} queries ({answered} answered); "
+          f"{len(deaths)} process deaths, {len(silent)} missed health answers; received per service {received}; "
+          f"unexpected errors per service {errors}")
+    assert not deaths and not silent
+    assert asked == answered
+    assert all(received[name] >= len(payloads) for name in received), "the fuzz must reach every service"
+    assert not any(errors.values()), "a malformed message raised an unexpected exception in a service"
+
+
+def test_a_10_s_flood_from_an_outside_client_stays_bounded(stack, dev_sequence):
+    """A client floods twohr/<robot>/camera with real frames of sessions nobody started and tries every other key
+    for 10 s. Every service's memory stays bounded, nothing is recorded, and no process dies."""
+    from twohr import keys
+    from twohr.bus import open_session
+
+    system, recordings = stack["system"], stack["recordings"]
+    pids = children(system)
+    rss_before = {name: rss_mb(pid) for name, pid in pids.items()}
+    bytes_before = sum(f.stat().st_size for f in recordings.rglob("*") if f.is_file())
+    frames = [dev_frame(dev_sequence, "flood", f"never{i:02d}", i) for i in range(20)]
+    start = encode(ControlMsg(session_id="never00", robot_id="flood", frame_index=-1, stamp=0.0, command="start",
+                              sequence=str(dev_sequence)))
+    others = [keys.key("flood", stream) for stream in (*keys.STREAMS, keys.CONTROL, keys.MATCH_QUERY,
+                                                        keys.DETECT_QUERY, keys.DYNAMICS_QUERY)]
+    sent = Counter()
+    client = open_session(system.bus("client"))
+    try:
+        deadline = time.monotonic() + 10.0
+        i = 0
+        while time.monotonic() < deadline:
+            client.put(keys.key("flood", keys.RAW_CAMERA), frames[i % len(frames)])
+            sent["camera"] += 1
+            if i % 20 == 0:
+                for key in others:
+                    client.put(key, start if key.endswith(keys.CONTROL) else frames[0])
+                    sent["other keys"] += 1
+            i += 1
+    finally:
+        client.close()
+    time.sleep(5.0)  # queues drain
+    health = health_of_all(system)
+    rss_after = {name: rss_mb(pid) for name, pid in children(system).items()}
+    written = sum(f.stat().st_size for f in recordings.rglob("*") if f.is_file()) - bytes_before
+    growth = {name: round(rss_after[name] - rss_before[name], 1) for name in rss_before if name in rss_after}
+    print(f"10 s flood: {dict(sent)} messages ({sent['camera'] * len(frames[0]) / 1e6:.0f} MB on camera); RSS MB "
+          f"before {({k: round(v) for k, v in rss_before.items()})}, growth {growth}; {written} bytes recorded; "
+          f"source received {health['source'] and health['source']['received']}")
+    assert children(system) == pids, "a process died"
+    assert all(h is not None for h in health.values()), health
+    assert health["source"]["received"] >= sent["camera"] // 2, "the flood must reach the source"
+    assert all(g < 100 for g in growth.values()), growth
+    assert written == 0 and not list(recordings.glob("never*")), "recorded a session the gateway never started"
