@@ -119,10 +119,11 @@ def test_schemathesis_finds_no_5xx_and_no_undocumented_response(gateway, token):
     print(f"schemathesis ({'with' if token else 'without'} token): {dict(total)}")
     assert total["cases"] >= 200
     assert total["5xx"] == 0 and not problems, "\n".join(sorted(set(problems))[:20])
-    if token is None:  # every route but the page and /healthz needs the token
-        assert total["2xx"] < total["4xx"]
+    answered = {tuple(key.rsplit(" ", 1)) for key in total if key.startswith(("GET ", "POST ", "DELETE "))}
+    if token is None:  # only the page's routes and the gateway's liveness answer without the token
+        assert {label for label, code in answered if code.startswith("2")} <= {"GET /live", "GET /healthz"}
     else:
-        assert total["2xx"] >= 8
+        assert "401" not in {code for _, code in answered} and total["2xx"] >= 5
 
 
 def test_long_recording_requests_leave_the_gateway_responsive(gateway, dev_sequence):
