@@ -305,7 +305,13 @@ def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None
 
 
 def pose_trajectory(poses: list[PoseMsg]) -> Trajectory:
-    """Pose messages as a camera-to-world trajectory, ordered by frame index."""
+    """Pose messages as a camera-to-world trajectory, ordered by frame index; raises :class:`MessageError` for a
+    pose with a zero or non-finite quaternion or position (it is no pose)."""
     ordered = sorted(poses, key=lambda p: p.frame_index)
+    values = np.array([[*p.orientation, *p.position] for p in ordered]).reshape(-1, 7)
+    broken = [p.frame_index for p, row in zip(ordered, values, strict=True)
+              if not (np.isfinite(row).all() and np.linalg.norm(row[:4]) > 1e-9)]
+    if broken:
+        raise MessageError(f"the poses of frames {broken[:5]} have a zero or non-finite orientation or position")
     matrices = [make_pose(quat_to_rot(np.array(p.orientation)), p.position) for p in ordered]
     return Trajectory(np.array([p.stamp for p in ordered]), np.array(matrices).reshape(-1, 4, 4))

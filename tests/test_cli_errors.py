@@ -89,3 +89,21 @@ def test_zero_quaternions_in_eval_are_one_line_and_exit_2(short_sequence, tmp_pa
     est.write_text("\n".join(data) + "\n")
     assert "not a finite number" in one_error_line(twohr("eval", "--gt", str(short_sequence / "groundtruth.txt"),
                                                          "--est", str(est)))
+
+
+def test_zero_quaternions_in_a_recording_are_one_line_and_exit_2(short_sequence, tmp_path):
+    from twohr.messages import PoseMsg, encode
+    from twohr.trajectory import read_tum
+    from twohr_services.recorder.core import SessionRecorder
+
+    gt = read_tum(short_sequence / "groundtruth.txt")
+    recorder = SessionRecorder(tmp_path / "est.mcap")
+    for i in range(20):
+        orientation = [0.0, 0.0, 0.0, 0.0] if i == 7 else [0.0, 0.0, 0.0, 1.0]
+        recorder.write("twohr/r1/pose", encode(PoseMsg(session_id="s", robot_id="r1", frame_index=i,
+                                                       stamp=gt.stamps[i], position=gt.positions[i].tolist(),
+                                                       orientation=orientation, status="tracking")))
+    recorder.close()
+    line = one_error_line(twohr("eval", "--gt", str(short_sequence / "groundtruth.txt"), "--est",
+                                str(tmp_path / "est.mcap")))
+    assert "frames [7]" in line and "orientation" in line
