@@ -23,6 +23,7 @@ from twohr.messages import (
     PoseMsg,
     StatusMsg,
     decode,
+    decode_gray,
     encode,
     split,
 )
@@ -62,10 +63,20 @@ def assemble(header: dict | bytes, blobs: bytes) -> bytes:
 
 
 def only_message_errors(payload: bytes) -> None:
-    """decode and split either succeed or raise MessageError, nothing else."""
+    """decode and split (and decode_gray on each array the tracker might take for a colour image) either succeed
+    or raise MessageError, nothing else."""
     for parse in (split, decode):
         try:
             parse(payload)
+        except MessageError:
+            pass
+    try:
+        _, arrays = split(payload)
+    except MessageError:
+        return
+    for spec, blob in arrays:
+        try:
+            decode_gray(spec, blob)
         except MessageError:
             pass
 
