@@ -99,6 +99,7 @@ def _run(args: argparse.Namespace) -> int:
     from .pipeline import run_sequence
 
     config, sequence = _load(args)
+    frames = sequence.frame_range(args.start, args.frames, args.step)
     out = Path(args.out or f"runs/{sequence.name}")
     view = None
     if getattr(args, "view", False):
@@ -109,9 +110,8 @@ def _run(args: argparse.Namespace) -> int:
         view = PipelineLiveView(sequence, args.view_host, args.view_port)
         print(f"live view: {view_url(args.view_host, view.view.port)}", flush=True)
     try:
-        result = run_sequence(sequence, config, start=args.start, stop=None if args.frames is None else
-                              args.start + args.frames * args.step, step=args.step, progress=not args.quiet,
-                              on_frame=view)
+        result = run_sequence(sequence, config, start=frames.start, stop=frames.stop, step=frames.step,
+                              progress=not args.quiet, on_frame=view)
     finally:
         if view is not None:
             view.close()

@@ -295,7 +295,12 @@ class RGBDSequence:
     def read(self, index: int) -> Frame:
         """Read frame ``index``; raises :class:`DatasetError` naming the file if it is missing or corrupt."""
         rec = self.records[index]
-        bgr = cv2.imread(str(rec.rgb_path), cv2.IMREAD_COLOR)
+        try:
+            encoded = np.fromfile(rec.rgb_path, np.uint8)
+        except OSError:
+            raise DatasetError(f"unreadable colour image: {rec.rgb_path}") from None
+        # imdecode, not imread: imread pads a truncated JPEG with grey and only prints a warning
+        bgr = cv2.imdecode(encoded, cv2.IMREAD_COLOR) if encoded.size else None
         if bgr is None:
             raise DatasetError(f"unreadable colour image: {rec.rgb_path}")
         raw = cv2.imread(str(rec.depth_path), cv2.IMREAD_UNCHANGED)
@@ -311,6 +316,17 @@ class RGBDSequence:
             )
         depth = raw.astype(np.float32) / np.float32(self.camera.depth_factor)
         return Frame(rec.index, rec.stamp, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), depth)
+
+    def frame_range(self, start: int = 0, frames: int | None = None, step: int = 1) -> range:
+        """The indices that ``start``, ``frames`` (a count, None = to the end) and ``step`` select; raises
+        :class:`DatasetError` when they select nothing or are out of range."""
+        if step < 1:
+            raise DatasetError(f"step must be at least 1, got {step}")
+        if frames is not None and frames < 1:
+            raise DatasetError(f"frames must be at least 1, got {frames}")
+        if not 0 <= start < len(self):
+            raise DatasetError(f"start frame {start} is out of range: {self.root} has frames 0 to {len(self) - 1}")
+        return range(start, len(self) if frames is None else min(len(self), start + frames * step), step)
 
     def frames(self, start: int = 0, stop: int | None = None, step: int = 1) -> Iterator[Frame]:
         """Frames in order; a corrupt frame is skipped with a warning and recorded in ``self.skipped``."""

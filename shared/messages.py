@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import math
 import struct
-from typing import Any, ClassVar, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 import cv2
 import numpy as np
@@ -39,10 +39,14 @@ class MessageError(TwohrError):
     """A payload that is not a valid twohr message."""
 
 
+#: Largest dimension an array header may claim; beyond it numpy cannot even describe the array.
+MAX_DIMENSION = 2**31 - 1
+
+
 class ArraySpec(BaseModel):
     name: str = Field(max_length=64)
     dtype: str
-    shape: list[int] = Field(max_length=8)
+    shape: list[Annotated[int, Field(ge=0, le=MAX_DIMENSION)]] = Field(max_length=8)
     encoding: Literal["raw", "jpeg", "png"] = "raw"
     nbytes: int = Field(ge=0)
 
@@ -199,30 +203,48 @@ def encoded_image(name: str, data: bytes, encoding: Literal["jpeg", "png"], dtyp
     return ArraySpec(name=name, dtype=dtype, shape=list(shape), encoding=encoding, nbytes=len(data)), data
 
 
+def _check_array(spec: ArraySpec) -> None:
+    """What the header alone can tell: a known dtype and, for a raw array, a byte count that fits the shape."""
+    if spec.dtype not in _DTYPES:
+        raise MessageError(f"array {spec.name}: unsupported dtype {spec.dtype}")
+    if spec.encoding == "raw":
+        expected = math.prod(spec.shape) * np.dtype(spec.dtype).itemsize  # Python ints: no overflow
+        if expected != spec.nbytes:
+            raise MessageError(f"array {spec.name}: {spec.nbytes} bytes for shape {spec.shape} {spec.dtype}")
+
+
+def _imdecode(spec: ArraySpec, blob: bytes, flags: int) -> np.ndarray:
+    """An encoded image blob, decoded; :class:`MessageError` when it is empty or not an image."""
+    try:
+        image = cv2.imdecode(np.frombuffer(blob, np.uint8), flags) if blob else None
+    except cv2.error:
+        image = None
+    if image is None:
+        raise MessageError(f"array {spec.name}: empty or corrupt {spec.encoding} data")
+    return image
+
+
 def decode_gray(spec: ArraySpec, blob: bytes) -> np.ndarray:
     """A colour image array of a payload (see :func:`split`) as a grayscale image, decoded straight to grey."""
     if spec.encoding == "raw":
-        return cv2.cvtColor(decode_array(spec, blob), cv2.COLOR_RGB2GRAY)
-    image = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_GRAYSCALE)
-    if image is None or list(image.shape) != spec.shape[:2]:
+        try:
+            return cv2.cvtColor(decode_array(spec, blob), cv2.COLOR_RGB2GRAY)
+        except cv2.error:
+            raise MessageError(f"array {spec.name}: shape {spec.shape} {spec.dtype} is not an RGB image") from None
+    image = _imdecode(spec, blob, cv2.IMREAD_GRAYSCALE)
+    if list(image.shape) != spec.shape[:2]:
         raise MessageError(f"array {spec.name}: corrupt {spec.encoding} data or a shape other than {spec.shape}")
     return image
 
 
 def decode_array(spec: ArraySpec, blob: bytes) -> np.ndarray:
     """One array of a payload (see :func:`split`), decoded."""
-    if spec.dtype not in _DTYPES:
-        raise MessageError(f"array {spec.name}: unsupported dtype {spec.dtype}")
-    if any(d < 0 for d in spec.shape):
-        raise MessageError(f"array {spec.name}: negative dimension in {spec.shape}")
     if spec.encoding == "raw":
-        expected = math.prod(spec.shape) * np.dtype(spec.dtype).itemsize  # Python ints: no overflow
-        if expected != len(blob):
-            raise MessageError(f"array {spec.name}: {len(blob)} bytes for shape {spec.shape} {spec.dtype}")
-        return np.frombuffer(blob, dtype=spec.dtype).reshape(spec.shape)
-    image = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise MessageError(f"array {spec.name}: corrupt {spec.encoding} data")
+        try:
+            return np.frombuffer(blob, dtype=spec.dtype).reshape(spec.shape)
+        except ValueError as exc:  # e.g. a zero-size shape whose other dimensions numpy cannot address
+            raise MessageError(f"array {spec.name}: shape {spec.shape}: {exc}") from None
+    image = _imdecode(spec, blob, cv2.IMREAD_UNCHANGED)
     if image.ndim == 3:
         image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
     if list(image.shape) != spec.shape or str(image.dtype) != spec.dtype:
@@ -253,12 +275,13 @@ def split(payload: bytes | bytearray | memoryview, expect: type[Message] | None 
         cls = MESSAGE_TYPES[header["schema"]]
         message = cls.model_validate(header["body"])
         specs = [ArraySpec.model_validate(s) for s in header["arrays"]]
-    except (ValueError, KeyError, TypeError, ValidationError) as exc:
-        raise MessageError(f"malformed header: {str(exc).splitlines()[0]}") from None
+    except (ValueError, KeyError, TypeError, ValidationError, RecursionError) as exc:  # RecursionError: deep JSON
+        raise MessageError(f"malformed header: {(str(exc).splitlines() or [type(exc).__name__])[0]}") from None
     if expect is not None and cls is not expect:
         raise MessageError(f"expected {expect.schema_name}, got {cls.schema_name}")
     parts, offset = [], end
     for spec in specs:
+        _check_array(spec)
         blob = payload[offset: offset + spec.nbytes]
         if len(blob) != spec.nbytes:
             raise MessageError(f"array {spec.name}: truncated payload")
@@ -282,7 +305,13 @@ def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None
 
 
 def pose_trajectory(poses: list[PoseMsg]) -> Trajectory:
-    """Pose messages as a camera-to-world trajectory, ordered by frame index."""
+    """Pose messages as a camera-to-world trajectory, ordered by frame index; raises :class:`MessageError` for a
+    pose with a zero or non-finite quaternion or position (it is no pose)."""
     ordered = sorted(poses, key=lambda p: p.frame_index)
+    values = np.array([[*p.orientation, *p.position] for p in ordered]).reshape(-1, 7)
+    broken = [p.frame_index for p, row in zip(ordered, values, strict=True)
+              if not (np.isfinite(row).all() and np.linalg.norm(row[:4]) > 1e-9)]
+    if broken:
+        raise MessageError(f"the poses of frames {broken[:5]} have a zero or non-finite orientation or position")
     matrices = [make_pose(quat_to_rot(np.array(p.orientation)), p.position) for p in ordered]
     return Trajectory(np.array([p.stamp for p in ordered]), np.array(matrices).reshape(-1, 4, 4))

@@ -74,9 +74,14 @@ def read_tum(path: str | Path) -> Trajectory:
         if len(fields) != 8:
             raise DatasetError(f"{path}:{lineno}: expected 'timestamp tx ty tz qx qy qz qw', got {len(fields)}")
         try:
-            rows.append([float(f) for f in fields])
+            row = [float(f) for f in fields]
         except ValueError as exc:
             raise DatasetError(f"{path}:{lineno}: {exc}") from None
+        if not np.isfinite(row).all():
+            raise DatasetError(f"{path}:{lineno}: a value is not a finite number: {line!r}")
+        if np.linalg.norm(row[4:]) < 1e-9:
+            raise DatasetError(f"{path}:{lineno}: the quaternion qx qy qz qw is zero, not a rotation")
+        rows.append(row)
     if not rows:
         raise DatasetError(f"trajectory file has no poses: {path}")
     data = np.array(rows)

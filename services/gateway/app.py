@@ -56,8 +56,11 @@ class Problem(BaseModel):
     detail: str
 
 
-ERRORS = {code: {"model": Problem, "description": text} for code, text in {
-    401: "missing or wrong API token", 404: "no such session", 409: "conflict with the session's state",
+# the content type is spelled out: with a model, FastAPI would document a text route's errors as text
+ERRORS = {code: {"description": text, "content": {"application/json": {"schema": Problem.model_json_schema()}}}
+          for code, text in {
+    400: "the request body is not valid JSON text", 401: "missing or wrong API token", 404: "no such session",
+    409: "conflict with the session's state",
     413: "request body too large", 422: "invalid request: the detail names the field",
     503: "a service the session needs is not running"}.items()}
 
@@ -254,7 +257,7 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         return {"status": "ok", "services": services}
 
     @app.post("/sessions", status_code=201, response_model=SessionInfo, dependencies=[Depends(require_token)],
-              responses=errors(401, 409, 413, 422, 503))
+              responses=errors(400, 401, 409, 413, 422, 503))
     def create_session(request: SessionRequest) -> SessionInfo:
         """Start a session on a sequence under the data roots. 409 if the robot already runs one, 503 if a
         service is not running."""

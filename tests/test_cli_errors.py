@@ -1,0 +1,109 @@
+"""Bad input on the command line (``twohr run``, ``twohr eval``): one clear line and exit code 2, or a corrupt
+frame skipped with a one-line warning. Small bad sequences are cut from the real dev frames."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from twohr.dataset import RGBDSequence
+
+FRAMES = 12
+TRUNCATED = 6
+
+
+def twohr(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "twohr_services.cli", *args], capture_output=True, text=True,
+                          timeout=600)
+
+
+def one_error_line(result: subprocess.CompletedProcess) -> str:
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("twohr: error: "), result.stderr
+    assert "Traceback" not in result.stderr and "Warning" not in result.stderr
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def short_sequence(dev_sequence, tmp_path_factory) -> Path:
+    """The first dev frames, with their associations and ground truth."""
+    root = tmp_path_factory.mktemp("seq") / "rgbd_bonn_short"
+    lines = (dev_sequence / "associations.txt").read_text().splitlines()[:FRAMES]
+    for line in lines:
+        for name in line.split()[1::2]:
+            (root / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(dev_sequence / name, root / name)
+    (root / "associations.txt").write_text("\n".join(lines) + "\n")
+    shutil.copyfile(dev_sequence / "groundtruth.txt", root / "groundtruth.txt")
+    return root
+
+
+def test_a_truncated_jpeg_is_skipped_with_one_warning(short_sequence, tmp_path):
+    bad = tmp_path / "rgbd_bonn_truncated"
+    shutil.copytree(short_sequence, bad)
+    jpeg = RGBDSequence(bad).records[TRUNCATED].rgb_path
+    jpeg.write_bytes(jpeg.read_bytes()[: jpeg.stat().st_size // 2])
+    out = tmp_path / "run"
+    result = twohr("run", "--sequence", str(bad), "--out", str(out), "--quiet", "--set", "detector.input_scale=0.5",
+                   "--set", "pipeline.synchronous=true")
+    assert result.returncode == 0, result.stderr
+    warnings = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(warnings) == 1 and f"skipping frame {TRUNCATED}" in warnings[0] and jpeg.name in warnings[0], warnings
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["skipped_frames"] == [TRUNCATED] and summary["frames"] == FRAMES - 1
+    stats = (out / "stats.csv").read_text().splitlines()[1:]
+    assert sorted(int(row.split(",")[0]) for row in stats) == [i for i in range(FRAMES) if i != TRUNCATED]
+    assert summary["tracked_percent"] == 100.0
+
+
+@pytest.mark.parametrize(("flags", "says"), [
+    (["--start", str(FRAMES)], f"start frame {FRAMES} is out of range"),
+    (["--start", "-1"], "start frame -1 is out of range"),
+    (["--frames", "0"], "frames must be at least 1"),
+    (["--frames", "-5"], "frames must be at least 1"),
+    (["--step", "0"], "step must be at least 1"),
+])
+def test_an_empty_frame_range_is_one_line_and_exit_2(short_sequence, tmp_path, flags, says):
+    out = tmp_path / "run"
+    result = twohr("run", "--sequence", str(short_sequence), "--out", str(out), "--quiet", *flags)
+    assert says in one_error_line(result)
+    assert not out.exists(), "no outputs for a run that never started"
+
+
+def test_zero_quaternions_in_eval_are_one_line_and_exit_2(short_sequence, tmp_path):
+    est = tmp_path / "est.txt"
+    rows = (short_sequence / "groundtruth.txt").read_text().splitlines()
+    data = [r for r in rows if r and not r.startswith("#")][:20]
+    fields = data[7].split()
+    data[7] = " ".join(fields[:4] + ["0", "0", "0", "0"])
+    est.write_text("\n".join(data) + "\n")
+    result = twohr("eval", "--gt", str(short_sequence / "groundtruth.txt"), "--est", str(est))
+    line = one_error_line(result)
+    assert f"{est}:8:" in line and "quaternion" in line and "nan" not in result.stdout.lower()
+    data[7] = " ".join(fields[:4] + ["nan", "0", "0", "1"])
+    est.write_text("\n".join(data) + "\n")
+    assert "not a finite number" in one_error_line(twohr("eval", "--gt", str(short_sequence / "groundtruth.txt"),
+                                                         "--est", str(est)))
+
+
+def test_zero_quaternions_in_a_recording_are_one_line_and_exit_2(short_sequence, tmp_path):
+    from twohr.messages import PoseMsg, encode
+    from twohr.trajectory import read_tum
+    from twohr_services.recorder.core import SessionRecorder
+
+    gt = read_tum(short_sequence / "groundtruth.txt")
+    recorder = SessionRecorder(tmp_path / "est.mcap")
+    for i in range(20):
+        orientation = [0.0, 0.0, 0.0, 0.0] if i == 7 else [0.0, 0.0, 0.0, 1.0]
+        recorder.write("twohr/r1/pose", encode(PoseMsg(session_id="s", robot_id="r1", frame_index=i,
+                                                       stamp=gt.stamps[i], position=gt.positions[i].tolist(),
+                                                       orientation=orientation, status="tracking")))
+    recorder.close()
+    line = one_error_line(twohr("eval", "--gt", str(short_sequence / "groundtruth.txt"), "--est",
+                                str(tmp_path / "est.mcap")))
+    assert "frames [7]" in line and "orientation" in line
