@@ -318,7 +318,7 @@ def hosts(tmp_path_factory, dev_sequence):
                    "third": client_config(f"tcp/{ROBOT_LAN}:{ROUTER_PORT}", "client", client),
                    "third-wrong": client_config(f"tcp/{ROBOT_LAN}:{ROUTER_PORT}", "client", "wrong-password"),
                    "third-anonymous": client_config(f"tcp/{ROBOT_LAN}:{ROUTER_PORT}", "client", "x")}
-        del configs["third-anonymous"]["transport"]
+        del configs["third-anonymous"]["transport"]  # no credentials at all
         for name, conf in configs.items():
             _write_private(tmp / f"{name}.json5", json.dumps(conf))
 
@@ -409,8 +409,9 @@ def test_camera_frames_and_health_cross_the_link(hosts, dev_sequence):
 
 
 def live_sessions_supported(hosts) -> bool:
-    spec = gateway("GET", "/openapi.json", hosts).json()
-    return "source" in spec["components"]["schemas"]["SessionRequest"]["properties"]
+    """Whether the gateway takes ``{"source": "camera"}`` sessions (else the test runs a replay session)."""
+    schemas = gateway("GET", "/openapi.json", hosts).json()["components"]["schemas"]
+    return "source" in schemas.get("SessionRequest", {}).get("properties", {})
 
 
 def test_session_poses_reach_the_third_host(hosts, dev_sequence):
@@ -456,7 +457,7 @@ def test_session_poses_reach_the_third_host(hosts, dev_sequence):
     assert len(poses) >= 20, f"{len(poses)} poses reached the third host"
     assert {p["key"] for p in poses} == {f"twohr/{ROBOT}/pose"} and {p["robot_id"] for p in poses} == {ROBOT}
     # the third host saw every pose the gateway saw, each once
-    assert sorted(p["stamp"] for p in poses) == pytest.approx(sorted(gateway_stamps))
+    assert sorted(p["stamp"] for p in poses) == pytest.approx(sorted(gateway_stamps), rel=0, abs=1e-3)
     assert len({p["frame_index"] for p in poses}) == len(poses)
 
     # and they are the camera's real motion: ATE against the ground truth, next to a camera that never moves
