@@ -160,12 +160,13 @@ class System:
 
 def start_system(router: str, data_roots: list[str], recordings: str, host: str, port: int,
                  api_token: str | None = None, timeout: float = 120.0, log_level: str = "INFO",
-                 secure: bool = True, ros2_domain: int = 0, foxglove_port: int | None = None,
+                 secure: bool = True, ros2_domain: int | None = None, foxglove_port: int | None = None,
                  record_descriptors: bool = False) -> System:
     """Start the router, the services and the gateway; returns the :class:`System` once every part is healthy.
     With ``secure`` (the default) the router admits only generated per-role credentials and enforces the
     access-control list; ``api_token`` (None: no token) guards the HTTP API. ``foxglove_port`` turns on the
-    gateway's Foxglove live view on ``host``."""
+    gateway's Foxglove live view on ``host``; ``ros2_domain`` starts the ros2 service, which speaks ROS 2 over
+    rmw_zenoh in that domain."""
     from twohr.access import Credentials, access_control
     from twohr.bus import RouterSecurity, start_router, wait_for_services
 
@@ -174,7 +175,7 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
         credentials = Credentials.generate(api_token)
         secrets_dir = Path(tempfile.mkdtemp(prefix="twohr-secrets-"))
         credentials.save(secrets_dir)
-        security = RouterSecurity(users_file=secrets_dir / "users.txt", access_control=access_control(ros2_domain))
+        security = RouterSecurity(users_file=secrets_dir / "users.txt", access_control=access_control(ros2_domain or 0))
     router_session = start_router([router], security)
     system = System(router_session, ProcessGroup(), router, credentials, secrets_dir)
     base_env = {k: v for k, v in os.environ.items() if not k.startswith("TWOHR_ZENOH_")}
@@ -198,11 +199,14 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
                         *roots, "--foxglove-port", str(foxglove_port or 0)]
         gateway_env = env("gateway") | ({"TWOHR_API_TOKEN": api_token} if api_token else {})
         system.group.start("gateway", gateway_args, gateway_env)
+        if ros2_domain is not None:
+            system.group.start("ros2", ["twohr_services.ros2", "--domain", str(ros2_domain)], env("ros2"))
         from twohr.bus import open_session
 
         client = open_session(system.bus("client"))
         try:
-            wait_for_services(client, PIPELINE_SERVICES, timeout=timeout)
+            optional = ["ros2"] if ros2_domain is not None else []
+            wait_for_services(client, PIPELINE_SERVICES + optional, timeout=timeout)
         finally:
             client.close()
         _wait_http(f"http://{host}:{port}/healthz", timeout)
@@ -344,7 +348,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--write-client-config", default="runs/up/zenoh-client.json5", metavar="FILE",
                    help="where to write the Zenoh client config (router endpoint and credentials) that outside "
                    "clients, camera drivers and ROS 2 nodes use (default: %(default)s, private to you)")
-    p.add_argument("--ros2-domain", type=int, default=0, help="ROS 2 domain whose rmw_zenoh keys clients may use")
+    p.add_argument("--ros2-domain", type=int, default=None, metavar="ID",
+                   help="also run the ros2 service: poses as ROS 2 topics (PoseStamped, Odometry, tf, Path) over "
+                   "rmw_zenoh in this domain, which ROS 2 nodes with the client config can read")
     p.add_argument("--expose", action="store_true", help="allow a --router endpoint that other hosts can reach")
     p.add_argument("--insecure", action="store_true", help="no bus authentication, access control or API token "
                    "(local experiments only)")

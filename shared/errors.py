@@ -21,5 +21,9 @@ def validation_problems(exc, empty_location: str = "", skip: tuple[str, ...] = (
     """A pydantic ``ValidationError`` as one line: ``loc.path: message; ...``.
 
     ``skip`` drops location parts (e.g. FastAPI's ``body``); ``empty_location`` names an error at the root."""
-    return "; ".join(f"{'.'.join(str(p) for p in e['loc'] if p not in skip) or empty_location}: {e['msg']}"
-                     for e in exc.errors())
+    problems = []
+    for e in exc.errors():
+        where = ".".join(str(p) for p in e["loc"] if p not in skip) or empty_location
+        message = e["msg"].removeprefix("Value error, ")  # a validator's own message says it all
+        problems.append(f"{where}: {message}" if where else message)
+    return "; ".join(problems)

@@ -199,7 +199,18 @@ def encoded_image(name: str, data: bytes, encoding: Literal["jpeg", "png"], dtyp
     return ArraySpec(name=name, dtype=dtype, shape=list(shape), encoding=encoding, nbytes=len(data)), data
 
 
-def _decode_array(spec: ArraySpec, blob: bytes) -> np.ndarray:
+def decode_gray(spec: ArraySpec, blob: bytes) -> np.ndarray:
+    """A colour image array of a payload (see :func:`split`) as a grayscale image, decoded straight to grey."""
+    if spec.encoding == "raw":
+        return cv2.cvtColor(decode_array(spec, blob), cv2.COLOR_RGB2GRAY)
+    image = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_GRAYSCALE)
+    if image is None or list(image.shape) != spec.shape[:2]:
+        raise MessageError(f"array {spec.name}: corrupt {spec.encoding} data or a shape other than {spec.shape}")
+    return image
+
+
+def decode_array(spec: ArraySpec, blob: bytes) -> np.ndarray:
+    """One array of a payload (see :func:`split`), decoded."""
     if spec.dtype not in _DTYPES:
         raise MessageError(f"array {spec.name}: unsupported dtype {spec.dtype}")
     if any(d < 0 for d in spec.shape):
@@ -267,7 +278,7 @@ def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None
 
     Raises :class:`MessageError` if anything is off."""
     message, parts = split(payload, expect)
-    return message, {spec.name: _decode_array(spec, blob) for spec, blob in parts if only is None or spec.name in only}
+    return message, {spec.name: decode_array(spec, blob) for spec, blob in parts if only is None or spec.name in only}
 
 
 def pose_trajectory(poses: list[PoseMsg]) -> Trajectory:

@@ -110,7 +110,7 @@ def test_bad_requests_get_clear_4xx(system, dev_sequence):
         cases = [
             ({"sequence": "/etc"}, 422, "not under the data roots"),
             ({"sequence": f"{dev_sequence.name}/../../shared"}, 422, "'..' is not allowed"),
-            ({"robot_id": "r1"}, 422, "sequence: Field required"),
+            ({"robot_id": "r1"}, 422, "invalid request: give a sequence"),
             ({"sequence": dev_sequence.name, "config": {"detector.model": "nope"}}, 422, "unknown model 'nope'"),
             ({"sequence": dev_sequence.name, "config": {"yolo.model": "r2d2_WASF_N16"}}, 422, "not a YOLO"),
             ({"sequence": dev_sequence.name, "config": {"tracker.bogus": 1}}, 422, "tracker.bogus"),

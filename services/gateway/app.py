@@ -32,7 +32,7 @@ from twohr import keys
 from twohr.bus import BusConfig, open_session, query_health
 from twohr.config import PipelineConfig, load_config
 from twohr.dataset import RGBDSequence
-from twohr.errors import TwohrError
+from twohr.errors import TwohrError, validation_problems
 from twohr.evaluation import evaluate
 from twohr.mcapfile import is_finalised, partial_marker
 from twohr.messages import ControlMsg, MessageError, PoseMsg, StatusMsg, decode, encode
@@ -140,7 +140,7 @@ def create_app(settings: GatewaySettings) -> FastAPI:
     def send_control(session: Session, command: str, config: PipelineConfig | None = None) -> None:
         req = session.request
         control = ControlMsg(session_id=session.id, robot_id=req.robot_id, frame_index=-1, stamp=time.time(),
-                             command=command, sequence=str(session.folder), rate=req.rate,
+                             command=command, sequence=str(session.folder or ""), rate=req.rate,
                              max_frames=req.max_frames, record=req.record, record_descriptors=req.record_descriptors,
                              record_frames=req.record_frames, config=config or PipelineConfig())
         key = keys.key(req.robot_id, keys.CONTROL)
@@ -151,6 +151,8 @@ def create_app(settings: GatewaySettings) -> FastAPI:
 
     def finish(session: Session) -> None:
         try:
+            if session.folder is None:
+                raise TwohrError("a camera session has no ground truth")
             seq = RGBDSequence(session.folder)
             if seq.has_ground_truth() and len(session.poses) >= 3:
                 report, _ = evaluate(seq.ground_truth(seq.default_gt_extrinsic()), session.trajectory())
@@ -212,18 +214,20 @@ def create_app(settings: GatewaySettings) -> FastAPI:
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
-        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'] if p != 'body')}: {e['msg']}" for e in exc.errors())
+        problems = validation_problems(exc, skip=("body",))
         return JSONResponse({"detail": f"invalid request: {problems}"[:2000]}, status_code=422)
 
     def info(session: Session) -> SessionInfo:
         latest = session.poses[-1] if session.poses else None
         recording = settings.recordings / f"{session.id}.mcap"
         return SessionInfo(
-            id=session.id, robot_id=session.request.robot_id, sequence=session.request.sequence,
+            id=session.id, robot_id=session.request.robot_id, source=session.request.source,
+            sequence=session.request.sequence,
             state=session.state, detail=session.detail, created=session.created,
             frames_total=session.frames_total, frames_sent=session.frames_sent, frames=len(session.poses),
             frames_dropped=max(0, session.frames_sent - len({p.frame_index for p in session.poses}))
-            if session.state not in ACTIVE and session.frames_sent is not None else None,
+            if session.frames_sent is not None and (session.state not in ACTIVE or session.request.source == "camera")
+            else None,
             fps=round(session.fps(), 3),
             latest_pose=PoseOut(frame_index=latest.frame_index, stamp=latest.stamp, position=latest.position,
                                 orientation=latest.orientation, status=latest.status) if latest else None,
@@ -250,10 +254,12 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         """Start a session on a sequence under the data roots. 409 if the robot already runs one, 503 if a
         service is not running."""
         try:
-            folder = resolve_under_roots(request.sequence, settings.data_roots)
             config = load_config(None, request.config)
             validate_models(config)
-            RGBDSequence(folder, camera=config.camera)
+            folder = None
+            if request.source == "sequence":
+                folder = resolve_under_roots(request.sequence, settings.data_roots)
+                RGBDSequence(folder, camera=config.camera)
         except TwohrError as exc:
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)[:2000]) from None
         except OSError as exc:  # e.g. a name too long for the file system

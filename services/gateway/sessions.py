@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, model_validator
 
 from twohr.geometry import make_pose, quat_to_rot
 from twohr.messages import ID_PATTERN, PoseMsg, StatusMsg
@@ -21,10 +21,14 @@ MAX_FRAMES = 10_000_000
 
 
 class SessionRequest(BaseModel):
-    """Body of ``POST /sessions``."""
+    """Body of ``POST /sessions``: a replay of a recorded sequence, or a live camera session."""
 
-    sequence: str = Field(min_length=1, max_length=1024,
-                          description="sequence folder, relative to a data root or absolute inside one")
+    source: Literal["sequence", "camera"] = Field(
+        "sequence", description="'sequence': replay `sequence` from a data root; 'camera': track the frames a "
+        "camera driver publishes on twohr/<robot_id>/camera (e.g. `twohr camera`) until DELETE")
+    sequence: str | None = Field(None, min_length=1, max_length=1024,
+                                 description="sequence folder, relative to a data root or absolute inside one "
+                                 "(source 'sequence' only)")
     robot_id: str = Field("robot1", pattern=ID_PATTERN)
     rate: float = Field(0.0, ge=0, le=100, description="1 = real time, 0 = as fast as the pipeline keeps up")
     record: bool = Field(True, description="write every stream to an MCAP file")
@@ -36,6 +40,14 @@ class SessionRequest(BaseModel):
     )
 
     model_config = {"extra": "forbid"}
+
+    @model_validator(mode="after")
+    def _sequence_matches_source(self) -> SessionRequest:
+        if self.source == "sequence" and self.sequence is None:
+            raise ValueError("give a sequence, or \"source\": \"camera\" for a live camera session")
+        if self.source == "camera" and self.sequence is not None:
+            raise ValueError("a camera session takes no sequence")
+        return self
 
 
 class PoseOut(BaseModel):
@@ -51,16 +63,18 @@ class SessionInfo(BaseModel):
 
     id: str
     robot_id: str
-    sequence: str
+    source: Literal["sequence", "camera"] = "sequence"
+    sequence: str | None = None
     state: SessionState = Field(description="starting, running, then finished, stopped (DELETE) or failed "
                                 "(detail says why: a service rejected the config, stopped, or the pipeline stalled)")
     detail: str = ""
     created: float
     frames_total: int | None = Field(None, description="frames the source will send (known once it starts)")
-    frames_sent: int | None = Field(None, description="frames the source has finished sending")
+    frames_sent: int | None = Field(None, description="frames the source has sent (a camera session: relayed so far)")
     frames: int = Field(0, description="poses received")
-    frames_dropped: int | None = Field(None, description="once the session has ended: frames sent that got no pose "
-                                       "(a camera-paced session drops frames its tracker cannot keep up with)")
+    frames_dropped: int | None = Field(None, description="frames sent that got no pose (a camera-paced session "
+                                       "drops frames its tracker cannot keep up with); a replay reports it once "
+                                       "it has ended, a camera session as it goes")
     fps: float = 0.0
     latest_pose: PoseOut | None = None
     ate_rmse: float | None = Field(None, description="ATE RMSE in metres (SE(3), 0.02 s) when ground truth exists")
@@ -72,7 +86,7 @@ class SessionInfo(BaseModel):
 class Session:
     id: str
     request: SessionRequest
-    folder: Path
+    folder: Path | None  # the sequence of a replay; None for a camera session
     state: SessionState = "starting"
     detail: str = ""
     created: float = field(default_factory=time.time)
@@ -140,7 +154,9 @@ class SessionTable:
                 return session
             if status.service != "source":
                 return None
-            if status.state == "started":
+            if status.state == "relaying":
+                session.frames_sent = status.counters.get("frames", 0)
+            elif status.state == "started":
                 session.state = "running" if session.state == "starting" else session.state
                 session.frames_total = status.counters.get("frames")
             elif status.state in ("finished", "stopped"):
@@ -163,8 +179,8 @@ class SessionTable:
         stalled = []
         with self.lock:
             for s in self.sessions.values():
-                if s.state not in ACTIVE or s.source_done_at is not None:
-                    continue
+                if s.state not in ACTIVE or s.source_done_at is not None or s.request.source == "camera":
+                    continue  # a camera may start late or pause; only a lost service fails a live session
                 if s.last_pose_at is None and now - s.started_at > start_timeout:
                     s.state, s.detail = "failed", f"no pose within {start_timeout:.0f} s of the start"
                 elif s.last_pose_at is not None and now - s.last_pose_at > stall_timeout:

@@ -18,11 +18,14 @@ from twohr import keys
 from twohr.bus import BusConfig
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
-from twohr.messages import ControlMsg, FrameMsg, PoseMsg, StatusMsg, decode, encode
+from twohr.messages import ControlMsg, FrameMsg, PoseMsg, decode, encode, split
 from twohr.paths import resolve_under_roots
 from twohr.service import Service
 
 from .core import Pacer, frame_payloads
+
+#: a camera session's status reports the frames relayed so far every this many frames
+RELAY_STATUS_EVERY = 15
 
 
 @dataclass
@@ -64,11 +67,6 @@ class SourceService(Service):
         elif stream == keys.RAW_CAMERA:
             self._relay(robot, payload)
 
-    def _status(self, control: ControlMsg, state: str, detail: str = "", **counters: int) -> None:
-        status = StatusMsg(session_id=control.session_id, robot_id=control.robot_id, frame_index=-1,
-                           stamp=time.time(), service=self.name, state=state, detail=detail, counters=counters)
-        self.publish(keys.key(control.robot_id, "status"), encode(status))
-
     def _start(self, control: ControlMsg) -> None:
         self._stop(control.robot_id)
         playback = Playback(control)
@@ -78,11 +76,13 @@ class SourceService(Service):
                                                name=f"play-{control.session_id}")
             playback.thread.start()
         else:
-            self._status(control, "live", "relaying twohr/<robot>/camera")
+            self.report(control, "live", "relaying twohr/<robot>/camera")
 
     def _stop(self, robot: str, session_id: str | None = None) -> None:
         playback = self.playbacks.get(robot)
         if playback and (session_id is None or playback.control.session_id == session_id):
+            if not playback.control.sequence:
+                self.report(playback.control, "stopped", "camera session ended", frames=playback.sent)
             playback.stop.set()
             with playback.progress:
                 playback.progress.notify_all()
@@ -96,11 +96,11 @@ class SourceService(Service):
             folder = resolve_under_roots(control.sequence, self.data_roots)
             sequence = RGBDSequence(folder, camera=control.config.camera)
         except TwohrError as exc:
-            self._status(control, "error", str(exc))
+            self.report(control, "error", str(exc))
             return
         pacer = Pacer(control.rate)
         frames_key = keys.key(control.robot_id, "frames")
-        self._status(control, "started", sequence.name, frames=len(sequence))
+        self.report(control, "started", sequence.name, frames=len(sequence))
 
         def pace(stamp: float) -> None:
             if control.rate > 0:
@@ -117,18 +117,22 @@ class SourceService(Service):
             self.publish(frames_key, item.payload)
             playback.sent += 1
         state = "stopped" if playback.stop.is_set() else "finished"
-        self._status(control, state, sequence.name, frames=playback.sent, skipped=len(sequence.skipped))
+        self.report(control, state, sequence.name, frames=playback.sent, skipped=len(sequence.skipped))
 
     def _relay(self, robot: str, payload: bytes) -> None:
         playback = self.playbacks.get(robot)
         if playback is None or playback.control.sequence:
             return  # no live session for this robot
-        frame, arrays = decode(payload, FrameMsg)
+        frame, parts = split(payload, FrameMsg)
         control = playback.control
         relayed = frame.model_copy(update={"session_id": control.session_id, "frame_index": playback.sent,
                                            "sent_at": frame.sent_at or time.time()})
-        self.publish(keys.key(robot, "frames"), encode(relayed, arrays, {"rgb": "jpeg", "depth": "png"}))
+        # the camera's encoded images go on as they came: no decoding, no re-encoding
+        blobs = {spec.name: (spec, blob) for spec, blob in parts}
+        self.publish(keys.key(robot, "frames"), encode(relayed, blobs=blobs))
         playback.sent += 1
+        if playback.sent % RELAY_STATUS_EVERY == 0:
+            self.report(control, "relaying", frames=playback.sent)
 
 
 def main(argv: list[str] | None = None) -> None:

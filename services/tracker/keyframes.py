@@ -202,8 +202,11 @@ class KeyframePipeline:
         # flow of tracks; a track that a person has since covered fails the forward-backward check or RANSAC
         return mask, age, objects
 
-    def process(self, frame: Frame, source: object = None) -> tuple[TrackResult, FrameStats]:
-        """Track one frame; hand it to the mapping worker when the map should grow and the worker is free."""
+    def process(self, frame: Frame, source: object = None, gray: np.ndarray | None = None
+                ) -> tuple[TrackResult, FrameStats]:
+        """Track one frame; hand it to the mapping worker when the map should grow and the worker is free.
+        ``gray``, when the caller has it (decoded straight from the JPEG), saves the conversion; then the stages
+        get the image from ``source`` and ``frame.rgb`` may be None."""
         t0 = time.perf_counter()
         self._last_index = frame.index
         update = self._collect(self.mapping)
@@ -217,7 +220,8 @@ class KeyframePipeline:
         mask, mask_age, objects = self._mask(frame, source)
         self.mask = mask  # the dynamic mask this frame was tracked with, for live views
         ms_yolo = (time.perf_counter() - t_mask) * 1000
-        gray = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
+        if gray is None:
+            gray = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
         result = self.frames.track(frame.stamp, gray, frame.depth, mask)
         ms_detector = 0.0
         wants = self.frames.wants_keyframe(result)
