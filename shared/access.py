@@ -6,6 +6,10 @@ that a role was not granted: only the tracker may publish poses, only the gatewa
 session, only the pipeline services may report a session's status, and an outside ``client`` (another
 robot, a camera driver, a ROS 2 node, a viewer) may publish camera frames and read results, nothing more.
 A client that presents no credentials, or wrong ones, cannot connect at all.
+
+Across hosts, a robot's own router links to the stack's router as the ``router`` role, which may forward what a
+``client`` may do and nothing more; the robot's router grants the stack's router (its ``uplink``, known by its Zenoh
+id) the mirror of that: results out to its clients, camera frames in.
 """
 
 from __future__ import annotations
@@ -45,6 +49,9 @@ def ros2_keys(domain: int) -> list[str]:
 def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
     """Every role's grants; ROS 2 keys are granted in ``ros2_domain`` only."""
     ros2 = ros2_keys(ros2_domain)
+    # what twohr hands to the outside: camera drivers, other robots, viewers, ROS 2 nodes, `twohr health`
+    client = Grants(publish=_robots("camera") + ros2, subscribe=_robots("pose", "status", "landmarks") + ros2,
+                    watch_liveliness=True)
     return {
         # every stream: the session table follows poses and statuses, the live view shows the rest
         "gateway": Grants(publish=_robots("control"), subscribe=[f"{PREFIX}/*/*"], watch_liveliness=True),
@@ -60,11 +67,17 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
                           ask=_robots("rpc/detect", "rpc/dynamics", "rpc/match")),
         "recorder": Grants(publish=_robots("status"), subscribe=[f"{PREFIX}/*/*"]),
         "ros2": Grants(publish=_robots("camera") + ros2, subscribe=_robots("pose", "landmarks") + ros2),
-        # what twohr hands to the outside: camera drivers, other robots, viewers, ROS 2 nodes, `twohr health`
-        "client": Grants(publish=_robots("camera") + ros2,
-                         subscribe=_robots("pose", "status", "landmarks") + ros2,
-                         watch_liveliness=True),
+        "client": client,
+        # a robot's own router linked to this one: it forwards what its clients may do, no more
+        "router": client,
     }
+
+
+def uplink_grants(ros2_domain: int = 0) -> Grants:
+    """What the stack's router may do on a robot's own router that links to it (the mirror of a client): send
+    the results its clients read, receive the cameras they publish, answer health queries."""
+    client = role_grants(ros2_domain)["client"]
+    return Grants(publish=client.subscribe, subscribe=client.publish, serve=[f"{HEALTH_PREFIX}/*"])
 
 
 ROLES = tuple(role_grants())
@@ -104,14 +117,22 @@ def role_rules(role: str, grants: Grants) -> list[dict]:
     return rules
 
 
-def access_control(ros2_domain: int = 0) -> dict:
-    """The router's ``access_control`` section: deny by default, allow what :func:`role_grants` lists."""
+def access_control(ros2_domain: int = 0, uplinks: list[str] | None = None) -> dict:
+    """The router's ``access_control`` section: deny by default, allow what :func:`role_grants` lists. A robot's
+    own router that links to the stack's router lists that router's Zenoh ids as ``uplinks`` and grants it
+    :func:`uplink_grants`: the router that dials is the one that authenticates (as ``router``), so the router
+    dialled is known here by its id alone."""
     rules, subjects, policies = [], [], []
     for role, grants in role_grants(ros2_domain).items():
         mine = role_rules(role, grants)
         rules += mine
         subjects.append({"id": role, "usernames": [role]})
         policies.append({"id": f"{role}-policy", "rules": [r["id"] for r in mine], "subjects": [role]})
+    if uplinks:
+        mine = role_rules("uplink", uplink_grants(ros2_domain))
+        rules += mine
+        subjects.append({"id": "uplink", "zids": list(uplinks)})
+        policies.append({"id": "uplink-policy", "rules": [r["id"] for r in mine], "subjects": ["uplink"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
 

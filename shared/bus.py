@@ -65,7 +65,7 @@ class BusConfig(BaseModel):
             "mode": self.mode,
             "scouting": {"multicast": {"enabled": self.multicast_scouting}},
         }
-        if self.connect and self.mode != "router":
+        if self.connect:
             conf["connect"] = {"endpoints": self.connect}
         if self.listen:
             conf["listen"] = {"endpoints": self.listen}
@@ -108,11 +108,16 @@ def free_port(host: str = "127.0.0.1") -> int:
         return s.getsockname()[1]
 
 
-def start_router(listen: list[str] | None = None, security: RouterSecurity | None = None) -> zenoh.Session:
+def start_router(listen: list[str] | None = None, security: RouterSecurity | None = None,
+                 connect: list[str] | None = None, user: str | None = None,
+                 password: SecretStr | None = None) -> zenoh.Session:
     """A Zenoh router inside this process, listening on ``listen`` (default tcp/127.0.0.1:7447); with
-    ``security`` it admits only its users and enforces their access-control list."""
-    return open_session(BusConfig(mode="router", connect=[], listen=listen or [DEFAULT_ROUTER], user=None,
-                                  password=None, config_file=None, tls_root_ca=None, security=security))
+    ``security`` it admits only its users and enforces their access-control list. With ``connect`` it links to
+    the routers there (retrying until they answer), presenting ``user`` and ``password``: the ``router`` role
+    of their stack (see ``twohr.access``)."""
+    return open_session(BusConfig(mode="router", connect=connect or [], listen=listen or [DEFAULT_ROUTER],
+                                  user=user, password=password, config_file=None, tls_root_ca=None,
+                                  security=security))
 
 
 def query_health(session: zenoh.Session, service: str, timeout: float = 1.0) -> dict | None:

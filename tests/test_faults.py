@@ -65,7 +65,7 @@ def test_access_control_grants_each_stream_to_one_kind_of_publisher():
                   for stream in (*keys.STREAMS, keys.CONTROL, keys.RAW_CAMERA) if stream != "status"}
     assert publishers == {"pose": ["tracker"], "landmarks": ["tracker"], "control": ["gateway"], "frames": ["source"],
                           "keypoints": ["detector"], "dynamics": ["yolo"], "matches": ["matcher"],
-                          "camera": ["client", "ros2"]}
+                          "camera": ["client", "ros2", "router"]}
     assert "client" not in [r for r, g in grants.items() if keys.all_robots("status") in g.publish]
     acl = access_control()
     assert acl["default_permission"] == "deny" and {s["id"] for s in acl["subjects"]} == set(grants)
