@@ -31,6 +31,15 @@ from pathlib import Path
 PIPELINE_SERVICES = ["source", "detector", "yolo", "matcher", "tracker", "recorder"]
 
 
+def _die_with_parent() -> None:
+    """In a child, before exec: on Linux, have the kernel send SIGTERM when ``twohr up`` dies, even by SIGKILL,
+    so that no service outlives its supervisor."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
 @dataclass
 class Child:
     """One supervised process: how to start it, and its restart history."""
@@ -44,7 +53,7 @@ class Child:
     due: float | None = None  # when a crashed child is started again
 
     def start(self) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", *self.args], env=self.env)
+        self.proc = subprocess.Popen([sys.executable, "-m", *self.args], env=self.env, preexec_fn=_die_with_parent)
         self.started_at = time.monotonic()
         self.due = None
 

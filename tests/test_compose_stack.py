@@ -104,8 +104,8 @@ def test_session_in_containers_streams_every_pose_and_records_mcap(stack, dev_se
     assert mcap.is_file(), sorted(p.name for p in Path(stack["recordings"]).iterdir())
     assert mcap.read_bytes() == served.content
     counts = topic_counts(mcap)
-    for stream in ("frames", "pose"):
-        assert counts[f"/twohr/compose/{stream}"] == FRAMES, (stream, counts)
+    # every frame's image once (the lean recording: raw frames are left out) and every pose
+    assert counts["/compose/camera/image"] == FRAMES and counts["/twohr/compose/pose"] == FRAMES, counts
     # the default, camera-rate schedule: 2HR keypoints and masks only where the tracker service asked for them
     assert 1 <= counts["/twohr/compose/keypoints"] < FRAMES / 2, counts
     assert 1 <= counts["/twohr/compose/dynamics"] < FRAMES, counts

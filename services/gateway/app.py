@@ -1,53 +1,39 @@
-"""The gateway: FastAPI control of sessions over the Zenoh bus.
+"""The gateway's HTTP routes: FastAPI control of sessions over the Zenoh bus.
 
 ``POST /sessions`` validates the request (the sequence must lie under a configured data root,
-the config overrides and model names must validate) and publishes a ``start`` control message;
-the source, the cores and the recorder take it from there. The gateway follows each session's
-poses and status on the bus, and serves its state, trajectory, ATE and recording.
-
-It also watches for failure: a session fails, with the reason, when a service it needs loses its
-bus connection (its liveliness token goes), when a service rejects its config (an ``error`` status),
-or when no pose arrives for a while. Its robot is then free for a new session.
+the config overrides and model names must validate) and asks the :class:`~.bus.GatewayBus` to
+publish a ``start`` control message; the source, the cores and the recorder take it from there.
+The bus side follows each session's poses, status and services (``bus.py``); the routes serve its
+state, trajectory, ATE and recording, and the session page (``page.py``).
 """
 
 from __future__ import annotations
 
 import asyncio
-import logging
 import os
 import secrets
-import threading
 import time
 import uuid
 from contextlib import asynccontextmanager
 from pathlib import Path
 
-import zenoh
 from fastapi import Depends, FastAPI, HTTPException, Request, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 from pydantic import BaseModel, Field
 
-from twohr import keys
-from twohr.bus import BusConfig, open_session, query_health
+from twohr.bus import BusConfig, query_health
 from twohr.config import PipelineConfig, load_config
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError, validation_problems
-from twohr.evaluation import evaluate
 from twohr.mcapfile import is_finalised, partial_marker
-from twohr.messages import ControlMsg, MessageError, PoseMsg, StatusMsg, decode, encode
 from twohr.models import get_spec
 from twohr.paths import resolve_under_roots
-from twohr.service import declare_publisher
 from twohr.trajectory import tum_text
 
-from .live import BusLiveView
+from .bus import SERVICES, GatewayBus
 from .page import mount_page
 from .sessions import ACTIVE, PoseOut, Session, SessionInfo, SessionRequest, SessionTable
-
-log = logging.getLogger("twohr.gateway")
-
-SERVICES = ["source", "detector", "yolo", "matcher", "tracker", "recorder"]
 
 
 class Problem(BaseModel):
@@ -101,98 +87,15 @@ def validate_models(config: PipelineConfig) -> None:
 
 
 def create_app(settings: GatewaySettings) -> FastAPI:
+    """The HTTP routes over one :class:`GatewayBus` and its session table."""
     table = SessionTable()
-    bus_state: dict = {}
-
-    def decoded(schema, handle):
-        """A Zenoh callback that decodes ``schema`` and hands it to ``handle``; malformed payloads are logged."""
-        def callback(sample) -> None:
-            try:
-                message, _ = decode(sample.payload.to_bytes(), schema)
-                robot, _ = keys.parse(sample.key_expr)
-                if robot != message.robot_id:
-                    raise MessageError(f"a message for robot {message.robot_id!r} on {sample.key_expr}")
-            except (MessageError, ValueError) as exc:
-                log.warning("dropped %s on %s: %s", schema.__name__, sample.key_expr, exc)
-                return
-            handle(message)
-        return callback
-
-    def on_status(status: StatusMsg) -> None:
-        failed = table.on_status(status)
-        if failed is not None:
-            send_control(failed, "stop")
-            log.warning("session %s failed: %s", failed.id, failed.detail)
-
-    alive: set[str] = set()
-
-    def on_liveliness(sample) -> None:
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
-        if sample.kind == zenoh.SampleKind.PUT:
-            alive.add(name)
-            return
-        alive.discard(name)
-        if name not in SERVICES:
-            return  # an optional service (the ros2 bridge) is not part of a session's pipeline
-        for session in table.fail_active(f"the {name} service stopped during the session"):
-            log.warning("session %s failed: %s", session.id, session.detail)
-            send_control(session, "stop")
-
-    on_pose = decoded(PoseMsg, table.on_pose)
-
-    def send_control(session: Session, command: str, config: PipelineConfig | None = None) -> None:
-        req = session.request
-        control = ControlMsg(session_id=session.id, robot_id=req.robot_id, frame_index=-1, stamp=time.time(),
-                             command=command, sequence=str(session.folder or ""), rate=req.rate,
-                             max_frames=req.max_frames, record=req.record, record_descriptors=req.record_descriptors,
-                             record_frames=req.record_frames, config=config or PipelineConfig())
-        key = keys.key(req.robot_id, keys.CONTROL)
-        publishers = bus_state.setdefault("publishers", {})
-        if key not in publishers:
-            publishers[key] = declare_publisher(bus_state["session"], key)
-        publishers[key].put(encode(control))
-
-    def finish(session: Session) -> None:
-        try:
-            if session.folder is None:
-                raise TwohrError("a camera session has no ground truth")
-            seq = RGBDSequence(session.folder)
-            if seq.has_ground_truth() and len(session.poses) >= 3:
-                report, _ = evaluate(seq.ground_truth(seq.default_gt_extrinsic()), session.trajectory())
-                session.ate_rmse = report.ate.rmse
-        except (TwohrError, ValueError) as exc:
-            session.detail = f"no ATE: {exc}"
-        send_control(session, "stop")
-        session.state = "finished"
-
-    def monitor(stop: threading.Event) -> None:
-        while not stop.wait(0.25):
-            for session in table.finished_sessions(settings.idle_timeout):
-                finish(session)
-            for session in table.stalled_sessions(settings.start_timeout, settings.stall_timeout):
-                log.warning("session %s failed: %s", session.id, session.detail)
-                send_control(session, "stop")
-            table.forget_ended(settings.keep_ended)
+    bus = GatewayBus(settings, table)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        zsession = open_session(settings.bus)
-        bus_state["session"] = zsession
-        subs = [zsession.declare_subscriber(keys.all_robots("pose"), on_pose),
-                zsession.declare_subscriber(keys.all_robots("status"), decoded(StatusMsg, on_status)),
-                zsession.liveliness().declare_subscriber(f"{keys.ALIVE_PREFIX}/*", on_liveliness, history=True)]
-        live = BusLiveView(zsession, settings.foxglove_host, settings.foxglove_port) if settings.foxglove_port else None
-        stop = threading.Event()
-        thread = threading.Thread(target=monitor, args=(stop,), daemon=True)
-        thread.start()
+        bus.start()
         yield
-        stop.set()
-        thread.join(timeout=2)
-        if live is not None:
-            live.close()
-        for sub in subs:
-            sub.undeclare()
-        zsession.close()
+        bus.close()
 
     app = FastAPI(title="twohr gateway", version="1", lifespan=lifespan,
                   description="Start, follow and stop twohr SLAM sessions. Poses stream on Zenoh at "
@@ -252,7 +155,7 @@ def create_app(settings: GatewaySettings) -> FastAPI:
     @app.get("/healthz")
     def healthz() -> dict:
         """Gateway liveness plus each service's counters (null when a service does not answer)."""
-        zsession = bus_state.get("session")
+        zsession = bus.session
         services = {name: query_health(zsession, name, timeout=0.5) for name in SERVICES} if zsession else {}
         return {"status": "ok", "services": services}
 
@@ -272,14 +175,14 @@ def create_app(settings: GatewaySettings) -> FastAPI:
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)[:2000]) from None
         except OSError as exc:  # e.g. a name too long for the file system
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"sequence: {exc.strerror}") from None
-        missing = [name for name in SERVICES if name not in alive]
+        missing = bus.missing_services()
         if missing:
             raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, f"services not running: {', '.join(missing)}")
         if table.active_for_robot(request.robot_id):
             raise HTTPException(status.HTTP_409_CONFLICT, f"robot {request.robot_id} already runs a session")
         session = Session(id=uuid.uuid4().hex[:12], request=request, folder=folder)
         table.add(session)
-        send_control(session, "start", config)
+        bus.send_control(session, "start", config)
         return info(session)
 
     @app.get("/sessions", response_model=list[SessionInfo], dependencies=[Depends(require_token)],
@@ -299,7 +202,7 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         session = lookup(session_id)
         if session.state in ACTIVE:
             session.state = "stopped"
-            send_control(session, "stop")
+            bus.send_control(session, "stop")
         return info(session)
 
     @app.get("/sessions/{session_id}/trajectory", response_class=PlainTextResponse,

@@ -52,8 +52,9 @@ class BusLiveView:
             try:
                 if keys.parse(key)[1] == keys.CONTROL:
                     control, _ = decode(payload, ControlMsg)
-                    if control.command == "start":
+                    if control.command == "start":  # every channel up front: none loses its first message
                         self.view.reset(control.robot_id)
+                        self.view.advertise(control.robot_id)
                 else:
                     self.view.convert_and_log(payload)
             except (MessageError, ValueError) as exc:

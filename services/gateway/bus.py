@@ -1,0 +1,139 @@
+"""The gateway's side of the bus: it follows poses, statuses and service liveliness into the session table,
+sends control messages, and ends sessions: finished (with their ATE), or failed when a service they need dies,
+rejects their config, or the pipeline stalls. No HTTP here; the routes in ``app.py`` call it."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import zenoh
+
+from twohr import keys
+from twohr.bus import open_session
+from twohr.config import PipelineConfig
+from twohr.dataset import RGBDSequence
+from twohr.errors import TwohrError
+from twohr.evaluation import evaluate
+from twohr.messages import ControlMsg, MessageError, PoseMsg, StatusMsg, decode, encode
+from twohr.service import declare_publisher
+
+from .live import BusLiveView
+from .sessions import Session, SessionTable
+
+log = logging.getLogger("twohr.gateway")
+
+#: the pipeline services every session needs
+SERVICES = ["source", "detector", "yolo", "matcher", "tracker", "recorder"]
+
+
+class GatewayBus:
+    """The gateway's Zenoh session and what it does with it (``settings`` is a ``GatewaySettings``)."""
+
+    def __init__(self, settings, table: SessionTable) -> None:
+        self.settings = settings
+        self.table = table
+        self.alive: set[str] = set()  # services whose liveliness token is up
+        self.session: zenoh.Session | None = None
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._subscribers: list = []
+        self._live: BusLiveView | None = None
+        self._stop = threading.Event()
+        self._monitor: threading.Thread | None = None
+
+    def start(self) -> None:
+        """Open the session, follow poses, statuses and liveliness, and start the session monitor."""
+        self.session = open_session(self.settings.bus)
+        self._subscribers = [
+            self.session.declare_subscriber(keys.all_robots("pose"), self._decoded(PoseMsg, self.table.on_pose)),
+            self.session.declare_subscriber(keys.all_robots("status"), self._decoded(StatusMsg, self._on_status)),
+            self.session.liveliness().declare_subscriber(f"{keys.ALIVE_PREFIX}/*", self._on_liveliness,
+                                                         history=True)]
+        if self.settings.foxglove_port:
+            self._live = BusLiveView(self.session, self.settings.foxglove_host, self.settings.foxglove_port)
+        self._monitor = threading.Thread(target=self._watch, name="session-monitor", daemon=True)
+        self._monitor.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._monitor is not None:
+            self._monitor.join(timeout=2)
+        if self._live is not None:
+            self._live.close()
+        for sub in self._subscribers:
+            sub.undeclare()
+        if self.session is not None:
+            self.session.close()
+
+    def missing_services(self) -> list[str]:
+        """The pipeline services whose liveliness token is not up."""
+        return [name for name in SERVICES if name not in self.alive]
+
+    def send_control(self, session: Session, command: str, config: PipelineConfig | None = None) -> None:
+        """Publish a start or stop of ``session`` on ``twohr/<robot>/control``."""
+        req = session.request
+        control = ControlMsg(session_id=session.id, robot_id=req.robot_id, frame_index=-1, stamp=time.time(),
+                             command=command, sequence=str(session.folder or ""), rate=req.rate,
+                             max_frames=req.max_frames, record=req.record, record_descriptors=req.record_descriptors,
+                             record_frames=req.record_frames, config=config or PipelineConfig())
+        key = keys.key(req.robot_id, keys.CONTROL)
+        if key not in self._publishers:
+            self._publishers[key] = declare_publisher(self.session, key)
+        self._publishers[key].put(encode(control))
+
+    def _decoded(self, schema, handle):
+        """A Zenoh callback that decodes ``schema`` and hands it to ``handle``; a malformed payload, or one whose
+        robot is not its key's, is logged and dropped."""
+        def callback(sample) -> None:
+            try:
+                message, _ = decode(sample.payload.to_bytes(), schema)
+                robot, _ = keys.parse(sample.key_expr)
+                if robot != message.robot_id:
+                    raise MessageError(f"a message for robot {message.robot_id!r} on {sample.key_expr}")
+            except (MessageError, ValueError) as exc:
+                log.warning("dropped %s on %s: %s", schema.__name__, sample.key_expr, exc)
+                return
+            handle(message)
+        return callback
+
+    def _fail(self, session: Session) -> None:
+        log.warning("session %s failed: %s", session.id, session.detail)
+        self.send_control(session, "stop")
+
+    def _on_status(self, status: StatusMsg) -> None:
+        failed = self.table.on_status(status)
+        if failed is not None:
+            self._fail(failed)
+
+    def _on_liveliness(self, sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.alive.add(name)
+            return
+        self.alive.discard(name)
+        if name in SERVICES:  # an optional service (the ros2 bridge) is not part of a session's pipeline
+            for session in self.table.fail_active(f"the {name} service stopped during the session"):
+                self._fail(session)
+
+    def _finish(self, session: Session) -> None:
+        try:
+            if session.folder is None:
+                raise TwohrError("a camera session has no ground truth")
+            seq = RGBDSequence(session.folder)
+            if seq.has_ground_truth() and len(session.poses) >= 3:
+                report, _ = evaluate(seq.ground_truth(seq.default_gt_extrinsic()), session.trajectory())
+                session.ate_rmse = report.ate.rmse
+        except (TwohrError, ValueError) as exc:
+            session.detail = f"no ATE: {exc}"
+        self.send_control(session, "stop")
+        session.state = "finished"
+
+    def _watch(self) -> None:
+        settings = self.settings
+        while not self._stop.wait(0.25):
+            for session in self.table.finished_sessions(settings.idle_timeout):
+                self._finish(session)
+            for session in self.table.stalled_sessions(settings.start_timeout, settings.stall_timeout):
+                self._fail(session)
+            self.table.forget_ended(settings.keep_ended)
