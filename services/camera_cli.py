@@ -22,25 +22,14 @@ log = logging.getLogger(__name__)
 
 def open_bus(zenoh_config: str | None, router: str | None):
     """A Zenoh session from a client config file, a router endpoint, or the default (``$TWOHR_ZENOH_ROUTER``,
-    else ``tcp/127.0.0.1:7447``)."""
-    import zenoh
-
-    from twohr.bus import BusConfig
+    else ``tcp/127.0.0.1:7447``, with the credentials in the environment)."""
+    from twohr.bus import BusConfig, open_session
 
     if zenoh_config:
-        path = Path(zenoh_config)
-        if not path.is_file():
-            raise TwohrError(f"Zenoh config not found: {path}")
-        try:
-            config = zenoh.Config.from_file(str(path))
-        except Exception as exc:  # zenoh raises its own error type for any parse or validation failure
-            raise TwohrError(f"invalid Zenoh config {path}: {str(exc).splitlines()[0]}") from None
-    else:
-        config = (BusConfig(connect=[router]) if router else BusConfig()).zenoh_config()
-    try:
-        return zenoh.open(config)
-    except Exception as exc:  # e.g. a client whose router does not answer
-        raise TwohrError(f"cannot open the Zenoh session: {str(exc).splitlines()[0]}") from None
+        if not Path(zenoh_config).is_file():
+            raise TwohrError(f"Zenoh config not found: {zenoh_config}")
+        return open_session(BusConfig(config_file=zenoh_config))
+    return open_session(BusConfig(connect=[router]) if router else BusConfig())
 
 
 class RatePacer:

@@ -60,7 +60,8 @@ class BusConfig(BaseModel):
             try:
                 return zenoh.Config.from_file(str(self.config_file))
             except Exception as exc:  # zenoh raises a bare ZError on a missing or malformed file
-                raise TwohrError(f"cannot read the Zenoh config {self.config_file}: {exc}") from None
+                reason = " ".join(str(exc).split()).split(" at /")[0]  # one line, no Rust source location
+                raise TwohrError(f"invalid Zenoh config {self.config_file}: {reason}") from None
         conf: dict = {
             "mode": self.mode,
             "scouting": {"multicast": {"enabled": self.multicast_scouting}},
