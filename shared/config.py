@@ -35,6 +35,9 @@ class DetectorConfig(Section):
     precision: Literal["auto", "bf16", "f32"] = Field(
         "auto", description="OpenVINO precision; auto = bf16 on CPUs with native bf16 (AMX), else f32")
     threads: int = Field(1, ge=1, le=64, description="inference threads (1: the other core tracks frames)")
+    subpixel: bool = Field(True, description="refine each keypoint below a pixel by a parabola through the "
+                           "repeatability peak and its neighbours (else keypoints sit on the network's pixel grid, "
+                           "1.33 image px apart at input_scale 0.75)")
     max_keypoints: int = Field(1500, ge=16, description="keep the top N by score")
     min_reliability: float = Field(0.7, ge=0, le=1, description="R2D2 score floor before the 2HR filter")
     min_repeatability: float = Field(0.7, ge=0, le=1, description="R2D2 score floor before the 2HR filter")
