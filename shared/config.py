@@ -139,6 +139,9 @@ class TrackerConfig(Section):
                                           "of this many latest keyframes again by flow from the keyframe's image")
     flow_reacquire_below: int = Field(100, ge=0, description="tracks run short below this many flowed tracks")
     flow_max_tracks: int = Field(600, ge=16, description="follow at most this many landmarks per frame")
+    reanchor_lagging_frames: bool = Field(True, description="when a keyframe job returns, the frames tracked while "
+                                          "it ran keep their flow motion relative to the keyframe's new pose in the "
+                                          "trajectory, instead of to the previous keyframe (no spike per keyframe)")
     keyframe_max_interval: int = Field(10, ge=1, description="ask for a keyframe at least every this many frames")
     flow_keyframe_min_inliers: int = Field(150, ge=6, description="ask for a keyframe when fewer tracks than this "
                                            "are inliers of the pose")
