@@ -401,6 +401,8 @@ class R2D2Detector:
         ys, xs, rel, rep = ys[keep], xs[keep], rel[keep], rep[keep]
         dy, dx = subpixel_offsets(maps.repeatability, ys, xs) if self.conf.subpixel else (0.0, 0.0)
         xy = np.stack([(xs + dx + 0.5) * (width / net_w) - 0.5, (ys + dy + 0.5) * (height / net_h) - 0.5], axis=1)
+        if self.conf.subpixel:  # a refined peak may not move into the border it was kept away from
+            xy = np.clip(xy, self.conf.border, np.array([width, height]) - 1 - self.conf.border)
         return Keypoints(xy.astype(np.float32), maps.descriptors_at(ys, xs), (rel * rep).astype(np.float32),
                          rel.astype(np.float32), rep.astype(np.float32))
 
