@@ -29,6 +29,8 @@ ABLATIONS: dict[str, dict[str, object]] = {
     "2HR + mutual NN": {"detector.features": "2hr", "yolo.enabled": False, "matcher.method": "mutual_nn"},
     "2HR + YOLO + mutual NN": {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "mutual_nn"},
     "2HR + YOLO + Siamese (full)": {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "siamese"},
+    "full, integer keypoints": {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "siamese",
+                                "detector.subpixel": False},
 }
 
 

@@ -92,7 +92,9 @@ def format_report(report) -> str:
     return "\n".join([
         f"ATE ({report.align}, max dt {report.max_dt} s, gt extrinsic {report.gt_extrinsic}): "
         f"RMSE {a.rmse:.4f} m  mean {a.mean:.4f}  median {a.median:.4f}  std {a.std:.4f}  max {a.max:.4f}",
-        f"RPE trans: per frame RMSE {r1.rmse:.4f} m, over 1 s RMSE {rs.rmse:.4f} m",
+        f"RPE trans: per frame RMSE {r1.rmse:.4f} m, over 1 s RMSE {rs.rmse:.4f} m"
+        + (f"; jitter RMSE {report.jitter.rmse:.4f} m" if report.jitter is not None else "")
+        + (f"; Sim(3) scale {report.sim3_scale:.4f}" if report.sim3_scale is not None else ""),
         f"paired {report.matched} of {report.estimate_poses} estimate poses; GT coverage {report.gt_coverage:.1f} %"
         + (f"; scale {report.scale:.4f}" if report.align == "sim3" else ""),
     ])

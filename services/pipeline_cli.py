@@ -89,7 +89,9 @@ def print_summary(summary: dict, out: Path) -> None:
         a, r = summary["ate"], summary["ate_raw_gt"]
         print(f"ATE RMSE {a['ate']['rmse']:.4f} m (SE(3), max dt {a['max_dt']} s, camera-frame GT "
               f"'{a['gt_extrinsic']}'); raw marker GT {r['ate']['rmse']:.4f} m; online poses "
-              f"{summary['ate_online']['ate']['rmse']:.4f} m; RPE 1 s {a['rpe_1s']['rmse']:.4f} m; "
+              f"{summary['ate_online']['ate']['rmse']:.4f} m; RPE 1 frame {a['rpe_frame']['rmse']:.4f} m, 1 s "
+              f"{a['rpe_1s']['rmse']:.4f} m; jitter {a['jitter']['rmse']:.4f} m; "
+              f"Sim(3) scale {a['sim3_scale'] or float('nan'):.3f}; "
               f"GT coverage {a['gt_coverage']:.1f} %")
     print(f"outputs in {out}/: report.html, trajectory.png, timeline.png, trajectory.txt, trajectory_online.txt, "
           "stats.csv, summary.json, config.yaml")

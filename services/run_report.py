@@ -88,7 +88,9 @@ def write_report_html(out: Path, name: str, summary: dict) -> Path:
     if "ate" in summary:
         rows += [_row("ATE RMSE (refined)", f"{summary['ate']['ate']['rmse']:.4f} m"),
                  _row("ATE RMSE (online)", f"{summary['ate_online']['ate']['rmse']:.4f} m"),
-                 _row("RPE over 1 s", f"{summary['ate']['rpe_1s']['rmse']:.4f} m")]
+                 _row("RPE over 1 frame", f"{summary['ate']['rpe_frame']['rmse']:.4f} m"),
+                 _row("RPE over 1 s", f"{summary['ate']['rpe_1s']['rmse']:.4f} m"),
+                 _row("jitter (2nd difference of the error)", f"{summary['ate']['jitter']['rmse']:.4f} m")]
     for stage, ms in summary.get("ms_per_frame_median", {}).items():
         rows.append(_row(f"median {stage.removeprefix('ms_')} ms", ms))
     for key, value in summary.get("keyframe_jobs", {}).items():

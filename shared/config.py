@@ -35,6 +35,9 @@ class DetectorConfig(Section):
     precision: Literal["auto", "bf16", "f32"] = Field(
         "auto", description="OpenVINO precision; auto = bf16 on CPUs with native bf16 (AMX), else f32")
     threads: int = Field(1, ge=1, le=64, description="inference threads (1: the other core tracks frames)")
+    subpixel: bool = Field(True, description="refine each keypoint below a pixel by a parabola through the "
+                           "repeatability peak and its neighbours (else keypoints sit on the network's pixel grid, "
+                           "1.33 image px apart at input_scale 0.75)")
     max_keypoints: int = Field(1500, ge=16, description="keep the top N by score")
     min_reliability: float = Field(0.7, ge=0, le=1, description="R2D2 score floor before the 2HR filter")
     min_repeatability: float = Field(0.7, ge=0, le=1, description="R2D2 score floor before the 2HR filter")
@@ -136,6 +139,9 @@ class TrackerConfig(Section):
                                           "of this many latest keyframes again by flow from the keyframe's image")
     flow_reacquire_below: int = Field(100, ge=0, description="tracks run short below this many flowed tracks")
     flow_max_tracks: int = Field(600, ge=16, description="follow at most this many landmarks per frame")
+    reanchor_lagging_frames: bool = Field(True, description="when a keyframe job returns, the frames tracked while "
+                                          "it ran keep their flow motion relative to the keyframe's new pose in the "
+                                          "trajectory, instead of to the previous keyframe (no spike per keyframe)")
     keyframe_max_interval: int = Field(10, ge=1, description="ask for a keyframe at least every this many frames")
     flow_keyframe_min_inliers: int = Field(150, ge=6, description="ask for a keyframe when fewer tracks than this "
                                            "are inliers of the pose")

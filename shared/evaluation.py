@@ -55,6 +55,11 @@ class EvaluationReport(BaseModel):
     ate: ErrorStats
     rpe_frame: ErrorStats = Field(description="translational RPE between consecutive paired poses")
     rpe_1s: ErrorStats = Field(description="translational RPE over 1 second")
+    jitter: ErrorStats | None = Field(None, description="norm of the second difference of the aligned position "
+                                      "error over consecutive paired poses: zero for any smooth drift, large for "
+                                      "frame-to-frame zig-zag")
+    sim3_scale: float | None = Field(None, description="scale of a Sim(3) Umeyama alignment of the estimate onto "
+                                     "the ground truth (> 1: the estimate's translations come out short)")
 
 
 def associate(stamps_a: np.ndarray, stamps_b: np.ndarray, max_dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -130,6 +135,16 @@ def rpe_errors(gt: Trajectory, est: Trajectory, delta_s: float | None = None) ->
     return np.linalg.norm(err[:, :3, 3], axis=1)
 
 
+def jitter_errors(gt: Trajectory, est_aligned: Trajectory) -> np.ndarray:
+    """Per-pose zig-zag of paired, aligned trajectories: ``|e[i-1] - 2 e[i] + e[i+1]|`` of the position error
+    ``e``. A constant offset or a drift linear in the frame index gives 0; independent noise of sigma per axis
+    gives about ``sqrt(6 * 3) * sigma`` RMS."""
+    error = est_aligned.positions - gt.positions
+    if len(error) < 3:
+        return np.zeros(0)
+    return np.linalg.norm(error[:-2] - 2 * error[1:-1] + error[2:], axis=1)
+
+
 def evaluate(
     gt: Trajectory,
     est: Trajectory,
@@ -160,9 +175,19 @@ def evaluate(
         ate=ErrorStats.of(errors),
         rpe_frame=ErrorStats.of(rpe_errors(gt_paired, est_aligned)),
         rpe_1s=ErrorStats.of(rpe_errors(gt_paired, est_aligned, delta_s=1.0)),
+        jitter=ErrorStats.of(jitter_errors(gt_paired, est_aligned)),
+        sim3_scale=scale if align == "sim3" else _sim3_scale(est_paired, gt_paired),
     )
     arrays = {"gt": gt_paired, "est": est_aligned, "ate": errors}
     return report, arrays
+
+
+def _sim3_scale(est: Trajectory, gt: Trajectory) -> float | None:
+    """The Sim(3) alignment's scale, None where the positions are degenerate (a line, a point)."""
+    try:
+        return align_trajectory(est, gt, "sim3")[1]
+    except ValueError:
+        return None
 
 
 def static_trajectory(stamps: np.ndarray) -> Trajectory:

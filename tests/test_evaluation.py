@@ -43,6 +43,29 @@ def test_alignment_removes_rigid_motion():
     assert report.rpe_frame.rmse < 1e-9
 
 
+def test_jitter_is_zero_for_smooth_drift_and_sees_a_zig_zag():
+    gt = line_trajectory()
+    drifting = line_trajectory()
+    drifting.poses[:, 1, 3] += 0.003 * np.arange(10)  # a drift linear in time: no jitter
+    report, _ = evaluate(gt, drifting, align="none", max_dt=0.01)
+    assert report.jitter.rmse < 1e-12 and report.jitter.count == 8 and report.ate.rmse > 0.01
+    zigzag = line_trajectory()
+    zigzag.poses[:, 1, 3] += 0.002 * (-1.0) ** np.arange(10)  # +-2 mm every other frame
+    report, _ = evaluate(gt, zigzag, align="none", max_dt=0.01)
+    assert report.jitter.rmse == pytest.approx(0.008, abs=1e-12)  # |e - 2e' + e''| = 4 * 2 mm
+
+
+def test_sim3_scale_measures_short_translations():
+    gt = line_trajectory()
+    gt.poses[:, 2, 3] = np.sin(np.arange(10))
+    short = line_trajectory()
+    short.poses[:, :3, 3] = gt.positions / 1.13  # every translation 13 % short
+    report, _ = evaluate(gt, short)
+    assert report.scale == 1.0 and report.sim3_scale == pytest.approx(1.13, abs=1e-9)
+    report, _ = evaluate(gt, gt)
+    assert report.sim3_scale == pytest.approx(1.0, abs=1e-9)
+
+
 def test_association_window():
     ia, ib = associate(np.array([0.0, 1.0, 2.0]), np.array([0.005, 1.03, 1.99]), 0.02)
     assert ia.tolist() == [0, 2] and ib.tolist() == [0, 2]

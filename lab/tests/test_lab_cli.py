@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from twohr_lab.tracking import sensitivity, vo_bench
+from twohr_lab.tracking import accuracy, sensitivity, vo_bench
 from twohr_services.cli import build_parser, main
 
 #: Fast settings for the synthetic sequences: ORB keypoints, no YOLO.
@@ -105,6 +105,27 @@ def test_sensitivity_default_row_is_twohr_run(synthetic_sequence, tmp_path):
     assert summary["frames"] == 20
     assert point["ate_refined"] == pytest.approx(summary["ate"]["ate"]["rmse"], abs=1e-12)
     assert point["ate_online"] == pytest.approx(summary["ate_online"]["ate"]["rmse"], abs=1e-12)
+
+
+def test_accuracy_study_reports_every_figure_per_variant(static_synthetic_sequence, tmp_path):
+    """Defaults, a later start and a config variant on a synthetic sequence with exact ground truth."""
+    out = tmp_path / "accuracy"
+    assert accuracy.main(["--sequence", str(static_synthetic_sequence), "--frames", "30", "--runs", "1", *FAST,
+                          "--set", "tracker.depth_noise=0.005", "--variant", "from frame 5=--start=5",
+                          "--variant", "integer keypoints=detector.subpixel=false", "--quiet",
+                          "--out", str(out)]) == 0
+    rows = json.loads((out / "accuracy.json").read_text())["rows"]
+    assert [(r["variant"], r["start"]) for r in rows] == [("defaults", 0), ("from frame 5", 5),
+                                                         ("integer keypoints", 0)]
+    for row in rows:
+        run = row["runs"][0]
+        assert run["frames"] == 30 - row["start"] and run["tracked_percent"] > 90
+        assert 0 < run["ate"] < 0.03 and run["ate_max"] >= run["ate"] and run["outliers"] == 0
+        assert 0 < run["rpe_frame"] < 0.02 and 0 < run["jitter"] < 0.05  # the synthetic run is shorter than 1 s
+        assert abs(run["sim3_scale"] - 1) < 0.1
+    assert (out / "accuracy.png").stat().st_size > 10_000
+    assert "| from frame 5 | 1 |" in (out / "accuracy.md").read_text()
+    assert accuracy.main(["--sequence", str(static_synthetic_sequence), "--variant", "no equals sign"]) == 2
 
 
 def test_vo_bench_compares_both_back_ends_on_the_same_frames(synthetic_sequence, tmp_path):

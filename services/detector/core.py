@@ -113,6 +113,25 @@ def local_maxima(repeatability: np.ndarray, reliability: np.ndarray, min_repeata
     return np.nonzero(peak)
 
 
+def subpixel_offsets(score: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel offsets (dy, dx) in [-0.5, 0.5] of peaks (ys, xs) of ``score``: the vertex of a parabola through
+    the peak and its two neighbours, per axis. Peaks on the map's border keep offset 0 on that axis."""
+    height, width = score.shape
+    offsets = []
+    for axis, (index, size) in enumerate(((ys, height), (xs, width))):
+        inner = (index > 0) & (index < size - 1)
+        lo, hi = np.where(inner, index - 1, index), np.where(inner, index + 1, index)
+        before = score[lo, xs] if axis == 0 else score[ys, lo]
+        after = score[hi, xs] if axis == 0 else score[ys, hi]
+        centre = score[ys, xs]
+        curvature = before.astype(np.float64) - 2 * centre + after
+        # a true maximum curves down; a flat or inverted neighbourhood says nothing below a pixel
+        safe = inner & (curvature < -1e-9)
+        offset = np.where(safe, 0.5 * (before - after) / np.where(safe, curvature, -1.0), 0.0)
+        offsets.append(np.clip(offset, -0.5, 0.5))
+    return offsets[0], offsets[1]
+
+
 def select_keypoints(reliability: np.ndarray, repeatability: np.ndarray, conf: DetectorConfig) -> np.ndarray:
     """Indices of the candidates (already local maxima) that ``conf`` keeps, best composite score first.
 
@@ -380,7 +399,10 @@ class R2D2Detector:
         rep = maps.repeatability[ys, xs]
         keep = select_keypoints(rel, rep, self.conf)
         ys, xs, rel, rep = ys[keep], xs[keep], rel[keep], rep[keep]
-        xy = np.stack([(xs + 0.5) * (width / net_w) - 0.5, (ys + 0.5) * (height / net_h) - 0.5], axis=1)
+        dy, dx = subpixel_offsets(maps.repeatability, ys, xs) if self.conf.subpixel else (0.0, 0.0)
+        xy = np.stack([(xs + dx + 0.5) * (width / net_w) - 0.5, (ys + dy + 0.5) * (height / net_h) - 0.5], axis=1)
+        if self.conf.subpixel:  # a refined peak may not move into the border it was kept away from
+            xy = np.clip(xy, self.conf.border, np.array([width, height]) - 1 - self.conf.border)
         return Keypoints(xy.astype(np.float32), maps.descriptors_at(ys, xs), (rel * rep).astype(np.float32),
                          rel.astype(np.float32), rep.astype(np.float32))
 

@@ -265,9 +265,17 @@ class FrameTracker:
 
     def _attach_to_keyframe(self, update: MapUpdate) -> None:
         """A frame that became a keyframe takes the keyframe's pose in the trajectory (measured from 2HR
-        matches and refined by bundle adjustment since), whatever optical flow had reported for it."""
+        matches and refined by bundle adjustment since), whatever optical flow had reported for it. With
+        ``reanchor_lagging_frames``, the frames tracked while its job ran follow it: they keep their flow
+        motion relative to that frame, so the keyframe's correction does not come and go as a spike."""
         for i in range(len(self._stamps) - 1, -1, -1):
             if self._stamps[i] == update.stamp:
+                if self.conf.reanchor_lagging_frames and i + 1 < len(self._stamps):
+                    later = slice(i, len(self._stamps))
+                    absolute = reattach_to_keyframes(self._stamps[later], self._anchors[later],
+                                                     self._relative[later], self.keyframe_poses).poses
+                    self._relative[i + 1:] = list(invert_pose(absolute[0]) @ absolute[1:])
+                    self._anchors[i + 1:] = [update.keyframe_id] * (len(self._stamps) - i - 1)
                 self._anchors[i] = update.keyframe_id
                 self._relative[i] = np.eye(4)
                 self._measured[i] = update.result.tracked

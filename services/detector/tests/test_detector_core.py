@@ -20,6 +20,7 @@ from twohr_services.detector.core import (
     local_maxima,
     network_size,
     select_keypoints,
+    subpixel_offsets,
     twohr_filter,
 )
 
@@ -128,6 +129,43 @@ def test_local_maxima_finds_crafted_peaks_away_from_the_border():
     assert (30, 40) not in list(zip(ys.tolist(), xs.tolist(), strict=True))
 
 
+def test_subpixel_offsets_recover_the_vertex_of_a_paraboloid():
+    ys, xs = np.mgrid[0:20, 0:30].astype(np.float64)
+    y0, x0 = 9.3, 14.6
+    score = 1.0 - 0.05 * (xs - x0) ** 2 - 0.08 * (ys - y0) ** 2
+    py, px = local_maxima(score.astype(np.float32), np.ones_like(score, np.float32), 0.5, 0.5, 1)
+    assert (py.tolist(), px.tolist()) == ([9], [15])
+    dy, dx = subpixel_offsets(score, py, px)
+    assert py[0] + dy[0] == pytest.approx(y0, abs=1e-9)
+    assert px[0] + dx[0] == pytest.approx(x0, abs=1e-9)
+
+
+def test_subpixel_offsets_localise_gaussian_peaks_better_than_the_grid():
+    rng = np.random.default_rng(3)
+    ys, xs = np.mgrid[0:200, 0:200].astype(np.float64)
+    centres = np.stack(np.meshgrid(np.arange(15, 190, 20), np.arange(15, 190, 20)), -1).reshape(-1, 2) + rng.uniform(
+        -0.5, 0.5, (81, 2))
+    score = np.zeros_like(xs)
+    for cy, cx in centres:
+        score = np.maximum(score, np.exp(-((ys - cy) ** 2 + (xs - cx) ** 2) / (2 * 1.5**2)))
+    py, px = local_maxima(score.astype(np.float32), np.ones_like(score, np.float32), 0.5, 0.5, 2)
+    assert len(py) == len(centres)
+    dy, dx = subpixel_offsets(score, py, px)
+    truth = centres[np.argmin(np.hypot(centres[None, :, 0] - py[:, None], centres[None, :, 1] - px[:, None]), 1)]
+    grid_error = np.hypot(py - truth[:, 0], px - truth[:, 1])
+    refined_error = np.hypot(py + dy - truth[:, 0], px + dx - truth[:, 1])
+    assert np.all(np.abs(dy) <= 0.5) and np.all(np.abs(dx) <= 0.5)
+    assert refined_error.max() < 0.1 < np.median(grid_error)
+
+
+def test_subpixel_offsets_leave_flat_and_border_peaks_alone():
+    score = np.zeros((5, 5))
+    score[2, 1:4] = 1.0  # a ridge: flat along x
+    score[0, 0] = 2.0  # a corner peak
+    dy, dx = subpixel_offsets(score, np.array([2, 0]), np.array([2, 0]))
+    assert dx.tolist() == [0.0, 0.0] and dy[1] == 0.0
+
+
 def test_network_size_is_even():
     assert network_size(640, 480, 1.0) == (640, 480)
     assert network_size(640, 480, 0.5) == (320, 240)
@@ -226,6 +264,25 @@ def test_half_scale_keypoints_are_in_original_pixels(real_frame, default_keypoin
     assert half.xy[:, 0].max() > 480 and half.xy[:, 1].max() > 360  # not stuck in the 320x240 network frame
     distance, _ = nearest_neighbours(half.xy, default_keypoints.xy)
     assert np.median(distance) < 3.0
+
+
+def test_subpixel_keypoints_follow_a_shifted_image(real_frame):
+    """Shift the image by 2 px: at input_scale 0.75 that is 1.5 network pixels, so grid keypoints move by 1 or 2
+    network pixels (1.33 or 2.67 px) while refined ones should move by about the true 2 px."""
+    shifted = np.ascontiguousarray(np.roll(real_frame, 2, axis=1))
+    errors = {}
+    for subpixel in (False, True):
+        detector = R2D2Detector(DetectorConfig(subpixel=subpixel))
+        before, after = detector.detect(real_frame), detector.detect(shifted)
+        distance, nearest = nearest_neighbours(before.xy + np.float32([2, 0]), after.xy)
+        same = (distance < 1.5) & (before.xy[:, 0] > 20)
+        assert same.sum() > 200
+        errors[subpixel] = np.median(np.abs(after.xy[nearest[same], 0] - before.xy[same, 0] - 2.0))
+        if subpixel:
+            grid = R2D2Detector(DetectorConfig(subpixel=False)).detect(real_frame)
+            offset = np.abs(before.xy - grid.xy[nearest_neighbours(before.xy, grid.xy)[1]])
+            assert offset.max() <= 0.5 * 640 / 480 + 1e-3 and np.median(offset) > 0.05
+    assert errors[True] < 0.6 * errors[False]
 
 
 @pytest.mark.parametrize("detector_class, dim, dtype", [(ORBDetector, 32, np.uint8), (FASTDetector, 32, np.uint8),
