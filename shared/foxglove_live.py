@@ -19,6 +19,7 @@ import json
 import logging
 import struct
 import threading
+import time
 
 import foxglove
 import foxglove.channels
@@ -152,7 +153,10 @@ class LiveView:
             messages = self.converter.convert(payload)
         self.log(messages)
 
-    def close(self) -> None:
+    def close(self, drain_s: float = 0.5) -> None:
+        """Stop serving, after ``drain_s`` for the relay to hand viewers the last messages it holds."""
+        if self.sent:
+            time.sleep(drain_s)
         self.bridge.close()
         self.server.stop()
 
