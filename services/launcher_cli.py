@@ -193,10 +193,7 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
     def env(role: str) -> dict[str, str]:
         if credentials is None:
             return base_env
-        password_file = secrets_dir / f"{role}.password"
-        password_file.write_text(credentials.passwords[role])
-        password_file.chmod(0o600)
-        return base_env | {"TWOHR_ZENOH_USER": role, "TWOHR_ZENOH_PASSWORD_FILE": str(password_file)}
+        return base_env | {"TWOHR_ZENOH_USER": role, "TWOHR_ZENOH_PASSWORD_FILE": str(secrets_dir / f"{role}.password")}
 
     try:
         roots = [arg for root in data_roots for arg in ("--data-root", root)]
@@ -292,9 +289,6 @@ def router_secrets(folder: Path, api_token: str | None = None):
         return Credentials.load(path)
     credentials = Credentials.generate(api_token)
     credentials.save(folder)
-    for role, password in credentials.passwords.items():
-        (folder / f"{role}.password").write_text(password)
-    (folder / "api-token").write_text(credentials.api_token)
     for item in folder.iterdir():  # readable by the stack's other users (the recorder runs as the host's uid)
         item.chmod(0o644)
     folder.chmod(0o755)

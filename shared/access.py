@@ -153,9 +153,12 @@ class Credentials(BaseModel):
         return "".join(f"{role}:{password}\n" for role, password in self.passwords.items())
 
     def save(self, folder: Path) -> Path:
-        """Write ``credentials.json`` and the router's dictionary into ``folder`` (created private)."""
+        """Write ``credentials.json``, the router's dictionary ``users.txt``, one ``<role>.password`` per role
+        (what ``TWOHR_ZENOH_PASSWORD_FILE`` names) and ``api-token`` into ``folder``, all private (0600)."""
         folder.mkdir(parents=True, exist_ok=True, mode=0o700)
-        for name, text in (("credentials.json", self.model_dump_json(indent=1)), ("users.txt", self.dictionary())):
+        files = {"credentials.json": self.model_dump_json(indent=1), "users.txt": self.dictionary(),
+                 "api-token": self.api_token, **{f"{role}.password": pw for role, pw in self.passwords.items()}}
+        for name, text in files.items():
             path = folder / name
             path.write_text(text)
             path.chmod(0o600)
