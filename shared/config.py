@@ -238,19 +238,24 @@ def merge_overrides(data: dict[str, Any], overrides: dict[str, Any] | list[str])
     return data
 
 
+def read_yaml_mapping(path: str | Path, what: str) -> dict[str, Any]:
+    """A YAML (or JSON) file that must hold a mapping of ``what``; raises :class:`ConfigError` in one line for a
+    missing file, invalid YAML or anything but a mapping."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of {what}")
+    return data
+
+
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | list[str] | None = None) -> PipelineConfig:
     """Defaults, then a YAML file, then overrides; any invalid or unknown key raises :class:`ConfigError`."""
-    data: dict[str, Any] = {}
-    if path is not None:
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"config file not found: {path}")
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: not valid YAML: {exc}") from None
-        if not isinstance(data, dict):
-            raise ConfigError(f"{path}: expected a mapping of sections")
+    data: dict[str, Any] = read_yaml_mapping(path, "sections") if path is not None else {}
     merge_overrides(data, overrides or [])
     try:
         return PipelineConfig.model_validate(data)

@@ -58,6 +58,11 @@ def plot_trajectories(path: str | Path, gt: Trajectory, est: Trajectory, ate: np
     axes[2].set_title("absolute trajectory error")
     axes[2].grid(alpha=0.3)
     axes[2].legend(loc="best", fontsize=8)
+    return _save(fig, path, title)
+
+
+def _save(fig, path: Path, title: str = "") -> Path:
+    """Title, lay out, write and close a figure."""
     if title:
         fig.suptitle(title)
     fig.tight_layout()
@@ -73,12 +78,7 @@ def plot_trajectory(path: str | Path, est: Trajectory, marks: dict[str, np.ndarr
     path.parent.mkdir(parents=True, exist_ok=True)
     fig, axes = plt.subplots(1, 2, figsize=(11, 5))
     _trajectory_views(axes, None, est, marks)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
 
 
 def plot_timeline(path: str | Path, index: np.ndarray, panels: dict[str, dict[str, np.ndarray]],

@@ -116,8 +116,9 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         size = request.headers.get("content-length")
         if size is not None and (not size.isdigit() or int(size) > settings.max_request_bytes):
             return JSONResponse({"detail": f"request body over {settings.max_request_bytes} bytes"}, status_code=413)
-        if request.method == "POST" and request.headers.get("content-type", "").startswith(
-                ("application/x-www-form-urlencoded", "text/plain")) or "content-type" not in request.headers:
+        content_type = request.headers.get("content-type", "")
+        if request.method == "POST" and (not content_type or content_type.startswith(
+                ("application/x-www-form-urlencoded", "text/plain"))):
             # every body here is JSON: `curl -d '{...}'` (form-encoded by default) works as it reads
             request.scope["headers"] = [(k, v) for k, v in request.scope["headers"] if k != b"content-type"] + [
                 (b"content-type", b"application/json")]

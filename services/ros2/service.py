@@ -18,14 +18,14 @@ import itertools
 import sys
 import time
 from collections.abc import Iterator
-from pathlib import Path
 
-import yaml
 import zenoh
 from pydantic import ValidationError
 
 from twohr import keys
 from twohr.bus import BusConfig
+from twohr.config import read_yaml_mapping
+from twohr.errors import ConfigError, validation_problems
 from twohr.messages import PoseMsg, decode, encode
 from twohr.ros2 import msgs
 from twohr.ros2.config import Ros2Config
@@ -163,15 +163,10 @@ def load_config(args: argparse.Namespace) -> Ros2Config:
     Raises ValueError with a one-line reason."""
     data: dict = {}
     if args.config:
-        path = Path(args.config)
-        if not path.is_file():
-            raise ValueError(f"config file not found: {path}")
         try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ValueError(f"{path}: not YAML/JSON: {str(exc).splitlines()[0]}") from None
-        if not isinstance(data, dict):
-            raise ValueError(f"{path}: expected a mapping of ros2 settings")
+            data = read_yaml_mapping(args.config, "ros2 settings")
+        except ConfigError as exc:
+            raise ValueError(str(exc).splitlines()[0]) from None
         data = data.get("ros2", data)
     for name in ("domain_id", "namespace", "node_name", "map_frame", "camera_frame"):
         if getattr(args, name) is not None:
@@ -183,8 +178,7 @@ def load_config(args: argparse.Namespace) -> Ros2Config:
     try:
         return Ros2Config.model_validate(data)
     except ValidationError as exc:
-        first = exc.errors()[0]
-        raise ValueError(f"{'.'.join(map(str, first['loc']))}: {first['msg']}") from None
+        raise ValueError(validation_problems(exc)) from None
 
 
 def main(argv: list[str] | None = None) -> None:
