@@ -8,6 +8,7 @@ override the preset chosen from the folder name).
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -44,6 +45,11 @@ class CameraIntrinsics(BaseModel):
     def matrix(self) -> np.ndarray:
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
 
+    @property
+    def distorted(self) -> bool:
+        """Whether the lens distorts (any non-zero coefficient): images must be undistorted before use."""
+        return any(c != 0 for c in self.distortion)
+
     def scaled(self, sx: float, sy: float) -> CameraIntrinsics:
         """Intrinsics of the image resized by (sx, sy), pixel-centre convention."""
         return self.model_copy(
@@ -77,6 +83,26 @@ _T_MARKER_CAMERA = np.array(
         [0, 0, 0, 1],
     ]
 )
+
+
+def undistorted(image: np.ndarray, camera: CameraIntrinsics, depth: bool = False) -> np.ndarray:
+    """``image`` as a pinhole camera with ``camera.matrix`` and no lens distortion would see it; the image itself
+    when the camera has no distortion. Every stage undistorts what it decodes, so keypoints, flow and depth all
+    live in the pinhole model the tracker assumes. ``depth`` resamples nearest-neighbour: blending two depths
+    across an object's edge would invent a surface between them (pixels that fall outside read 0 = no depth)."""
+    if not camera.distorted:
+        return image
+    height, width = image.shape[:2]
+    maps = _undistortion_maps(camera.fx, camera.fy, camera.cx, camera.cy, width, height,
+                              tuple(camera.distortion))
+    return cv2.remap(image, *maps, cv2.INTER_NEAREST if depth else cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+
+
+@functools.lru_cache(maxsize=8)
+def _undistortion_maps(fx: float, fy: float, cx: float, cy: float, width: int, height: int,
+                       coefficients: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    k = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    return cv2.initUndistortRectifyMap(k, np.array(coefficients, np.float64), None, k, (width, height), cv2.CV_16SC2)
 
 
 def _bonn_extrinsic() -> tuple[np.ndarray, np.ndarray]:
@@ -314,6 +340,7 @@ class RGBDSequence:
             raise DatasetError(
                 f"depth size {raw.shape[::-1]} differs from colour size {bgr.shape[1::-1]}: {rec.depth_path}"
             )
+        bgr, raw = undistorted(bgr, self.camera), undistorted(raw, self.camera, depth=True)
         depth = raw.astype(np.float32) / np.float32(self.camera.depth_factor)
         return Frame(rec.index, rec.stamp, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), depth)
 

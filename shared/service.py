@@ -36,6 +36,10 @@ from .messages import ControlMsg, FrameMsg, MessageError, StatusMsg, decode, enc
 QueuePolicy = Literal["drop_oldest", "backpressure"]
 #: distinct model configs a service keeps loaded at once (each holds a network); the least recently used goes
 MODEL_CACHE_SIZE = 3
+#: niceness of the stages off the per-frame path (``Service.background``) when they run as programs: on a small
+#: CPU the tracker must get a core the moment a frame arrives, while keyframe, mask and recording work can wait
+#: a few milliseconds (``TWOHR_BACKGROUND_NICE`` overrides it; 0 turns it off)
+BACKGROUND_NICE = 10
 COUNTERS = ("received", "processed", "dropped", "malformed", "ignored", "errors")
 
 
@@ -114,6 +118,8 @@ class Service:
     name = "service"
     #: subscribe to control messages and keep ``session_configs`` (the pipeline stages do)
     follows_sessions = False
+    #: off the per-frame path of a live session: runs at a lower CPU priority (:data:`BACKGROUND_NICE`)
+    background = False
 
     def __init__(self, bus: BusConfig | None = None, queue_size: int = 8, policy: QueuePolicy = "backpressure") -> None:
         self.bus = bus or BusConfig()
@@ -140,6 +146,18 @@ class Service:
 
     def on_start(self) -> None:
         """Called once the bus session is open (declare queryables here)."""
+
+    def warm_up(self, what: str, work) -> None:
+        """Run ``work()`` once (load and run the default model) before this service declares itself alive, so
+        that the first session's first keyframe does not wait for it. A failure (a missing model, say) is only
+        logged: the session that needs the model reports it."""
+        t0 = time.perf_counter()
+        try:
+            work()
+        except Exception as exc:
+            self.log.warning("could not warm up %s: %s", what, exc)
+            return
+        self.log.info("%s warm in %.2f s", what, time.perf_counter() - t0)
 
     def health(self) -> dict:
         return {"service": self.name, "queue": len(self.inbox), **self.counters.as_dict()}
@@ -235,8 +253,8 @@ class Service:
         self.session = open_session(self.bus)
         wanted = self.subscriptions() + ([keys.all_robots(keys.CONTROL)] if self.follows_sessions else [])
         subscribers = [self.session.declare_subscriber(k, self._on_sample) for k in wanted]
+        self.on_start()  # queryables, and warm models: healthy and alive means ready
         queryable = self.session.declare_queryable(f"{HEALTH_PREFIX}/{self.name}", self._on_health)
-        self.on_start()
         alive = self.session.liveliness().declare_token(f"{ALIVE_PREFIX}/{self.name}")
         self.log.info("%s serving %s", self.name, ", ".join(self.subscriptions()) or "(no subscriptions)")
         try:
@@ -255,7 +273,23 @@ class Service:
                             format="%(asctime)s %(levelname)s %(name)s: %(message)s")
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: self.stopping.set())
+        if self.background:
+            lower_priority(int(os.environ.get("TWOHR_BACKGROUND_NICE", BACKGROUND_NICE)))
         self.run(self.stopping)
+
+
+def lower_priority(nice: int) -> None:
+    """Raise this process's niceness by ``nice``, for every thread it has (Linux keeps niceness per thread;
+    threads started later inherit it). Needs no privileges."""
+    if nice <= 0:
+        return
+    task_dir = "/proc/self/task"
+    threads = [int(t) for t in os.listdir(task_dir)] if os.path.isdir(task_dir) else [0]
+    for thread in threads:
+        try:
+            os.setpriority(os.PRIO_PROCESS, thread, min(19, os.getpriority(os.PRIO_PROCESS, thread) + nice))
+        except OSError:
+            pass  # a thread that has just ended
 
 
 def check_robot(key: str, payload) -> None:

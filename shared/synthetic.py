@@ -37,13 +37,15 @@ class SyntheticSpec:
     depth_noise: float = 0.0
     start_stamp: float = 1000.0
     texture_px: int = 768
+    distortion: tuple[float, ...] = ()
+    """OpenCV lens distortion (k1 k2 p1 p2 k3) the images are rendered with; () = a pinhole camera"""
     extra: dict = field(default_factory=dict)
 
     @property
     def camera(self) -> CameraIntrinsics:
         f = 0.82 * self.width
         return CameraIntrinsics(fx=f, fy=f, cx=(self.width - 1) / 2, cy=(self.height - 1) / 2,
-                                width=self.width, height=self.height)
+                                width=self.width, height=self.height, distortion=list(self.distortion))
 
 
 def _texture(rng: np.random.Generator, size: int) -> np.ndarray:
@@ -139,8 +141,10 @@ class SyntheticScene:
         self.occluder_phase = rng.uniform(0, 2 * np.pi, spec.occluders)
         cam = spec.camera
         u, v = np.meshgrid(np.arange(cam.width), np.arange(cam.height))
-        rays = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u, float)], -1)
-        self.rays_cam = rays.reshape(-1, 3)
+        pixels = np.stack([u, v], -1).reshape(-1, 1, 2).astype(np.float64)
+        # each pixel's ray, through the lens model when there is one (z = 1: the depth is the z-distance)
+        normalised = cv2.undistortPoints(pixels, cam.matrix, np.array(cam.distortion or [0.0] * 5)).reshape(-1, 2)
+        self.rays_cam = np.column_stack([normalised, np.ones(len(normalised))])
 
     def occluder_box(self, k: int, t: float) -> tuple[np.ndarray, np.ndarray]:
         """A person-sized box walking left-right through the view, 1.5-2.5 m in front of the camera."""

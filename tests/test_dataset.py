@@ -112,3 +112,26 @@ def test_corrupt_frames_are_skipped_and_counted(tmp_path, synthetic_sequence):
     frames = list(seq.frames(0, 10))
     assert [f.index for f in frames] == [0, 1, 2, 4, 6, 8, 9]
     assert seq.skipped == [3, 5, 7]
+
+
+def test_undistortion_moves_pixels_to_the_pinhole_projection():
+    from twohr.dataset import CameraIntrinsics, undistorted
+
+    pinhole = CAMERA_PRESETS["bonn"]
+    image = np.zeros((480, 640), np.uint8)
+    assert undistorted(image, pinhole) is image  # no distortion: nothing to do, no copy
+    camera = CAMERA_PRESETS["tum_fr1"]
+    assert camera.distorted and isinstance(camera, CameraIntrinsics)
+    point = np.array([[0.45, -0.3, 1.0]])  # towards a corner, where the lens bends most
+    seen, _ = cv2.projectPoints(point, np.zeros(3), np.zeros(3), camera.matrix, np.array(camera.distortion))
+    u, v = np.round(seen.reshape(2)).astype(int)
+    image[v - 1:v + 2, u - 1:u + 2] = 255
+    depth = np.zeros((480, 640), np.uint16)
+    depth[v - 1:v + 2, u - 1:u + 2] = 5000
+    fixed, fixed_depth = undistorted(image, camera), undistorted(depth, camera, depth=True)
+    ys, xs = np.nonzero(fixed > 64)
+    pinhole_uv = (camera.matrix @ point[0])[:2]
+    shift = np.hypot(u - pinhole_uv[0], v - pinhole_uv[1])
+    assert shift > 5  # the lens moved this point by several pixels
+    assert np.hypot(xs.mean() - pinhole_uv[0], ys.mean() - pinhole_uv[1]) < 1.0 + np.hypot(*(seen.reshape(2) - (u, v)))
+    assert set(np.unique(fixed_depth)) == {0, 5000}  # nearest: no depth blended between 0 and 5 m

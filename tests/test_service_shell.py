@@ -123,3 +123,34 @@ def test_control_and_queries_are_never_dropped_with_frames():
     assert inbox.get(0.1) == ("twohr/r/control", "stop")
     assert [inbox.get(0.1), inbox.get(0.1), inbox.get(0.1)] == [("twohr/r/frames", 3), ("twohr/r/frames", 4), None]
     assert counters.dropped == 3
+
+
+def test_background_stages_run_at_lower_cpu_priority():
+    """Off the per-frame path (detector, yolo, matcher, recorder) a service lowers its priority for every thread
+    it has, including threads that started before; the per-frame stages keep theirs."""
+    import subprocess
+    import sys
+
+    from twohr_services.detector.service import DetectorService
+    from twohr_services.matcher.service import MatcherService
+    from twohr_services.recorder.service import RecorderService
+    from twohr_services.source.service import SourceService
+    from twohr_services.tracker.service import TrackerService
+    from twohr_services.yolo.service import YoloService
+
+    assert all(cls.background for cls in (DetectorService, YoloService, MatcherService, RecorderService))
+    assert not any(cls.background for cls in (TrackerService, SourceService))
+    script = (
+        "import os, threading, time\n"
+        "from twohr.service import lower_priority\n"
+        "stop = threading.Event(); early = threading.Thread(target=stop.wait); early.start()\n"
+        "base = os.getpriority(os.PRIO_PROCESS, 0)\n"
+        "lower_priority(7)\n"
+        "late = []\n"
+        "t = threading.Thread(target=lambda: late.append(os.getpriority(os.PRIO_PROCESS, 0)))\n"
+        "t.start(); t.join()\n"
+        "print(base, os.getpriority(os.PRIO_PROCESS, 0), os.getpriority(os.PRIO_PROCESS, early.native_id), late[0])\n"
+        "stop.set()\n"
+    )
+    base, main, early, late = map(int, subprocess.check_output([sys.executable, "-c", script], text=True).split())
+    assert (main, early, late) == (min(19, base + 7),) * 3

@@ -10,8 +10,11 @@ from __future__ import annotations
 import functools
 import time
 
+import numpy as np
+
 from twohr import keys
 from twohr.config import DetectorConfig
+from twohr.dataset import undistorted
 from twohr.messages import FrameMsg, KeypointsMsg, decode, encode
 from twohr.service import MODEL_CACHE_SIZE, Service, reply_to, serve
 
@@ -22,6 +25,7 @@ class DetectorService(Service):
     """2HR keypoints with the detector config of the frame's session."""
 
     name = "detector"
+    background = True  # keyframe work: the tracker goes first
     follows_sessions = True
 
     def __init__(self, bus=None) -> None:
@@ -35,6 +39,9 @@ class DetectorService(Service):
 
     def on_start(self) -> None:
         self.queryable = self.session.declare_queryable(keys.all_robots(keys.DETECT_QUERY), self._on_query)
+        default = DetectorConfig()
+        self.warm_up(f"the {default.model} network", lambda: self.detector_for(default.model_dump_json()).detect(
+            np.zeros((480, 640, 3), np.uint8)))
 
     def handle(self, key: str, payload) -> None:
         if key.endswith(keys.DETECT_QUERY):
@@ -48,7 +55,7 @@ class DetectorService(Service):
         frame, arrays = decode(payload, FrameMsg, only=("rgb",))
         detector = self.detector_for(self.config_for(frame.session_id).detector.model_dump_json())
         t0 = time.perf_counter()
-        kp = detector.detect(arrays["rgb"])
+        kp = detector.detect(undistorted(arrays["rgb"], frame.camera))
         elapsed = (time.perf_counter() - t0) * 1000
         out = KeypointsMsg(session_id=frame.session_id, robot_id=frame.robot_id, frame_index=frame.frame_index,
                            stamp=frame.stamp, width=frame.camera.width, height=frame.camera.height,

@@ -11,6 +11,8 @@ from __future__ import annotations
 import functools
 import time
 
+import numpy as np
+
 from twohr import keys
 from twohr.config import MatcherConfig
 from twohr.messages import MatchesMsg, MatchRequestMsg, decode, encode
@@ -23,6 +25,7 @@ class MatcherService(Service):
     """Siamese (or baseline) matching as a query/reply service, with each session's matcher config."""
 
     name = "matcher"
+    background = True  # keyframe matching: the tracker goes first
     follows_sessions = True
 
     def __init__(self, bus=None) -> None:
@@ -34,6 +37,10 @@ class MatcherService(Service):
 
     def on_start(self) -> None:
         self.queryable = self.session.declare_queryable(keys.all_robots(keys.MATCH_QUERY), self._on_query)
+        descriptors = np.zeros((8, 128), np.float32)
+        descriptors[:, 0] = 1.0
+        default = MatcherConfig().model_dump_json()
+        self.warm_up("the matcher", lambda: self.matcher_for(default)(descriptors, descriptors))
 
     def handle(self, key: str, query) -> None:
         reply_to(query, self._match)

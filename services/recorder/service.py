@@ -25,6 +25,7 @@ from .core import RecordingOptions, SessionRecorder
 
 class RecorderService(Service):
     name = "recorder"
+    background = True  # recording can lag a little: the tracker goes first
 
     def __init__(self, bus: BusConfig | None = None, recordings: Path = Path("recordings"),
                  grace: float = 1.0, options: RecordingOptions | None = None, max_session_bytes: int = 4 << 30

@@ -192,8 +192,14 @@ class FrameTracker:
         projection under the prediction (at the observation itself while lost)."""
         found_xy, found = [np.zeros((0, 2), np.float32)], [np.zeros(0, np.int64)]
         taken = set(tracked.tolist())
+        height, width = gray.shape[:2]
         for gray_kf, xy_kf, landmark_kf in reversed(self._recent_keyframes):
             todo = self.usable[landmark_kf] & ~np.isin(landmark_kf, list(taken))
+            if self.motion.lost_frames == 0:
+                # only landmarks the prediction puts in view: the flow could not keep the others (it costs the
+                # same per point, found or not, and this runs on every frame while tracks are short)
+                uv = project(transform_points(T_guess, self.landmarks[landmark_kf]), self.K)
+                todo &= (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= width - 1) & (uv[:, 1] <= height - 1)
             if not todo.any():
                 continue
             xy_kf, landmark_kf = xy_kf[todo], landmark_kf[todo]

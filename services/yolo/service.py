@@ -8,14 +8,18 @@
 
 from __future__ import annotations
 
+import functools
 import time
 
 import numpy as np
 
 from twohr import keys
+from twohr.config import YoloConfig
+from twohr.dataset import undistorted
 from twohr.messages import ControlMsg, DynamicsMsg, FrameMsg, decode, encode
-from twohr.service import Service, reply_to, serve
+from twohr.service import MODEL_CACHE_SIZE, Service, reply_to, serve
 
+from .core import YoloDetector
 from .masks import DynamicMasker, propagated_mask
 
 
@@ -23,27 +27,37 @@ class YoloService(Service):
     """Dynamic-object masks; one stateful masker per session."""
 
     name = "yolo"
+    background = True  # masks arrive a little later: the tracker goes first
     follows_sessions = True
 
     def __init__(self, bus=None) -> None:
         super().__init__(bus, queue_size=4, policy="drop_oldest")
         self.maskers: dict[str, DynamicMasker] = {}
+        # one network per distinct config, shared by the sessions' maskers (each keeps its own stream state)
+        self.network_for = functools.lru_cache(maxsize=MODEL_CACHE_SIZE)(
+            lambda conf_json: YoloDetector(YoloConfig.model_validate_json(conf_json)))
 
     def subscriptions(self) -> list[str]:
         return [keys.all_robots("frames")]
 
     def on_start(self) -> None:
         self.queryable = self.session.declare_queryable(keys.all_robots(keys.DYNAMICS_QUERY), self._on_query)
+        default = YoloConfig()
+        self.warm_up(f"the {default.model} network", lambda: self.network_for(default.model_dump_json()).detect(
+            np.zeros((480, 640, 3), np.uint8)))
+
+    def _new_masker(self, conf: YoloConfig) -> DynamicMasker:
+        return DynamicMasker(conf, self.network_for(conf.model_dump_json()) if conf.enabled else None)
 
     def on_session_start(self, control: ControlMsg) -> None:
-        self.maskers[control.session_id] = DynamicMasker(control.config.yolo)
+        self.maskers[control.session_id] = self._new_masker(control.config.yolo)
 
     def on_session_stop(self, session_id: str) -> None:
         self.maskers.pop(session_id, None)
 
     def _masker(self, session_id: str) -> DynamicMasker:
         if session_id not in self.maskers:
-            self.maskers[session_id] = DynamicMasker(self.config_for(session_id).yolo)
+            self.maskers[session_id] = self._new_masker(self.config_for(session_id).yolo)
         return self.maskers[session_id]
 
     def handle(self, key: str, payload) -> None:
@@ -52,19 +66,17 @@ class YoloService(Service):
             return
         if not self.streams_frame(payload):
             return
-        frame, arrays = decode(payload, FrameMsg)
+        frame, rgb, depth = _frame_images(payload)
         masker = self._masker(frame.session_id)
-        depth = arrays["depth"].astype(np.float32) / np.float32(frame.camera.depth_factor)
         t0 = time.perf_counter()
-        regions = masker(arrays["rgb"], depth)
+        regions = masker(rgb, depth)
         self._publish(frame, masker, regions.dynamic, regions.mask, (time.perf_counter() - t0) * 1000)
 
     def _fresh_dynamics(self, payload: bytes) -> bytes:
-        frame, arrays = decode(payload, FrameMsg)
+        frame, rgb, depth = _frame_images(payload)
         masker = self._masker(frame.session_id)
-        depth = arrays["depth"].astype(np.float32) / np.float32(frame.camera.depth_factor)
         t0 = time.perf_counter()
-        dynamic = masker.detect_dynamic(arrays["rgb"])
+        dynamic = masker.detect_dynamic(rgb)
         mask = propagated_mask(dynamic, 0, depth.shape, masker.conf, depth)
         return self._publish(frame, masker, dynamic, mask, (time.perf_counter() - t0) * 1000)
 
@@ -77,6 +89,13 @@ class YoloService(Service):
         data = encode(out, arrays_out, {"mask": "png"})
         self.publish(keys.key(frame.robot_id, "dynamics"), data)
         return data
+
+
+def _frame_images(payload: bytes) -> tuple[FrameMsg, np.ndarray, np.ndarray]:
+    """A frame message's header, undistorted colour image and depth in metres."""
+    frame, arrays = decode(payload, FrameMsg)
+    depth = undistorted(arrays["depth"], frame.camera, depth=True).astype(np.float32)
+    return frame, undistorted(arrays["rgb"], frame.camera), depth / np.float32(frame.camera.depth_factor)
 
 
 def main(argv: list[str] | None = None) -> None:
