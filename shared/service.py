@@ -274,7 +274,12 @@ class Service:
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: self.stopping.set())
         if self.background:
-            lower_priority(int(os.environ.get("TWOHR_BACKGROUND_NICE", BACKGROUND_NICE)))
+            nice = os.environ.get("TWOHR_BACKGROUND_NICE", str(BACKGROUND_NICE))
+            if nice.strip().isdigit():
+                lower_priority(int(nice))
+            else:
+                self.log.warning("TWOHR_BACKGROUND_NICE=%r is not a whole number >= 0; using %d", nice, BACKGROUND_NICE)
+                lower_priority(BACKGROUND_NICE)
         self.run(self.stopping)
 
 
