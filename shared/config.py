@@ -138,9 +138,6 @@ class TrackerConfig(Section):
     flow_reacquire_keyframes: int = Field(3, ge=0, description="when tracks run short, look for the landmarks "
                                           "of this many latest keyframes again by flow from the keyframe's image")
     flow_reacquire_below: int = Field(100, ge=0, description="tracks run short below this many flowed tracks")
-    flow_reacquire_every: int = Field(1, ge=1, le=30, description="while tracks run short, look again on every "
-                                      "n-th frame (each look flows every keyframe's lost landmarks: the costliest "
-                                      "step of a frame)")
     flow_max_tracks: int = Field(600, ge=16, description="follow at most this many landmarks per frame")
     reanchor_lagging_frames: bool = Field(True, description="when a keyframe job returns, the frames tracked while "
                                           "it ran keep their flow motion relative to the keyframe's new pose in the "

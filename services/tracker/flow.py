@@ -118,7 +118,6 @@ class FrameTracker:
         self.track_landmark = np.zeros(0, np.int64)
         self.previous: np.ndarray | None = None  # the previous frame's grayscale image
         self.frames_since_keyframe = 0
-        self._short_frames = 0  # frames in a row with too few tracks
         # (grayscale image, observations xy, landmark ids) of the latest keyframes, to find lost landmarks again
         self._recent_keyframes: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.anchor = -1  # the keyframe this frame's pose is kept relative to, for trajectory()
@@ -157,8 +156,7 @@ class FrameTracker:
         guess = self._flow_start(T_guess, self.track_landmark, self.track_xy)
         xy, ok = flow_points(self.previous, gray, self.track_xy, guess, conf)
         xy, landmark = xy[ok], self.track_landmark[ok]
-        self._short_frames = self._short_frames + 1 if len(landmark) < conf.flow_reacquire_below else 0
-        if self._short_frames and (self._short_frames - 1) % conf.flow_reacquire_every == 0:
+        if len(landmark) < conf.flow_reacquire_below:
             found_xy, found = self._reacquire(gray, T_guess, landmark)
             xy, landmark = np.concatenate([xy, found_xy]), np.concatenate([landmark, found])
         if mask is not None and len(xy):
