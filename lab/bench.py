@@ -31,6 +31,8 @@ ABLATIONS: dict[str, dict[str, object]] = {
     "2HR + YOLO + Siamese (full)": {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "siamese"},
     "full, integer keypoints": {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "siamese",
                                 "detector.subpixel": False},
+    "full, no trajectory smoothing": {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "siamese",
+                                      "tracker.smoothing_acceleration": 0},
 }
 
 

@@ -139,3 +139,59 @@ def _slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     w1 = np.where(small, alpha, np.sin(alpha * theta) / sin)
     q = w0[:, None] * q0 + w1[:, None] * q1
     return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def smooth_trajectory(trajectory: Trajectory, acceleration: float, angular_acceleration: float,
+                      max_gap_s: float = 0.2) -> Trajectory:
+    """The trajectory smoothed under a white-noise acceleration model (a fixed-interval smoother).
+
+    Positions ``p`` minimise ``sum |p_i - m_i|^2 / s_n^2 + sum |a_i|^2 / s_a^2`` where ``m`` are the measured
+    positions and ``a_i`` the finite-difference acceleration at pose ``i``; rotations likewise on their
+    quaternions, renormalised. Both scales come from the trajectory itself: its second differences split into
+    a part that varies slowly (the camera's acceleration, averaged over 9 poses) and the rest (frame noise,
+    which flips sign from pose to pose). ``s_n`` is the robust spread of the rest (white noise has 6 times its
+    variance there), ``s_a`` the RMS of the slow part, but at least ``acceleration`` (m/s^2;
+    ``angular_acceleration`` rad/s^2 for rotation). So a steady estimate, or a camera that really
+    accelerates, is smoothed less. Runs of poses
+    further apart than ``max_gap_s`` (dropped or skipped frames) are smoothed separately; runs of fewer than
+    8 poses are left as they are.
+    """
+    out = trajectory.poses.copy()
+    breaks = np.flatnonzero(np.diff(trajectory.stamps) > max_gap_s) + 1
+    for run in np.split(np.arange(len(trajectory)), breaks):
+        if len(run) < 8:
+            continue
+        stamps, poses = trajectory.stamps[run], trajectory.poses[run]
+        quaternions = rot_to_quat(poses[:, :3, :3])
+        flips = np.cumsum(np.r_[False, np.sum(quaternions[1:] * quaternions[:-1], axis=1) < 0]) % 2 == 1
+        quaternions[flips] *= -1  # one hemisphere, so that neighbours are close in R^4
+        out[run, :3, 3] = _smooth_series(stamps, poses[:, :3, 3], acceleration)
+        smoothed = _smooth_series(stamps, quaternions, angular_acceleration / 2)  # |dq/dt| = |omega| / 2
+        out[run, :3, :3] = quat_to_rot(smoothed / np.linalg.norm(smoothed, axis=1, keepdims=True))
+    return Trajectory(trajectory.stamps.copy(), out)
+
+
+def _smooth_series(stamps: np.ndarray, values: np.ndarray, min_acceleration: float) -> np.ndarray:
+    """Least-squares smoothing of ``values`` (N, D) at ``stamps`` (N,): see :func:`smooth_trajectory`."""
+    from scipy.ndimage import uniform_filter1d
+    from scipy.sparse import csr_matrix, diags
+    from scipy.sparse.linalg import spsolve
+
+    second = np.diff(values, n=2, axis=0)
+    # the camera's own acceleration varies slowly; frame noise flips sign from frame to frame
+    motion = uniform_filter1d(second, size=9, axis=0, mode="nearest")
+    noise_var = (1.4826 * float(np.median(np.abs(second - motion)))) ** 2 / 6.0
+    if noise_var <= 1e-18:
+        return values
+    dt = float(np.median(np.diff(stamps)))
+    acceleration_var = max(float(np.mean(motion**2)) / dt**4, min_acceleration**2)
+    h = np.diff(stamps)
+    h1, h2 = h[:-1], h[1:]
+    scale = 2.0 / (h1 + h2)
+    count = len(stamps)
+    rows = np.arange(count - 2)  # row i: the acceleration at pose i + 1 from poses i, i + 1, i + 2
+    data = np.concatenate([scale / h1, -scale * (1 / h1 + 1 / h2), scale / h2])
+    cols = np.concatenate([rows, rows + 1, rows + 2])
+    accelerations = csr_matrix((data, (np.tile(rows, 3), cols)), shape=(count - 2, count))
+    system = diags(np.full(count, 1.0 / noise_var)) + (accelerations.T @ accelerations) / acceleration_var
+    return np.column_stack([spsolve(system.tocsc(), values[:, d] / noise_var) for d in range(values.shape[1])])

@@ -32,7 +32,7 @@ from twohr.dataset import CameraIntrinsics
 from twohr.errors import TwohrError
 from twohr.features import Keypoints, Matches
 from twohr.geometry import backproject, invert_pose, project, transform_points
-from twohr.trajectory import Trajectory
+from twohr.trajectory import Trajectory, smooth_trajectory
 
 from .motion import MotionModel
 from .optim import (
@@ -230,7 +230,8 @@ class Tracker:
     def trajectory(self) -> Trajectory:
         """All frames' poses so far, each re-attached to its keyframe as bundle adjustment has refined it since
         (the ``TrackResult`` poses are online: final when reported). On the dev sequence the two score alike."""
-        return reattach_to_keyframes(self._frame_stamps, self._frame_anchor, self._frame_relative, self._kf_poses)
+        return smoothed(reattach_to_keyframes(self._frame_stamps, self._frame_anchor, self._frame_relative,
+                                              self._kf_poses), self.conf)
 
     # ------------------------------------------------------------------ steps
 
@@ -567,6 +568,15 @@ def reattach_to_keyframes(stamps: list[float], anchors: list[int], relative: lis
     base = np.tile(np.eye(4), (len(anchors), 1, 1))
     base[anchors >= 0] = keyframe_poses[anchors[anchors >= 0]]
     return Trajectory(np.asarray(stamps), base @ np.asarray(relative).reshape(-1, 4, 4))
+
+
+def smoothed(trajectory: Trajectory, conf: TrackerConfig) -> Trajectory:
+    """The refined trajectory under the motion smoother (``smoothing_acceleration``; 0 = as it is). Hand-held
+    and robot cameras move smoothly at camera rate, while each frame's pose carries its own few millimetres of
+    noise: landmarks entering and leaving the tracked set move it (measured on the dev sequence)."""
+    if conf.smoothing_acceleration <= 0 or len(trajectory) < 5:
+        return trajectory
+    return smooth_trajectory(trajectory, conf.smoothing_acceleration, conf.smoothing_angular_acceleration)
 
 
 def near_any_keyframe(pose: np.ndarray, keyframe_poses: np.ndarray, max_translation: float,

@@ -30,7 +30,7 @@ from twohr.features import masked
 from twohr.geometry import invert_pose, project, transform_points
 from twohr.trajectory import Trajectory, interpolate_poses
 
-from .core import TrackResult, near_any_keyframe, reattach_to_keyframes
+from .core import TrackResult, near_any_keyframe, reattach_to_keyframes, smoothed
 from .motion import MotionModel
 from .optim import estimate_pose, sample_depth
 
@@ -302,4 +302,4 @@ class FrameTracker:
         (``keyframe_poses``: the final ones from the mapper; default: the latest update's)."""
         poses = self.keyframe_poses if keyframe_poses is None else keyframe_poses
         trajectory = reattach_to_keyframes(self._stamps, self._anchors, self._relative, poses)
-        return bridge_coasted(trajectory, np.asarray(self._measured, bool))
+        return smoothed(bridge_coasted(trajectory, np.asarray(self._measured, bool)), self.conf)
