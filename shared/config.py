@@ -143,9 +143,10 @@ class TrackerConfig(Section):
                                           "it ran keep their flow motion relative to the keyframe's new pose in the "
                                           "trajectory, instead of to the previous keyframe (no spike per keyframe)")
     smoothing_acceleration: float = Field(1.0, ge=0, description="the refined trajectory (not the online poses) is "
-                                          "smoothed under a white-noise acceleration model with this typical "
-                                          "acceleration of the camera (m/s^2; hand-held or mobile robot: about 1); "
-                                          "the measurement noise is estimated from the trajectory; 0 = off")
+                                          "smoothed under a white-noise acceleration model; the camera's "
+                                          "acceleration and the pose noise are measured from the trajectory, the "
+                                          "acceleration assumed at least this (m/s^2; hand-held or mobile robot: "
+                                          "about 1); 0 = off")
     smoothing_angular_acceleration: float = Field(5.0, ge=0, description="the same for rotation (rad/s^2)")
     keyframe_max_interval: int = Field(10, ge=1, description="ask for a keyframe at least every this many frames")
     flow_keyframe_min_inliers: int = Field(150, ge=6, description="ask for a keyframe when fewer tracks than this "

@@ -152,9 +152,8 @@ def smooth_trajectory(trajectory: Trajectory, acceleration: float, angular_accel
     which flips sign from pose to pose). ``s_n`` is the robust spread of the rest (white noise has 6 times its
     variance there), ``s_a`` the RMS of the slow part, but at least ``acceleration`` (m/s^2;
     ``angular_acceleration`` rad/s^2 for rotation). So a steady estimate, or a camera that really
-    accelerates, is smoothed less. Runs of poses
-    further apart than ``max_gap_s`` (dropped or skipped frames) are smoothed separately; runs of fewer than
-    8 poses are left as they are.
+    accelerates, is smoothed less. Runs of poses further apart than ``max_gap_s`` (dropped or skipped frames)
+    are smoothed separately; runs of fewer than 8 poses are left as they are.
     """
     out = trajectory.poses.copy()
     breaks = np.flatnonzero(np.diff(trajectory.stamps) > max_gap_s) + 1

@@ -574,7 +574,7 @@ def smoothed(trajectory: Trajectory, conf: TrackerConfig) -> Trajectory:
     """The refined trajectory under the motion smoother (``smoothing_acceleration``; 0 = as it is). Hand-held
     and robot cameras move smoothly at camera rate, while each frame's pose carries its own few millimetres of
     noise: landmarks entering and leaving the tracked set move it (measured on the dev sequence)."""
-    if conf.smoothing_acceleration <= 0 or len(trajectory) < 5:
+    if conf.smoothing_acceleration <= 0:
         return trajectory
     return smooth_trajectory(trajectory, conf.smoothing_acceleration, conf.smoothing_angular_acceleration)
 
