@@ -98,6 +98,12 @@ def undistorted(image: np.ndarray, camera: CameraIntrinsics, depth: bool = False
     return cv2.remap(image, *maps, cv2.INTER_NEAREST if depth else cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
 
+def depth_in_metres(raw: np.ndarray, camera: CameraIntrinsics) -> np.ndarray:
+    """A depth image as the sensor sends it (``camera.depth_factor`` units per metre, 0 = no reading) as float32
+    metres in the pinhole model: undistorted like the colour image."""
+    return undistorted(raw, camera, depth=True).astype(np.float32) / np.float32(camera.depth_factor)
+
+
 @functools.lru_cache(maxsize=8)
 def _undistortion_maps(fx: float, fy: float, cx: float, cy: float, width: int, height: int,
                        coefficients: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -340,9 +346,8 @@ class RGBDSequence:
             raise DatasetError(
                 f"depth size {raw.shape[::-1]} differs from colour size {bgr.shape[1::-1]}: {rec.depth_path}"
             )
-        bgr, raw = undistorted(bgr, self.camera), undistorted(raw, self.camera, depth=True)
-        depth = raw.astype(np.float32) / np.float32(self.camera.depth_factor)
-        return Frame(rec.index, rec.stamp, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), depth)
+        rgb = cv2.cvtColor(undistorted(bgr, self.camera), cv2.COLOR_BGR2RGB)
+        return Frame(rec.index, rec.stamp, rgb, depth_in_metres(raw, self.camera))
 
     def frame_range(self, start: int = 0, frames: int | None = None, step: int = 1) -> range:
         """The indices that ``start``, ``frames`` (a count, None = to the end) and ``step`` select; raises

@@ -17,7 +17,7 @@ import numpy as np
 import zenoh
 
 from twohr import keys
-from twohr.dataset import Frame, undistorted
+from twohr.dataset import Frame, depth_in_metres, undistorted
 from twohr.features import Keypoints, Matches, drop_masked
 from twohr.geometry import rot_to_quat
 from twohr.messages import (
@@ -162,8 +162,7 @@ class TrackerService(Service):
             _, arrays = decode(payload, FrameMsg, only=("depth",))
             entry = track.pending.setdefault(frame.frame_index, PendingFrame())
             entry.stamp, entry.sent_at = frame.stamp, frame.sent_at
-            depth = undistorted(arrays["depth"], frame.camera, depth=True)
-            entry.depth = depth.astype(np.float32) / np.float32(frame.camera.depth_factor)
+            entry.depth = depth_in_metres(arrays["depth"], frame.camera)
             message = frame
         elif stream == "keypoints":
             message, arrays = decode(payload, KeypointsMsg)
@@ -221,8 +220,7 @@ class TrackerService(Service):
         _, parts = split(payload, FrameMsg)
         images = {spec.name: (spec, blob) for spec, blob in parts}
         gray = undistorted(decode_gray(*images["rgb"]), header.camera)
-        depth = undistorted(decode_array(*images["depth"]), header.camera, depth=True)
-        depth = depth.astype(np.float32) / np.float32(header.camera.depth_factor)
+        depth = depth_in_metres(decode_array(*images["depth"]), header.camera)
         frame = Frame(header.frame_index, header.stamp, None, depth)
         track.matcher.frame_index, track.matcher.stamp = header.frame_index, header.stamp
         result, stats = track.pipeline.process(frame, source=payload, gray=gray)

@@ -15,7 +15,7 @@ import numpy as np
 
 from twohr import keys
 from twohr.config import YoloConfig
-from twohr.dataset import undistorted
+from twohr.dataset import depth_in_metres, undistorted
 from twohr.messages import ControlMsg, DynamicsMsg, FrameMsg, decode, encode
 from twohr.service import MODEL_CACHE_SIZE, Service, reply_to, serve
 
@@ -94,8 +94,7 @@ class YoloService(Service):
 def _frame_images(payload: bytes) -> tuple[FrameMsg, np.ndarray, np.ndarray]:
     """A frame message's header, undistorted colour image and depth in metres."""
     frame, arrays = decode(payload, FrameMsg)
-    depth = undistorted(arrays["depth"], frame.camera, depth=True).astype(np.float32)
-    return frame, undistorted(arrays["rgb"], frame.camera), depth / np.float32(frame.camera.depth_factor)
+    return frame, undistorted(arrays["rgb"], frame.camera), depth_in_metres(arrays["depth"], frame.camera)
 
 
 def main(argv: list[str] | None = None) -> None:
