@@ -85,7 +85,7 @@ class MatcherConfig(Section):
     method: Literal["siamese", "mutual_nn", "ratio"] = "siamese"
     model: str = Field("siamese_2hr", description="registered siamese-kind model")
     candidates: int = Field(3, ge=1, le=16, description="k nearest descriptors scored by the Siamese head")
-    threshold: float = Field(0.325, ge=0, le=1, description="tau: keep pairs with Siamese score >= tau (chosen on "
+    threshold: float = Field(0.15, ge=0, le=1, description="tau: keep pairs with Siamese score >= tau (chosen on "
                              "validation pairs by `twohr matcher train`, see services/matcher/MODEL_CARD.md)")
     ratio: float = Field(0.8, gt=0, le=1, description="Lowe ratio for method=ratio")
     threads: int = Field(1, ge=1, le=64, description="onnxruntime intra-op threads for the Siamese head")

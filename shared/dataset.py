@@ -64,14 +64,16 @@ class CameraIntrinsics(BaseModel):
         )
 
 
-#: Published intrinsics of the TUM RGB-D (fr1, fr2, fr3) and Bonn RGB-D Dynamic cameras.
+#: Published intrinsics of the TUM RGB-D (fr1, fr2, fr3) and Bonn RGB-D Dynamic cameras, with the published lens
+#: distortion where there is one (the images of both datasets are stored as the camera took them).
 CAMERA_PRESETS: dict[str, CameraIntrinsics] = {
     "tum_fr1": CameraIntrinsics(fx=517.3, fy=516.5, cx=318.6, cy=255.3,
                                 distortion=[0.2624, -0.9531, -0.0054, 0.0026, 1.1633]),
     "tum_fr2": CameraIntrinsics(fx=520.9, fy=521.0, cx=325.1, cy=249.7,
                                 distortion=[0.2312, -0.7849, -0.0033, -0.0001, 0.9172]),
     "tum_fr3": CameraIntrinsics(fx=535.4, fy=539.2, cx=320.1, cy=247.6),
-    "bonn": CameraIntrinsics(fx=542.822841, fy=542.576870, cx=315.593520, cy=237.756098),
+    "bonn": CameraIntrinsics(fx=542.822841, fy=542.576870, cx=315.593520, cy=237.756098,
+                             distortion=[0.039903, -0.099343, -0.000730, -0.000144, 0.0]),
 }
 
 _T_ROS = np.array([[-1.0, 0, 0, 0], [0, 0, 1, 0], [0, 1, 0, 0], [0, 0, 0, 1]])

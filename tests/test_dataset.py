@@ -117,7 +117,7 @@ def test_corrupt_frames_are_skipped_and_counted(tmp_path, synthetic_sequence):
 def test_undistortion_moves_pixels_to_the_pinhole_projection():
     from twohr.dataset import CameraIntrinsics, undistorted
 
-    pinhole = CAMERA_PRESETS["bonn"]
+    pinhole = CAMERA_PRESETS["tum_fr3"]
     image = np.zeros((480, 640), np.uint8)
     assert undistorted(image, pinhole) is image  # no distortion: nothing to do, no copy
     camera = CAMERA_PRESETS["tum_fr1"]
