@@ -147,7 +147,8 @@ class TrackerConfig(Section):
                                           "acceleration and the pose noise are measured from the trajectory, the "
                                           "acceleration assumed at least this (m/s^2; hand-held or mobile robot: "
                                           "about 1); 0 = off")
-    smoothing_angular_acceleration: float = Field(5.0, ge=0, description="the same for rotation (rad/s^2)")
+    smoothing_angular_acceleration: float = Field(5.0, ge=0, description="the same for rotation (rad/s^2; 0 = no "
+                                                  "floor, the measured angular acceleration alone)")
     keyframe_max_interval: int = Field(10, ge=1, description="ask for a keyframe at least every this many frames")
     flow_keyframe_min_inliers: int = Field(150, ge=6, description="ask for a keyframe when fewer tracks than this "
                                            "are inliers of the pose")

@@ -172,6 +172,7 @@ def smooth_trajectory(trajectory: Trajectory, acceleration: float, angular_accel
 
 def _smooth_series(stamps: np.ndarray, values: np.ndarray, min_acceleration: float) -> np.ndarray:
     """Least-squares smoothing of ``values`` (N, D) at ``stamps`` (N,): see :func:`smooth_trajectory`."""
+    # imported here: only the end of a run needs scipy, and services import this module for the pose format
     from scipy.ndimage import uniform_filter1d
     from scipy.sparse import csr_matrix, diags
     from scipy.sparse.linalg import spsolve
