@@ -33,6 +33,8 @@ ABLATIONS: dict[str, dict[str, object]] = {
                                 "detector.subpixel": False},
     "full, no trajectory smoothing": {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "siamese",
                                       "tracker.smoothing_acceleration": 0},
+    "full, no final bundle adjustment": {"detector.features": "2hr", "yolo.enabled": True,
+                                         "matcher.method": "siamese", "tracker.final_ba_iterations": 0},
 }
 
 

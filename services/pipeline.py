@@ -88,6 +88,10 @@ class Pipeline:
         )
         return result, stats
 
+    def finish(self) -> None:
+        """The end of the run: bundle adjustment over the whole map refines :attr:`tracker`'s trajectory."""
+        self.tracker.final_bundle_adjustment()
+
 
 
 def local_stages(config: PipelineConfig, camera: CameraIntrinsics) -> Stages:
@@ -169,8 +173,7 @@ def run_sequence(sequence, config: PipelineConfig, start: int = 0, stop: int | N
         bar.update(1)
     bar.update(bar.total - bar.n)
     bar.close()
-    if keyframes:
-        pipeline.finish()
+    pipeline.finish()
     wall = time.perf_counter() - t0
     online = online_trajectory(results)
     if not results:

@@ -166,6 +166,12 @@ class TrackerConfig(Section):
     ba_window_keyframes: int = Field(5, ge=2, description="latest keyframes optimised; others that see "
                                      "their landmarks are held fixed")
     ba_max_iterations: int = Field(10, ge=1, description="Levenberg-Marquardt iterations of local BA")
+    final_ba_iterations: int = Field(10, ge=0, description="when a run ends, bundle adjustment over all keyframes "
+                                     "and landmarks, at most this many iterations: it refines the trajectory written "
+                                     "at the end (not the online poses); 0 = off")
+    final_ba_max_keyframes: int = Field(300, ge=2, description="the final bundle adjustment refines at most this "
+                                        "many latest keyframes (holding older ones that share their landmarks): "
+                                        "its cost grows with the cube of this (137 keyframes: about 1.5 s)")
     # relocalisation
     relocalisation: bool = Field(True, description="when local-map tracking fails, try RANSAC PnP against "
                                  "earlier keyframes")

@@ -25,6 +25,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from twohr.config import TrackerConfig
@@ -485,12 +487,27 @@ class Tracker:
 
     def _local_bundle_adjustment(self) -> None:
         """Refine the latest keyframes and the landmarks they share; keyframes outside the window that see
-        those landmarks are held fixed. Landmarks seen only once move rigidly with their keyframe, and
-        outlying observations are cut from their keyframe."""
+        those landmarks are held fixed."""
+        window = np.arange(max(0, len(self.keyframes) - self.conf.ba_window_keyframes), len(self.keyframes))
+        self._bundle_adjust(window, self.conf.ba_max_iterations)
+
+    def final_bundle_adjustment(self) -> None:
+        """Bundle adjustment over every keyframe (at most ``final_ba_max_keyframes`` latest) and the landmarks
+        they see, for the end of a run (``final_ba_iterations``; 0 = off). It refines :meth:`trajectory`; the
+        poses already reported stay as they were."""
+        conf = self.conf
+        if conf.final_ba_iterations > 0:
+            first = max(0, len(self.keyframes) - conf.final_ba_max_keyframes)
+            self._bundle_adjust(np.arange(first, len(self.keyframes)), conf.final_ba_iterations)
+
+    def _bundle_adjust(self, window: np.ndarray, iterations: int) -> None:
+        """Refine the keyframes in ``window`` and the landmarks they see; other keyframes that see those
+        landmarks are held fixed, and so is the oldest keyframe of any part of the map that has none held (the
+        gauge). Landmarks seen only once move rigidly with their keyframe, and outlying observations are cut
+        from their keyframe."""
         conf = self.conf
         if len(self.keyframes) < 2:
             return
-        window = np.arange(max(0, len(self.keyframes) - conf.ba_window_keyframes), len(self.keyframes))
         in_window = np.zeros(len(self.map), bool)
         for i in window:
             ids = self.keyframes[i].landmark_ids
@@ -511,9 +528,7 @@ class Tracker:
             return
         used_frames, obs_pose = np.unique(obs_frame, return_inverse=True)
         landmark_ids, obs_point = np.unique(obs_landmark, return_inverse=True)
-        fixed = ~np.isin(used_frames, window)
-        if not fixed.any():
-            fixed[0] = True  # the gauge: hold the oldest keyframe
+        fixed = hold_gauge(~np.isin(used_frames, window), obs_pose, obs_point)
         xy = np.concatenate([self.keyframes[f].xy[obs_keypoint[obs_frame == f]] for f in used_frames])
         depth = np.concatenate([self.keyframes[f].depth[obs_keypoint[obs_frame == f]] for f in used_frames])
         order = np.argsort(obs_frame, kind="stable")  # xy and depth were gathered frame by frame
@@ -521,7 +536,7 @@ class Tracker:
             obs_keypoint[order]
         poses_cw = invert_pose(self._kf_poses[used_frames])
         result = bundle_adjust(self.K, poses_cw, self.map.positions[landmark_ids], obs_pose, obs_point, xy, depth,
-                               fixed, conf.depth_noise, conf.huber_px, conf.ba_max_iterations,
+                               fixed, conf.depth_noise, conf.huber_px, iterations,
                                outlier_threshold=2 * conf.ransac_reprojection_px)
         self.map.positions[landmark_ids] = result.points_w
         for j, f in enumerate(used_frames):
@@ -558,6 +573,22 @@ class Tracker:
             self._descriptor_kind = kind
         elif kind != self._descriptor_kind:
             raise TrackerInputError(f"descriptors changed from {self._descriptor_kind} to {kind} mid-sequence")
+
+
+def hold_gauge(fixed: np.ndarray, obs_pose: np.ndarray, obs_point: np.ndarray) -> np.ndarray:
+    """``fixed`` (P,) with the first pose of every connected part of the problem held where that part holds
+    none: poses joined by shared points form a part, and a part with nothing fixed could drift freely (a map
+    restarted after a long loss shares no landmark with the one before)."""
+    n_poses = len(fixed)
+    n_nodes = n_poses + int(obs_point.max()) + 1
+    graph = coo_matrix((np.ones(len(obs_pose)), (obs_pose, n_poses + obs_point)), shape=(n_nodes, n_nodes))
+    _, part = connected_components(graph, directed=False)
+    fixed = fixed.copy()
+    for label in np.unique(part[:n_poses]):
+        members = np.flatnonzero(part[:n_poses] == label)
+        if not fixed[members].any():
+            fixed[members[0]] = True
+    return fixed
 
 
 def reattach_to_keyframes(stamps: list[float], anchors: list[int], relative: list[np.ndarray],

@@ -256,9 +256,11 @@ class KeyframePipeline:
         return self.frames.landmarks[self.frames.usable]
 
     def finish(self) -> None:
-        """Let the mapping worker finish its job (its bundle adjustment refines the trajectory), then stop."""
+        """Let the mapping worker finish its job, stop, then refine the whole map (bundle adjustment over all
+        keyframes) for :meth:`trajectory`."""
         self._take(self._collect(self.mapping, wait=True), self._last_index)
         self.close()
+        self.mapper.tracker.final_bundle_adjustment()
 
     def close(self) -> None:
         """Stop the worker threads (after their running jobs)."""

@@ -12,7 +12,7 @@ from twohr.evaluation import evaluate
 from twohr.features import Keypoints
 from twohr.geometry import invert_pose
 from twohr.trajectory import Trajectory
-from twohr_services.tracker.core import Tracker, TrackerInputError, TrackResult
+from twohr_services.tracker.core import Tracker, TrackerInputError, TrackResult, hold_gauge
 from twohr_services.tracker.optim import pose_difference
 
 # The synthetic depth is exact (0.2 mm quantisation), so the tracker is told its sensor is precise.
@@ -158,3 +158,68 @@ def test_tracks_real_bonn_frames_far_better_than_a_static_camera(orb_real_frames
     static, _ = evaluate(data.ground_truth, Trajectory(data.stamps, [np.eye(4)] * len(results)))
     assert report.matched >= len(results) - 1  # the ground truth starts 20 ms after the first frame
     assert report.ate.rmse < 0.03 and report.ate.rmse < 0.5 * static.ate.rmse, (report.ate.rmse, static.ate.rmse)
+
+
+def _keyframe_errors(tracker: Tracker, data) -> np.ndarray:
+    """Translation error (m) of every keyframe against the truth, in the tracker's world (frames fed in order
+    by :func:`feed`, from the first)."""
+    index = [round((kf.stamp - data.stamps[0]) * 30) for kf in tracker.keyframes]
+    return np.array([pose_difference(truth_in_first_camera(data, i), kf.pose)[0]
+                     for i, kf in zip(index, tracker.keyframes, strict=True)])
+
+
+def _drift_keyframes(tracker: Tracker, seed: int = 3) -> None:
+    """Move every keyframe but the first (the gauge) by 1-2 cm along each axis, as drift would."""
+    rng = np.random.default_rng(seed)
+    for i, kf in enumerate(tracker.keyframes[1:], start=1):
+        kf.pose = kf.pose.copy()
+        kf.pose[:3, 3] += rng.choice([-1, 1], 3) * rng.uniform(0.01, 0.02, 3)
+        tracker.keyframe_poses[i] = kf.pose
+
+
+def test_final_bundle_adjustment_pulls_drifted_keyframes_back(orb_synthetic):
+    tracker = Tracker(orb_synthetic.camera, SYNTHETIC, match=orb_synthetic.match)
+    feed(tracker, orb_synthetic, range(len(orb_synthetic.stamps)))
+    assert len(tracker.keyframes) >= 4
+    tracked = _keyframe_errors(tracker, orb_synthetic)
+    _drift_keyframes(tracker)
+    drifted = _keyframe_errors(tracker, orb_synthetic)
+    assert drifted[1:].min() > 0.015
+    tracker.final_bundle_adjustment()
+    refined = _keyframe_errors(tracker, orb_synthetic)
+    assert refined[0] == drifted[0]
+    # back to within 2 mm of where tracking had put them (itself up to ~5 mm off here) from 15-35 mm
+    assert (refined - tracked).max() < 0.002, (tracked, refined)
+
+
+def test_final_bundle_adjustment_can_be_switched_off(orb_synthetic):
+    tracker = Tracker(orb_synthetic.camera, SYNTHETIC.model_copy(update={"final_ba_iterations": 0}),
+                      match=orb_synthetic.match)
+    feed(tracker, orb_synthetic, range(len(orb_synthetic.stamps)))
+    _drift_keyframes(tracker)
+    before = tracker.keyframe_poses.copy()
+    tracker.final_bundle_adjustment()
+    assert np.array_equal(tracker.keyframe_poses, before)
+
+
+def test_final_bundle_adjustment_holds_each_map_after_a_restart(orb_synthetic):
+    conf = SYNTHETIC.model_copy(update={"match_radius_px": 10.0, "lost_radius_growth_px": 0.0,
+                                        "relocalisation": False, "reinit_after_lost_frames": 4})
+    tracker = Tracker(orb_synthetic.camera, conf, match=orb_synthetic.match)
+    results = feed(tracker, orb_synthetic, [*range(10), None, None, *range(40, 50)])
+    restart = [r.status for r in results].index("reinitialised")
+    restart_keyframe = next(kf for kf in tracker.keyframes if kf.stamp == results[restart].stamp)
+    before = tracker.keyframe_poses.copy()
+    tracker.final_bundle_adjustment()
+    # the new map shares no landmark with the old one: its first keyframe must hold it, or it floats
+    assert np.array_equal(tracker.keyframe_poses[restart_keyframe.id], before[restart_keyframe.id])
+    moved = [pose_difference(a, b)[0] for a, b in zip(before, tracker.keyframe_poses, strict=True)]
+    assert max(moved) < 0.005, moved
+
+
+def test_hold_gauge_fixes_one_pose_in_every_part_that_has_none():
+    # poses 0-1 share point 0; poses 2-3 share point 1; pose 4 sees point 2 alone
+    obs_pose = np.array([0, 1, 2, 3, 4])
+    obs_point = np.array([0, 0, 1, 1, 2])
+    held = hold_gauge(np.array([False, False, False, True, False]), obs_pose, obs_point)
+    assert held.tolist() == [True, False, False, True, True]

@@ -1,0 +1,350 @@
+"""Which keyframe translations do the images agree with? A ground-truth-free check of a run::
+
+    .venv/bin/twohr run --sequence ../shared/data/rgbd_bonn_crowd_dev --out runs/dev --set pipeline.synchronous=true
+    .venv/bin/python -m twohr_lab.tracking.consistency --run runs/dev --out runs/consistency
+
+Feature tracks are built over the run's keyframes independently of the pipeline (SIFT, ratio test, a
+fundamental-matrix RANSAC per pair, pairs up to ``--max-gap`` keyframes apart joined into tracks; people masked by
+YOLO). Then, for each candidate trajectory, every keyframe's camera *centre* is held at the candidate's while the
+rotations and the 3-D points settle (Levenberg-Marquardt, Huber loss on pixels and on depth relative to
+``--depth-noise``). The cost that remains says how well the candidate's translations explain the observations.
+
+Candidates: the run's refined trajectory, the ground truth (SE(3)-aligned to it) and three controls that move the
+estimate by exactly as much as the ground truth does, in other directions (the difference reversed in time, its
+axes permuted, negated). A cost near the estimate's for the ground truth, far below the controls', means the
+estimate's error lies along a direction the data hardly constrains. Writes ``consistency.md`` and
+``consistency.json`` into ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import scipy.sparse as sparse
+
+from twohr.errors import TwohrError
+from twohr.geometry import umeyama
+from twohr.trajectory import interpolate_poses, read_tum
+from twohr_services.tracker.optim import skew, so3_exp_batch
+
+from ..stamp import provenance, stamp_line
+from .sensitivity import DEFAULT_SEQUENCE
+
+
+@dataclass
+class Tracks:
+    """Observations of 3-D points: observation ``o`` sees point ``point[o]`` from keyframe ``frame[o]`` at ``xy[o]``
+    with measured depth ``depth[o]`` (metres, 0 = none)."""
+
+    frame: np.ndarray
+    point: np.ndarray
+    xy: np.ndarray
+    depth: np.ndarray
+
+    @property
+    def num_points(self) -> int:
+        return int(self.point.max()) + 1 if len(self.point) else 0
+
+
+@dataclass
+class Fit:
+    """What remains after the rotations and points have settled under fixed camera centres."""
+
+    cost_reprojection: float
+    cost_depth: float
+    median_px: float
+    poses: np.ndarray
+    converged: bool
+
+    @property
+    def cost(self) -> float:
+        return self.cost_reprojection + self.cost_depth
+
+
+def build_tracks(grays: list[np.ndarray], depths: list[np.ndarray], masks: list[np.ndarray | None],
+                 max_gap: int = 8, ratio: float = 0.75, min_length: int = 3) -> Tracks:
+    """SIFT tracks over ordered images: matches between images at most ``max_gap`` apart (ratio test, then a
+    fundamental-matrix RANSAC at 1 px) joined into tracks; a track is kept when it has ``min_length``
+    observations and at most one per image. ``masks`` (True = ignore) keep features off moving objects."""
+    sift = cv2.SIFT_create(1500)
+    features = []
+    for gray, mask in zip(grays, masks, strict=True):
+        keep = None if mask is None else (~mask).astype(np.uint8) * 255
+        keypoints, descriptors = sift.detectAndCompute(gray, keep)
+        features.append((np.array([k.pt for k in keypoints], np.float64).reshape(-1, 2), descriptors))
+    offsets = np.cumsum([0] + [len(xy) for xy, _ in features])
+    parent = np.arange(offsets[-1])
+
+    def root(node: int) -> int:
+        while parent[node] != node:
+            parent[node] = parent[parent[node]]
+            node = parent[node]
+        return node
+
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    for i in range(len(features)):
+        for j in range(i + 1, min(len(features), i + max_gap + 1)):
+            (xy_i, desc_i), (xy_j, desc_j) = features[i], features[j]
+            if desc_i is None or desc_j is None or len(desc_i) < 2 or len(desc_j) < 2:
+                continue
+            good = [m for m, n in matcher.knnMatch(desc_i, desc_j, k=2) if m.distance < ratio * n.distance]
+            if len(good) < 20:
+                continue
+            a = np.array([m.queryIdx for m in good])
+            b = np.array([m.trainIdx for m in good])
+            _, inliers = cv2.findFundamentalMat(xy_i[a], xy_j[b], cv2.FM_RANSAC, 1.0, 0.999)
+            if inliers is None:
+                continue
+            for qa, qb in zip(a[inliers.ravel() > 0], b[inliers.ravel() > 0], strict=True):
+                parent[root(offsets[i] + qa)] = root(offsets[j] + qb)
+    roots = np.array([root(n) for n in range(offsets[-1])])
+    node_frame = np.repeat(np.arange(len(features)), np.diff(offsets))
+    order = np.argsort(roots, kind="stable")
+    groups = np.split(order, np.flatnonzero(np.diff(roots[order])) + 1)
+    frame, point, xy, depth = [], [], [], []
+    for nodes in groups:
+        frames = node_frame[nodes]
+        if len(nodes) < min_length or len(np.unique(frames)) != len(frames):
+            continue
+        point_id = point[-1] + 1 if point else 0
+        for node, f in zip(nodes, frames, strict=True):
+            u, v = features[f][0][node - offsets[f]]
+            z = float(depths[f][int(round(v)), int(round(u))])
+            frame.append(f)
+            point.append(point_id)
+            xy.append((u, v))
+            depth.append(z if 0.3 < z < 6.0 else 0.0)
+    return Tracks(np.array(frame, int), np.array(point, int), np.array(xy, np.float64).reshape(-1, 2),
+                  np.array(depth, np.float64))
+
+
+def initial_points(tracks: Tracks, poses: np.ndarray, k: np.ndarray) -> tuple[Tracks, np.ndarray]:
+    """World points (M, 3) back-projected from each track's first observation with depth, through ``poses``
+    (camera-to-world); tracks without any depth are dropped (and the rest renumbered)."""
+    with_depth = np.flatnonzero(tracks.depth > 0)
+    seeds = with_depth[np.unique(tracks.point[with_depth], return_index=True)[1]]
+    kept = np.zeros(tracks.num_points, bool)
+    kept[tracks.point[seeds]] = True
+    renumber = np.cumsum(kept) - 1
+    keep_obs = kept[tracks.point]
+    kept_tracks = Tracks(tracks.frame[keep_obs], renumber[tracks.point[keep_obs]], tracks.xy[keep_obs],
+                         tracks.depth[keep_obs])
+    z = tracks.depth[seeds]
+    rays = np.c_[(tracks.xy[seeds] - k[:2, 2]) / np.diag(k)[:2], np.ones(len(seeds))]
+    cam = poses[tracks.frame[seeds]]
+    points = np.einsum("nij,nj->ni", cam[:, :3, :3], rays * z[:, None]) + cam[:, :3, 3]
+    return kept_tracks, points
+
+
+def _huber(r: np.ndarray) -> np.ndarray:
+    a = np.abs(r)
+    return np.where(a < 1.0, 0.5 * a * a, a - 0.5)
+
+
+def fit_rotations(k: np.ndarray, poses: np.ndarray, tracks: Tracks, depth_noise: float,
+                  iterations: int = 100, tolerance: float = 1e-7) -> Fit:
+    """Hold every camera centre of ``poses`` (camera-to-world) and let the rotations and points settle.
+
+    Residuals per observation: the pixel error (x, y) and, with measured depth, (z_pred - z) / (depth_noise * z);
+    Huber loss with a 1-unit threshold. Levenberg-Marquardt with the points eliminated (Schur complement); rotations
+    are perturbed on the left, R <- exp(w) R. Converged when a step lowers the cost by less than ``tolerance``
+    (relative)."""
+    tracks, points = initial_points(tracks, poses, k)
+    rotations = poses[:, :3, :3].copy()
+    centres = poses[:, :3, 3]
+    n_frames, n_obs = len(poses), len(tracks.frame)
+    has_depth = tracks.depth > 0
+    depth_sigma = depth_noise * np.maximum(tracks.depth, 0.3)
+    fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
+
+    def residuals(rotations: np.ndarray, points: np.ndarray):
+        offset = points[tracks.point] - centres[tracks.frame]
+        cam = np.einsum("nji,nj->ni", rotations[tracks.frame], offset)
+        pixel = np.c_[fx * cam[:, 0] / cam[:, 2] + cx, fy * cam[:, 1] / cam[:, 2] + cy] - tracks.xy
+        depth = np.where(has_depth, (cam[:, 2] - tracks.depth) / depth_sigma, 0.0)
+        return np.c_[pixel, depth], cam, offset
+
+    res, cam, offset = residuals(rotations, points)
+    cost = _huber(res).sum()
+    n_points = tracks.num_points
+    # Sparse pattern of the rotation-point coupling: observation o couples frame[o] with point[o].
+    coupling_rows = (3 * tracks.frame[:, None, None] + np.arange(3)[:, None]).repeat(3, axis=2)
+    coupling_cols = (3 * tracks.point[:, None, None] + np.arange(3)[None, :]).repeat(3, axis=1)
+    point_rows = (3 * np.arange(n_points)[:, None, None] + np.arange(3)[:, None]).repeat(3, axis=2)
+    point_cols = np.swapaxes(point_rows, 1, 2)
+    damping = 1e-3
+    converged = False
+    for _ in range(iterations):
+        x, y, z = cam.T
+        projection = np.zeros((n_obs, 3, 3))
+        projection[:, 0, 0], projection[:, 0, 2] = fx / z, -fx * x / z**2
+        projection[:, 1, 1], projection[:, 1, 2] = fy / z, -fy * y / z**2
+        projection[:, 2, 2] = np.where(has_depth, 1 / depth_sigma, 0.0)
+        weight = np.sqrt(np.where(np.abs(res) < 1.0, 1.0, 1.0 / np.maximum(np.abs(res), 1e-12)))[:, :, None]
+        jac_point = weight * (projection @ np.swapaxes(rotations[tracks.frame], 1, 2))
+        jac_rotation = jac_point @ skew(offset)
+        weighted = (res * weight[:, :, 0])[:, :, None]
+        # Normal equations in blocks: A (rotations), C (points, 3x3 per point), B (their coupling).
+        block_a = np.zeros((n_frames, 3, 3))
+        np.add.at(block_a, tracks.frame, np.swapaxes(jac_rotation, 1, 2) @ jac_rotation)
+        block_c = np.zeros((n_points, 3, 3))
+        np.add.at(block_c, tracks.point, np.swapaxes(jac_point, 1, 2) @ jac_point)
+        grad_r = np.zeros((n_frames, 3))
+        np.add.at(grad_r, tracks.frame, (np.swapaxes(jac_rotation, 1, 2) @ weighted)[:, :, 0])
+        grad_p = np.zeros((n_points, 3))
+        np.add.at(grad_p, tracks.point, (np.swapaxes(jac_point, 1, 2) @ weighted)[:, :, 0])
+        coupling = sparse.csr_matrix(((np.swapaxes(jac_rotation, 1, 2) @ jac_point).ravel(),
+                                      (coupling_rows.ravel(), coupling_cols.ravel())),
+                                     shape=(3 * n_frames, 3 * n_points))
+        for _attempt in range(8):
+            # Levenberg-Marquardt, then the points eliminated (Schur complement): a dense 3F x 3F solve.
+            damp_a = block_a + damping * block_a * np.eye(3) + 1e-9 * np.eye(3)
+            c_inv = np.linalg.inv(block_c + damping * block_c * np.eye(3) + 1e-9 * np.eye(3))
+            c_inv_sparse = sparse.csr_matrix((c_inv.ravel(), (point_rows.ravel(), point_cols.ravel())),
+                                             shape=(3 * n_points, 3 * n_points))
+            reduced = sparse.block_diag(list(damp_a)).toarray() - (coupling @ c_inv_sparse @ coupling.T).toarray()
+            rhs = -grad_r.ravel() + coupling @ (c_inv_sparse @ grad_p.ravel())
+            step_r = np.zeros(3 * n_frames)
+            step_r[3:] = np.linalg.solve(reduced[3:, 3:], rhs[3:])  # the first rotation fixes the gauge
+            step_p = c_inv_sparse @ (-grad_p.ravel() - coupling.T @ step_r)
+            trial_rotations = so3_exp_batch(step_r.reshape(-1, 3)) @ rotations
+            trial_points = points + step_p.reshape(-1, 3)
+            trial_res, trial_cam, trial_offset = residuals(trial_rotations, trial_points)
+            trial_cost = _huber(trial_res).sum()
+            if trial_cost < cost:
+                converged = cost - trial_cost < tolerance * cost
+                rotations, points, res, cam, offset, cost = (trial_rotations, trial_points, trial_res, trial_cam,
+                                                             trial_offset, trial_cost)
+                damping = max(damping / 3, 1e-7)
+                break
+            damping *= 5
+        else:
+            converged = True  # no step lowers the cost any more
+        if converged:
+            break
+    fitted = poses.copy()
+    fitted[:, :3, :3] = rotations
+    costs = _huber(res)
+    return Fit(float(costs[:, :2].sum()), float(costs[:, 2].sum()), float(np.median(np.hypot(res[:, 0], res[:, 1]))),
+               fitted, bool(converged))
+
+
+def candidate_trajectories(estimate: np.ndarray, ground_truth: np.ndarray) -> dict[str, np.ndarray]:
+    """The estimate, the ground truth SE(3)-aligned to it (with the estimate's rotations as a start) and three
+    controls displaced from the estimate by the same amount as the ground truth, in other directions."""
+    rotation, translation, _ = umeyama(ground_truth[:, :3, 3], estimate[:, :3, 3])
+    aligned = estimate.copy()
+    aligned[:, :3, 3] = ground_truth[:, :3, 3] @ rotation.T + translation
+    difference = aligned[:, :3, 3] - estimate[:, :3, 3]
+    reversed_in_time = difference[::-1] - difference[::-1].mean(0) + difference.mean(0)
+
+    def displaced(by: np.ndarray) -> np.ndarray:
+        poses = estimate.copy()
+        poses[:, :3, 3] += by
+        return poses
+
+    return {"estimate": estimate, "ground truth": aligned,
+            "control: difference reversed in time": displaced(reversed_in_time),
+            "control: difference axes permuted": displaced(difference[:, [1, 2, 0]]),
+            "control: difference negated": displaced(-difference)}
+
+
+def load_keyframes(run: Path, sequence) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """The run's keyframe indices with ground truth, their refined poses and their camera-frame ground truth."""
+    stats = run / "stats.csv"
+    if not stats.is_file() or not (run / "trajectory.txt").is_file():
+        raise TwohrError(f"{run} is not a run folder (stats.csv and trajectory.txt from `twohr run`)")
+    with stats.open() as handle:
+        indices = [int(row["index"]) for row in csv.DictReader(handle) if row["keyframe"] == "True"]
+    stamps = sequence.stamps[indices]
+    estimate, est_ok = interpolate_poses(read_tum(run / "trajectory.txt"), stamps)
+    truth, gt_ok = interpolate_poses(sequence.ground_truth(sequence.default_gt_extrinsic()), stamps)
+    keep = np.flatnonzero(est_ok & gt_ok)
+    if len(keep) < 3:
+        raise TwohrError(f"only {len(keep)} keyframes of {run} have both a pose and ground truth")
+    return [indices[i] for i in keep], estimate[keep], truth[keep]
+
+
+def format_table(rows: list[dict]) -> str:
+    lines = ["| depth noise | candidate | cost | pixels | depth | median px | vs estimate | moved (mm RMS) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['depth_noise']:g} | {r['candidate']} | {r['cost']:.0f} | {r['cost_reprojection']:.0f} | "
+                     f"{r['cost_depth']:.0f} | {r['median_px']:.3f} | {100 * r['relative']:+.2f} % | "
+                     f"{r['moved_mm']:.1f} |" + ("" if r["converged"] else " (not converged)"))
+    return "\n".join(lines)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m twohr_lab.tracking.consistency", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run", required=True, help="output folder of `twohr run` on --sequence")
+    parser.add_argument("--sequence", default=DEFAULT_SEQUENCE, help="the run's TUM-layout RGB-D folder")
+    parser.add_argument("--depth-noise", default="0.05,1.0",
+                        help="comma-separated relative depth noise for the depth term (1.0 = pixels only)")
+    parser.add_argument("--max-gap", type=int, default=8, help="match keyframes at most this many apart")
+    parser.add_argument("--iterations", type=int, default=100, help="Levenberg-Marquardt iterations at most")
+    parser.add_argument("--out", default="runs/consistency", help="output folder (default runs/consistency)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    program = "python -m twohr_lab.tracking.consistency"
+    try:
+        from twohr.dataset import RGBDSequence
+        from twohr_services.yolo.masks import DynamicMasker
+
+        noises = [float(v) for v in args.depth_noise.split(",") if v.strip()]
+        if not noises or min(noises) <= 0:
+            raise TwohrError(f"--depth-noise needs positive values, got {args.depth_noise!r}")
+        sequence = RGBDSequence(args.sequence)
+        indices, estimate, truth = load_keyframes(Path(args.run), sequence)
+        masker = DynamicMasker()
+        grays, depths, masks = [], [], []
+        for i in indices:
+            frame = sequence.read(i)
+            masker.reset()
+            masks.append(masker(frame.rgb, frame.depth).mask)
+            grays.append(cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY))
+            depths.append(frame.depth)
+        tracks = build_tracks(grays, depths, masks, args.max_gap)
+        print(f"{len(indices)} keyframes, {tracks.num_points} tracks, {len(tracks.frame)} observations", flush=True)
+        k = sequence.camera.matrix
+        rows = []
+        for noise in noises:
+            baseline = None
+            for name, poses in candidate_trajectories(estimate, truth).items():
+                fit = fit_rotations(k, poses, tracks, noise, args.iterations)
+                baseline = fit.cost if baseline is None else baseline
+                moved = np.sqrt(np.mean(np.sum((poses[:, :3, 3] - estimate[:, :3, 3]) ** 2, 1))) * 1000
+                rows.append({"depth_noise": noise, "candidate": name, "cost": fit.cost,
+                             "cost_reprojection": fit.cost_reprojection, "cost_depth": fit.cost_depth,
+                             "median_px": fit.median_px, "converged": fit.converged,
+                             "relative": fit.cost / baseline - 1, "moved_mm": moved})
+                print(format_table(rows[-1:]).splitlines()[-1], flush=True)
+    except (TwohrError, ValueError) as exc:
+        print(f"consistency: error: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    table = format_table(rows)
+    summary = (f"{len(indices)} keyframes, {tracks.num_points} SIFT tracks, {len(tracks.frame)} observations "
+               f"(keyframes at most {args.max_gap} apart matched).")
+    (out / "consistency.md").write_text(f"{stamp_line(argv, program)}\n\n{summary}\n\n{table}\n")
+    (out / "consistency.json").write_text(json.dumps({"provenance": provenance(argv, program), "rows": rows},
+                                                     indent=2))
+    print(table)
+    print(f"written: {out / 'consistency.md'}, consistency.json")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
