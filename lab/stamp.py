@@ -40,5 +40,20 @@ def write_stamp(out: str | Path, argv: list[str] | None = None, program: str = "
 
 def stamp_line(argv: list[str] | None = None, program: str = "twohr") -> str:
     """One Markdown line for the top of a report: ``Made by `command` at commit X.``"""
-    stamp = provenance(argv, program)
+    return _made_by(provenance(argv, program))
+
+
+def _made_by(stamp: dict[str, object]) -> str:
     return f"Made by `{stamp['command']}` at commit {stamp['commit']}, {stamp['made_at']}."
+
+
+def write_study(out: str | Path, name: str, markdown: str, rows: list, argv: list[str] | None = None,
+                program: str = "twohr") -> Path:
+    """A study's two outputs in the folder ``out``: ``<name>.md`` (the stamp line, then ``markdown``) and
+    ``<name>.json`` (the provenance and ``rows``). Returns the folder."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    stamp = provenance(argv, program)
+    (out / f"{name}.md").write_text(f"{_made_by(stamp)}\n\n{markdown}\n")
+    (out / f"{name}.json").write_text(json.dumps({"provenance": stamp, "rows": rows}, indent=2))
+    return out

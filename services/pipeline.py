@@ -93,7 +93,6 @@ class Pipeline:
         self.tracker.final_bundle_adjustment()
 
 
-
 def local_stages(config: PipelineConfig, camera: CameraIntrinsics) -> Stages:
     """The detector, YOLO and matcher cores in this process, compiled for the camera's image size."""
     detector = build_detector(config.detector)

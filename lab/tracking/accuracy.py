@@ -13,7 +13,6 @@ into ``--out``; no trajectories.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -22,7 +21,7 @@ import numpy as np
 from twohr.config import load_config
 from twohr.errors import ConfigError, TwohrError
 
-from ..stamp import provenance, stamp_line
+from ..stamp import write_study
 from .sensitivity import DEFAULT_SEQUENCE
 
 #: a pose farther than this from the ground truth counts as an outlier (the issue's spikes were 5 and 8 cm)
@@ -158,11 +157,8 @@ def main(argv: list[str] | None = None) -> int:
     except (TwohrError, ValueError) as exc:
         print(f"accuracy: error: {exc}", file=sys.stderr)
         return 2
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     table = format_table(rows)
-    (out / "accuracy.md").write_text(f"{stamp_line(argv, program)}\n\n{table}\n")
-    (out / "accuracy.json").write_text(json.dumps({"provenance": provenance(argv, program), "rows": rows}, indent=2))
+    out = write_study(args.out, "accuracy", table, rows, argv, program)
     plot(out / "accuracy.png", rows)
     print(table)
     print(f"written: {out / 'accuracy.md'}, accuracy.json, accuracy.png")

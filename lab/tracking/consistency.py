@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +34,7 @@ from twohr.geometry import umeyama
 from twohr.trajectory import interpolate_poses, read_tum
 from twohr_services.tracker.optim import skew, so3_exp_batch
 
-from ..stamp import provenance, stamp_line
+from ..stamp import write_study
 from .sensitivity import DEFAULT_SEQUENCE
 
 
@@ -334,14 +333,10 @@ def main(argv: list[str] | None = None) -> int:
     except (TwohrError, ValueError) as exc:
         print(f"consistency: error: {exc}", file=sys.stderr)
         return 2
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     table = format_table(rows)
     summary = (f"{len(indices)} keyframes, {tracks.num_points} SIFT tracks, {len(tracks.frame)} observations "
                f"(keyframes at most {args.max_gap} apart matched).")
-    (out / "consistency.md").write_text(f"{stamp_line(argv, program)}\n\n{summary}\n\n{table}\n")
-    (out / "consistency.json").write_text(json.dumps({"provenance": provenance(argv, program), "rows": rows},
-                                                     indent=2))
+    out = write_study(args.out, "consistency", f"{summary}\n\n{table}", rows, argv, program)
     print(table)
     print(f"written: {out / 'consistency.md'}, consistency.json")
     return 0

@@ -14,14 +14,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 
 from twohr.config import PipelineConfig, load_config, parse_override
 from twohr.errors import ConfigError, TwohrError
 
-from ..stamp import provenance, stamp_line
+from ..stamp import write_study
 
 DEFAULT_SEQUENCE = "../shared/data/rgbd_bonn_crowd_dev"
 
@@ -139,11 +138,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sensitivity: error: {exc}", file=sys.stderr)
         return 2
     table = format_table(rows)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "sensitivity.md").write_text(f"{stamp_line(argv, program)}\n\n{table}\n")
-    (out / "sensitivity.json").write_text(json.dumps({"provenance": provenance(argv, program), "rows": rows},
-                                                     indent=2))
+    out = write_study(args.out, "sensitivity", table, rows, argv, program)
     print(table)
     print(f"written: {out / 'sensitivity.md'}")
     return 0
