@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from twohr.dataset import CAMERA_PRESETS, RGBDSequence
-from twohr.geometry import make_pose, so3_exp
+from twohr.geometry import make_pose, rotation_angle, so3_exp
 from twohr_lab.tracking.consistency import Tracks, build_tracks, candidate_trajectories, fit_rotations, main
 
 K = CAMERA_PRESETS["bonn"].matrix
@@ -31,8 +31,7 @@ def _scene(seed: int = 0, frames: int = 10, points: int = 300, pixel_noise: floa
 
 
 def _rotation_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    cos = (np.trace(np.swapaxes(a, 1, 2) @ b, axis1=1, axis2=2) - 1) / 2
-    return np.degrees(np.arccos(np.clip(cos, -1, 1)))
+    return np.degrees(rotation_angle(np.swapaxes(a, 1, 2) @ b))
 
 
 def test_rotations_settle_and_the_true_centres_cost_least():

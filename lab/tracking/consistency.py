@@ -30,7 +30,7 @@ import numpy as np
 import scipy.sparse as sparse
 
 from twohr.errors import TwohrError
-from twohr.geometry import umeyama
+from twohr.geometry import depth_at_pixels, umeyama
 from twohr.trajectory import interpolate_poses, read_tum
 from twohr_services.tracker.optim import skew, so3_exp_batch
 
@@ -108,21 +108,22 @@ def build_tracks(grays: list[np.ndarray], depths: list[np.ndarray], masks: list[
     node_frame = np.repeat(np.arange(len(features)), np.diff(offsets))
     order = np.argsort(roots, kind="stable")
     groups = np.split(order, np.flatnonzero(np.diff(roots[order])) + 1)
-    frame, point, xy, depth = [], [], [], []
+    frame, point, xy = [], [], []
     for nodes in groups:
         frames = node_frame[nodes]
         if len(nodes) < min_length or len(np.unique(frames)) != len(frames):
             continue
         point_id = point[-1] + 1 if point else 0
         for node, f in zip(nodes, frames, strict=True):
-            u, v = features[f][0][node - offsets[f]]
-            z = float(depths[f][int(round(v)), int(round(u))])
             frame.append(f)
             point.append(point_id)
-            xy.append((u, v))
-            depth.append(z if 0.3 < z < 6.0 else 0.0)
-    return Tracks(np.array(frame, int), np.array(point, int), np.array(xy, np.float64).reshape(-1, 2),
-                  np.array(depth, np.float64))
+            xy.append(features[f][0][node - offsets[f]])
+    frame, xy = np.array(frame, int), np.array(xy, np.float64).reshape(-1, 2)
+    depth = np.zeros(len(frame))
+    for f in np.unique(frame):
+        seen = frame == f
+        depth[seen] = np.nan_to_num(depth_at_pixels(depths[f], xy[seen], 0.3, 6.0), nan=0.0)
+    return Tracks(frame, np.array(point, int), xy, depth)
 
 
 def initial_points(tracks: Tracks, poses: np.ndarray, k: np.ndarray) -> tuple[Tracks, np.ndarray]:
