@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
 from twohr.bus import free_port
+from twohr.paths import DEV_SEQUENCE as DEV_SEQUENCE_PATH
 
 REPO = Path(__file__).resolve().parent
 SHARED = REPO.parent / "shared"
-DEV_SEQUENCE = SHARED / "data" / "rgbd_bonn_crowd_dev"
+DEV_SEQUENCE = Path(os.path.normpath(REPO / DEV_SEQUENCE_PATH))  # the commands' default, made absolute
 MODEL_MIRROR = SHARED / "models"
 
 

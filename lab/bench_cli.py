@@ -9,7 +9,8 @@ import argparse
 import json
 from pathlib import Path
 
-from twohr_services.pipeline_cli import _add_run_options, _load
+from twohr.paths import DEV_SEQUENCE
+from twohr_services.pipeline_cli import add_run_options, load_config_and_sequence
 
 from .stamp import provenance, stamp_line
 
@@ -17,7 +18,7 @@ from .stamp import provenance, stamp_line
 def _bench(args: argparse.Namespace) -> int:
     from . import bench
 
-    config, sequence = _load(args)
+    config, sequence = load_config_and_sequence(args)
     out = Path(args.out or "runs/bench")
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {}
@@ -97,8 +98,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "over --frames frames, --runs times, each paired with an ORB baseline run for a ratio. With "
                        "--ablations: ATE RMSE, S.D., %% tracked and ms/frame of ORB, R2D2, 2HR, 2HR+YOLO and the "
                        "full pipeline on the same tracker.")
-    _add_run_options(p)
-    p.set_defaults(sequence="../shared/data/rgbd_bonn_crowd_dev")
+    add_run_options(p)
+    p.set_defaults(sequence=DEV_SEQUENCE)
     for action in p._actions:
         if action.dest == "sequence":
             action.required = False

@@ -1,8 +1,10 @@
 """The ``twohr`` command line: a thin shell over the library, the service cores and the lab's studies.
 
-Modules contribute subcommands through a ``register(subparsers)`` function: the pipeline and the
-launcher here, the offline studies (benches, feature and mask evaluation, matcher training) in
-``twohr_lab``. Handlers import their heavy dependencies lazily so that ``twohr --help`` stays fast.
+Modules contribute subcommands through a ``register(subparsers)`` function: the pipeline, the launcher
+and the camera here (:data:`COMMAND_MODULES`); other installed packages through the ``twohr.commands``
+entry-point group (:data:`COMMAND_GROUP`), which is how the lab adds its offline studies (benches, feature
+and mask evaluation, matcher training) without this module naming it. Handlers import their heavy
+dependencies lazily so that ``twohr --help`` stays fast.
 """
 
 from __future__ import annotations
@@ -12,20 +14,24 @@ import importlib
 import json
 import logging
 import sys
+from collections.abc import Callable
+from importlib.metadata import entry_points
 from pathlib import Path
 
 from twohr.errors import TwohrError
+from twohr.paths import DEV_SEQUENCE
 
-#: Modules that add subcommands, in the order they appear in ``--help``.
-COMMAND_MODULES = [
-    "twohr_services.pipeline_cli",
-    "twohr_lab.bench_cli",
-    "twohr_lab.features.cli",
-    "twohr_lab.masks.cli",
-    "twohr_lab.matching.cli",
-    "twohr_services.launcher_cli",
-    "twohr_services.camera_cli",
-]
+#: The command line's own modules that add subcommands, each under the order key that places it in ``--help``.
+COMMAND_MODULES = {
+    "10-run": "twohr_services.pipeline_cli",
+    "60-up": "twohr_services.launcher_cli",
+    "70-camera": "twohr_services.camera_cli",
+}
+
+#: The entry-point group through which installed packages add subcommands. An entry's value is a
+#: ``register(subparsers)`` function (``module:register``) or a module that has one; its name is the order key,
+#: sorted together with those of :data:`COMMAND_MODULES` (the lab: 20-bench, 30-features, 40-yolo, 50-matcher).
+COMMAND_GROUP = "twohr.commands"
 
 
 def _models(args: argparse.Namespace) -> int:
@@ -119,12 +125,31 @@ def _version() -> str:
         return "unknown"
 
 
+def _registrar(target) -> Callable[[argparse._SubParsersAction], None]:
+    """The ``register`` function itself, or the one of a module."""
+    return target if callable(target) else target.register
+
+
+def command_registrars() -> list[tuple[str, Callable[[argparse._SubParsersAction], None]]]:
+    """(order key, ``register(subparsers)``) of every subcommand module, ours and the entry points', in order.
+
+    An entry point whose package is not installed (e.g. an image without the lab) is left out."""
+    found = [(key, _registrar(importlib.import_module(name))) for key, name in COMMAND_MODULES.items()]
+    for entry in entry_points(group=COMMAND_GROUP):
+        try:
+            found.append((entry.name, _registrar(entry.load())))
+        except ModuleNotFoundError as exc:
+            if exc.name is None or not (entry.module == exc.name or entry.module.startswith(exc.name + ".")):
+                raise  # a dependency of an installed module is missing: a real error
+    return sorted(found, key=lambda item: item[0])
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="twohr",
         description="2HR-Net visual SLAM for dynamic scenes: run it, evaluate it, serve it on Zenoh.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="Start with `twohr run --sequence ../shared/data/rgbd_bonn_crowd_dev`. "
+        epilog=f"Start with `twohr run --sequence {DEV_SEQUENCE}`. "
         "Every subcommand has its own --help.",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -168,14 +193,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_synth)
 
-    for module_name in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name not in (module_name, module_name.split(".")[0]):  # e.g. an image without the lab
-                raise
-            continue
-        module.register(sub)
+    for _, register in command_registrars():
+        register(sub)
     return parser
 
 

@@ -7,8 +7,12 @@ import csv
 import json
 from pathlib import Path
 
+from twohr.paths import DEV_SEQUENCE
 
-def _load(args: argparse.Namespace):
+
+def load_config_and_sequence(args: argparse.Namespace):
+    """The pipeline config (``--config``, ``--set``, ``--camera``) and the RGB-D sequence (``--sequence``) of
+    a command that took :func:`add_run_options`; returns ``(config, sequence)``."""
     from twohr.config import load_config
     from twohr.dataset import RGBDSequence
 
@@ -102,7 +106,7 @@ def print_summary(summary: dict, out: Path) -> None:
 def _run(args: argparse.Namespace) -> int:
     from .pipeline import run_sequence
 
-    config, sequence = _load(args)
+    config, sequence = load_config_and_sequence(args)
     frames = sequence.frame_range(args.start, args.frames, args.step)
     out = Path(args.out or f"runs/{sequence.name}")
     view = None
@@ -128,7 +132,7 @@ def _demo(args: argparse.Namespace) -> int:
     from twohr import models
 
     args.config, args.set, args.camera, args.start, args.step, args.frames = None, [], None, 0, 1, None
-    config, sequence = _load(args)
+    config, sequence = load_config_and_sequence(args)
     print(f"twohr demo: {sequence.name}, {len(sequence)} RGB-D frames; models "
           f"{config.detector.model} + {config.yolo.model} + {config.matcher.model}")
     for name in (config.detector.model, config.yolo.model, config.matcher.model):
@@ -137,7 +141,8 @@ def _demo(args: argparse.Namespace) -> int:
     return _run(args)
 
 
-def _add_run_options(p: argparse.ArgumentParser) -> None:
+def add_run_options(p: argparse.ArgumentParser) -> None:
+    """``twohr run``'s options: the sequence, output folder, config and overrides, and the frame range."""
     p.add_argument("--sequence", required=True, help="TUM-layout RGB-D folder (rgb.txt, depth.txt, images)")
     p.add_argument("--out", default=None, help="output folder (default runs/<sequence name>)")
     p.add_argument("--config", default=None, help="YAML pipeline config (see twohr.config.PipelineConfig)")
@@ -165,11 +170,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "detector (2HR) -> yolo mask -> matcher -> tracker on every frame, as in the paper. Writes "
                        "the TUM trajectory (camera-to-world), per-frame stats and, with ground truth, the ATE "
                        "report and plot.")
-    _add_run_options(p)
+    add_run_options(p)
     _add_view_options(p)
     p.set_defaults(func=_run)
 
     p = sub.add_parser("demo", help="the main job end to end on the dev sequence, with a printed result")
-    p.add_argument("--sequence", default="../shared/data/rgbd_bonn_crowd_dev", help="TUM-layout RGB-D folder")
+    p.add_argument("--sequence", default=DEV_SEQUENCE, help="TUM-layout RGB-D folder")
     p.add_argument("--out", default="runs/demo", help="output folder")
     p.set_defaults(func=_demo)

@@ -1,9 +1,19 @@
 """twohr common library: the contracts every service shares.
 
-Modules: ``errors`` (user-facing errors), ``geometry`` (SE(3), quaternions, Umeyama),
-``trajectory`` (TUM trajectory I/O), ``evaluation`` (ATE/RPE as in the TUM tools and evo),
-``plots``, ``dataset`` (TUM-layout RGB-D sequences), ``models`` (verified model registry),
-``config`` (typed pipeline configuration) and ``synthetic`` (exact synthetic sequences).
+Modules:
+
+* data and maths: ``config`` (typed pipeline configuration), ``dataset`` (TUM-layout RGB-D sequences),
+  ``features`` (keypoints, detections, matches), ``geometry`` (SE(3), quaternions, Umeyama),
+  ``trajectory`` (TUM trajectory I/O), ``evaluation`` (ATE/RPE as in the TUM tools and evo),
+  ``pairs`` (ground-truth geometry of frame pairs), ``synthetic`` (exact synthetic sequences),
+  ``models`` (verified model registry, ``models.yaml``), ``plots``;
+* the bus: ``keys`` (key expressions), ``messages`` (typed bus messages), ``bus`` (sessions, router,
+  health query), ``access`` (roles, credentials, access control), ``service`` (the services' shell),
+  ``workers`` (background worker, prefetcher);
+* recordings and views: ``mcapfile`` (crash-safe MCAP files), ``foxglove_convert`` (twohr data as
+  Foxglove messages), ``foxglove_live`` (the Foxglove WebSocket live view), and the package ``ros2``
+  (ROS 2 interop without ROS);
+* odds and ends: ``errors`` (user-facing errors), ``paths`` (the dev sequence, paths under data roots).
 """
 
 __version__ = "0.1.0"

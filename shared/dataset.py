@@ -50,19 +50,6 @@ class CameraIntrinsics(BaseModel):
         """Whether the lens distorts (any non-zero coefficient): images must be undistorted before use."""
         return any(c != 0 for c in self.distortion)
 
-    def scaled(self, sx: float, sy: float) -> CameraIntrinsics:
-        """Intrinsics of the image resized by (sx, sy), pixel-centre convention."""
-        return self.model_copy(
-            update={
-                "fx": self.fx * sx,
-                "fy": self.fy * sy,
-                "cx": (self.cx + 0.5) * sx - 0.5,
-                "cy": (self.cy + 0.5) * sy - 0.5,
-                "width": round(self.width * sx),
-                "height": round(self.height * sy),
-            }
-        )
-
 
 #: Published intrinsics of the TUM RGB-D (fr1, fr2, fr3) and Bonn RGB-D Dynamic cameras, with the published lens
 #: distortion where there is one (the images of both datasets are stored as the camera took them).

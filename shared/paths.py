@@ -1,10 +1,14 @@
-"""Safe resolution of user-supplied paths against configured roots."""
+"""Well-known paths and the safe resolution of user-supplied paths against configured roots."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from .errors import TwohrError
+
+#: The development sequence (the first 560 frames of Bonn ``rgbd_bonn_crowd``), relative to the repository root:
+#: the default ``--sequence`` of the commands and studies. The data lives in ``../shared`` beside the repository.
+DEV_SEQUENCE = "../shared/data/rgbd_bonn_crowd_dev"
 
 
 def resolve_under_roots(path: str, roots: list[Path]) -> Path:

@@ -8,7 +8,7 @@ TUM-layout folder (``rgb/``, ``depth/``, ``rgb.txt``, ``depth.txt``, ``associati
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -39,7 +39,6 @@ class SyntheticSpec:
     texture_px: int = 768
     distortion: tuple[float, ...] = ()
     """OpenCV lens distortion (k1 k2 p1 p2 k3) the images are rendered with; () = a pinhole camera"""
-    extra: dict = field(default_factory=dict)
 
     @property
     def camera(self) -> CameraIntrinsics:

@@ -68,12 +68,39 @@ def test_no_service_imports_another_service():
 
 
 def test_the_runtime_does_not_import_the_lab():
-    """Only the command line (services/cli.py, the composition root) may name the lab."""
+    """No service module imports the lab, the command line (services/cli.py) included: the lab adds its
+    subcommands through the ``twohr.commands`` entry-point group."""
     for path in sorted(SERVICES.rglob("*.py")):
-        if "tests" in path.parts or path == SERVICES / "cli.py":
+        if "tests" in path.parts:
             continue
         module = ".".join(["twohr_services", *path.relative_to(SERVICES).with_suffix("").parts])
         assert not any(n.split(".")[0] == "twohr_lab" for n in imported_modules(path.read_text(), module)), path
+
+
+def test_no_file_under_services_names_the_lab_package():
+    """Like ``git grep twohr_lab -- services/``: no module, test, README or data file names the lab's package
+    (docs point at the lab's folders, lab/...; caches of compiled modules aside)."""
+    files = [path for path in sorted(SERVICES.rglob("*"))
+             if path.is_file() and "__pycache__" not in path.parts and path.suffix != ".pyc"]
+    assert len(files) > 50
+    assert not [str(path.relative_to(REPO)) for path in files if b"twohr_lab" in path.read_bytes()]
+
+
+def test_the_lab_still_adds_its_commands():
+    """bench, features, yolo and matcher come through the entry points, in their place in ``twohr --help``."""
+    import argparse
+    from importlib.metadata import entry_points
+
+    from twohr_services.cli import COMMAND_GROUP, build_parser
+
+    assert {entry.name for entry in entry_points(group=COMMAND_GROUP)} >= {"20-bench", "30-features", "40-yolo",
+                                                                          "50-matcher"}
+    parser = build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    order = list(commands)
+    assert order.index("run") < order.index("bench") < order.index("features") < order.index("yolo") \
+        < order.index("matcher") < order.index("up") < order.index("camera")
+    assert parser.parse_args(["bench", "--ablations"]).func.__module__ == "twohr_lab.bench_cli"
 
 
 def test_service_rooms_hold_only_their_core_adapter_and_docs():

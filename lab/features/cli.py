@@ -10,9 +10,10 @@ import argparse
 import json
 from pathlib import Path
 
+from twohr.paths import DEV_SEQUENCE
+
 from ..stamp import stamp_line, write_stamp
 
-DEFAULT_SEQUENCE = "../shared/data/rgbd_bonn_crowd_dev"
 DEFAULT_OUT = "runs/features"
 
 
@@ -145,8 +146,8 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def _common(p: argparse.ArgumentParser, out_default: str = DEFAULT_OUT) -> None:
-    p.add_argument("--sequence", default=DEFAULT_SEQUENCE,
-                   help=f"TUM-layout RGB-D sequence with groundtruth.txt (default {DEFAULT_SEQUENCE})")
+    p.add_argument("--sequence", default=DEV_SEQUENCE,
+                   help=f"TUM-layout RGB-D sequence with groundtruth.txt (default {DEV_SEQUENCE})")
     p.add_argument("--out", default=out_default, help=f"output folder (default {out_default})")
     p.add_argument("--config", help="pipeline YAML; its detector section is the starting point")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -200,8 +201,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                            description="Median times of several interleaved runs on one real frame: each R2D2 network "
                            "against the unchanged exported graph, whole detect(), the 2HR filter on 5,000 points, "
                            "and ORB. Writes bench.{json,md} to --out.")
-    p.add_argument("--sequence", default=DEFAULT_SEQUENCE, help=f"sequence to take the frame from (default "
-                   f"{DEFAULT_SEQUENCE})")
+    p.add_argument("--sequence", default=DEV_SEQUENCE, help=f"sequence to take the frame from (default "
+                   f"{DEV_SEQUENCE})")
     p.add_argument("--frame", type=_non_negative_int, default=0, help="frame index (default 0)")
     p.add_argument("--out", default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
     p.add_argument("--models", nargs="+", default=["faster2d2_WASF_N16", "r2d2_WASF_N16", "r2d2_WASF_N16_int8"],

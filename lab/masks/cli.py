@@ -11,10 +11,10 @@ import json
 from pathlib import Path
 
 from twohr.errors import ConfigError, DatasetError, validation_problems
+from twohr.paths import DEV_SEQUENCE
 
 from ..stamp import provenance, write_stamp
 
-DEFAULT_SEQUENCE = "../shared/data/rgbd_bonn_crowd_dev"
 KEYPOINT_CHOICES = ["2hr", "r2d2", "orb", "none"]
 
 
@@ -93,7 +93,7 @@ def _bench(args: argparse.Namespace) -> int:
     if args.runs < 1:
         raise ConfigError("--runs must be at least 1")
     sequence = args.sequence if args.sequence and Path(args.sequence).exists() else None
-    if args.sequence and sequence is None and args.sequence != DEFAULT_SEQUENCE:
+    if args.sequence and sequence is None and args.sequence != DEV_SEQUENCE:
         raise DatasetError(f"sequence folder not found: {args.sequence}")
     result = benchmark_yolo(sequence, models=args.models, runs=args.runs, threads=args.threads, progress=True)
     result["sequence"] = str(sequence) if sequence else "synthetic 640x480 frame"
@@ -178,7 +178,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "frames.csv (per frame), summary.json and eval.png to --out. Both the box mask and the depth-refined "
         "mask are measured from the same detections.",
     )
-    p.add_argument("--sequence", default=DEFAULT_SEQUENCE, help=f"TUM-layout RGB-D folder (default {DEFAULT_SEQUENCE})")
+    p.add_argument("--sequence", default=DEV_SEQUENCE, help=f"TUM-layout RGB-D folder (default {DEV_SEQUENCE})")
     p.add_argument("--step", type=int, default=5, help="evaluate every N-th frame (default 5)")
     p.add_argument("--start", type=int, default=0, help="first frame (default 0)")
     p.add_argument("--frames", type=int, default=None, help="evaluate at most this many frames (default: to the end)")
@@ -196,7 +196,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "boxed in its level's colour (red high, orange medium, yellow low, grey static), kept keypoints green "
         "and removed ones magenta.",
     )
-    p.add_argument("--sequence", default=DEFAULT_SEQUENCE, help=f"TUM-layout RGB-D folder (default {DEFAULT_SEQUENCE})")
+    p.add_argument("--sequence", default=DEV_SEQUENCE, help=f"TUM-layout RGB-D folder (default {DEV_SEQUENCE})")
     p.add_argument("--indices", type=_frame_list, default=[100, 320, 445], metavar="I,J,...",
                    help="comma-separated frame numbers to draw (default 100,320,445)")
     p.add_argument("--keypoints", choices=KEYPOINT_CHOICES, default="2hr", help="keypoints to draw (default 2hr)")
@@ -211,7 +211,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Times YoloDetector.detect (letterbox, network, decode, NMS) for each model on 640x480 frames, "
         "with the bare onnxruntime call as the in-run baseline, plus the box and depth masks.",
     )
-    p.add_argument("--sequence", default=DEFAULT_SEQUENCE,
+    p.add_argument("--sequence", default=DEV_SEQUENCE,
                    help="frames to time on (default the dev sequence; a synthetic frame if it is absent)")
     p.add_argument("--models", type=lambda s: [x.strip() for x in s.split(",") if x.strip()],
                    default=["yolov8n_320", "yolov8n", "yolov5n_320", "yolov5n"],
@@ -226,7 +226,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Detects on every frame, then for each --every-n and --growth compares the box mask "
         "propagated from the latest detection with the box mask of each in-between frame's own detections.",
     )
-    p.add_argument("--sequence", default=DEFAULT_SEQUENCE, help=f"TUM-layout RGB-D folder (default {DEFAULT_SEQUENCE})")
+    p.add_argument("--sequence", default=DEV_SEQUENCE, help=f"TUM-layout RGB-D folder (default {DEV_SEQUENCE})")
     p.add_argument("--every-n", dest="intervals", type=lambda s: [int(x) for x in s.split(",")], default=[2, 3, 5],
                    help="detection intervals to compare (default 2,3,5)")
     p.add_argument("--growth", type=lambda s: [float(x) for x in s.split(",")], default=[0.0, 0.04, 0.08, 0.12],

@@ -13,12 +13,13 @@ from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from twohr.paths import DEV_SEQUENCE
+
 from ..stamp import provenance, stamp_line, write_stamp
 
 if TYPE_CHECKING:
     import numpy as np
 
-DEFAULT_SEQUENCE = "../shared/data/rgbd_bonn_crowd_dev"
 DEFAULT_CACHE = "runs/matcher_cache"
 TAU_GRID = [round(0.025 * i, 3) for i in range(37)]  # 0 to 0.9
 RATIOS = [0.7, 0.8, 0.9]
@@ -76,7 +77,7 @@ def _open_cache(args: argparse.Namespace, frames: list[int]):
 
 
 def _add_data_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--sequence", default=DEFAULT_SEQUENCE, help="TUM-layout RGB-D folder with groundtruth.txt")
+    p.add_argument("--sequence", default=DEV_SEQUENCE, help="TUM-layout RGB-D folder with groundtruth.txt")
     p.add_argument("--cache", default=DEFAULT_CACHE, help="keypoint cache folder")
     _add_config_arguments(p)
     p.add_argument("--start", type=int, default=0, help="first frame")
@@ -459,7 +460,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description="Times the Siamese matcher (and its stages) and the baselines on one descriptor pair; "
         "reports medians and the ratio to mutual NN measured in the same run.")
-    p.add_argument("--sequence", default=DEFAULT_SEQUENCE,
+    p.add_argument("--sequence", default=DEV_SEQUENCE,
                    help="take real descriptors from two frames of this sequence ('' = random unit vectors)")
     p.add_argument("--cache", default=DEFAULT_CACHE, help="keypoint cache folder")
     _add_config_arguments(p)

@@ -19,10 +19,11 @@ import numpy as np
 
 from twohr.config import PipelineConfig, load_config, parse_override
 from twohr.errors import ConfigError, TwohrError
+from twohr.paths import DEV_SEQUENCE
 
 from ..stamp import write_study
 
-DEFAULT_SEQUENCE = "../shared/data/rgbd_bonn_crowd_dev"
+DEFAULT_SEQUENCE = DEV_SEQUENCE  # the name accuracy.py and consistency.py import
 
 
 def parse_sweep(item: str) -> tuple[str, list]:
@@ -104,7 +105,7 @@ def format_table(rows: list[dict]) -> str:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m twohr_lab.tracking.sensitivity",
                                      description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sequence", default=DEFAULT_SEQUENCE, help="TUM-layout RGB-D folder with ground truth")
+    parser.add_argument("--sequence", default=DEV_SEQUENCE, help="TUM-layout RGB-D folder with ground truth")
     parser.add_argument("--config", default=None, help="YAML pipeline config")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config value for every run, e.g. --set pipeline.mode=every_frame")

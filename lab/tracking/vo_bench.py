@@ -26,14 +26,13 @@ from twohr.errors import TwohrError
 from twohr.evaluation import evaluate
 from twohr.features import drop_masked, mutual_nn
 from twohr.geometry import backproject, invert_pose
+from twohr.paths import DEV_SEQUENCE
 from twohr.trajectory import Trajectory
 from twohr_services.tracker.core import Tracker
 from twohr_services.tracker.optim import pnp_ransac, sample_depth
 
 from ..bench import FrontCache
 from ..stamp import provenance
-
-DEFAULT_SEQUENCE = "../shared/data/rgbd_bonn_crowd_dev"
 
 
 def frame_to_frame_vo(camera, frames, conf: TrackerConfig) -> tuple[np.ndarray, list[float]]:
@@ -63,7 +62,7 @@ def frame_to_frame_vo(camera, frames, conf: TrackerConfig) -> tuple[np.ndarray, 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m twohr_lab.tracking.vo_bench", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sequence", default=DEFAULT_SEQUENCE, help="TUM-layout RGB-D folder with ground truth")
+    parser.add_argument("--sequence", default=DEV_SEQUENCE, help="TUM-layout RGB-D folder with ground truth")
     parser.add_argument("--config", default=None, help="YAML pipeline config (its front end and tracker)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override (repeatable)")
     parser.add_argument("--start", type=int, default=0, help="first frame")

@@ -2,7 +2,8 @@
 
 Baselines: mutual nearest neighbour and Lowe's ratio test, for float (L2-normalised) and packed
 binary (Hamming) descriptors. The paper's matcher: :class:`SiameseMatcher`, a learned similarity
-(``twohr_lab.matching.model``, exported to ONNX) that scores the k nearest candidates; it runs on onnxruntime alone.
+(the lab's matching model, ``lab/matching/model.py``, exported to ONNX) that scores the k nearest candidates;
+it runs on onnxruntime alone.
 :func:`build_matcher` returns the method a :class:`~twohr.config.MatcherConfig` names.
 """
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from pydantic import ValidationError
+from scipy.spatial import cKDTree
 
 from twohr.config import DetectorConfig
 from twohr.dataset import RGBDSequence
-from twohr_lab.features.evaluation import nearest_neighbours
 from twohr_services.detector.core import (
     FASTDetector,
     ORBDetector,
@@ -23,6 +23,13 @@ from twohr_services.detector.core import (
     subpixel_offsets,
     twohr_filter,
 )
+
+
+def nearest_neighbours(points: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance from each point (N, 2) to its nearest target (M, 2), and that target's index."""
+    distance, index = cKDTree(np.asarray(targets, np.float64)).query(np.asarray(points, np.float64), k=1)
+    return distance, index
+
 
 # ----------------------------------------------------------------------------- K-means and the 2HR filter
 
