@@ -1,4 +1,4 @@
-"""Rigid-body geometry: quaternions, SE(3) matrices and Umeyama alignment.
+"""Rigid-body geometry: quaternions, SE(3) matrices, batched SO(3) helpers, Umeyama alignment and the Huber loss.
 
 Conventions: poses are 4x4 camera-to-world matrices; quaternions are (qx, qy, qz, qw)
 as in the TUM format.
@@ -6,6 +6,7 @@ as in the TUM format.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 
@@ -74,6 +75,49 @@ def rotation_angle(r: np.ndarray) -> np.ndarray:
     """Rotation angle in radians of rotation matrices (..., 3, 3)."""
     cos = (np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0
     return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices (..., 3, 3) of vectors (..., 3): ``skew(v) @ x == np.cross(v, x)``."""
+    v = np.asarray(v, dtype=np.float64)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def so3_exp_batch(omega: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) from axis-angle vectors (..., 3) (Rodrigues, stable near zero).
+
+    Not bit-identical to :func:`so3_exp` (other operation order and small-angle branch)."""
+    omega = np.asarray(omega, dtype=np.float64)
+    theta = np.linalg.norm(omega, axis=-1)[..., None, None]
+    k = skew(omega)
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5, (1 - np.cos(safe)) / safe**2)
+    return np.eye(3) + a * k + b * (k @ k)
+
+
+def so3_log(r: np.ndarray) -> np.ndarray:
+    """Axis-angle vector (3,) of one rotation matrix (inverse of Rodrigues)."""
+    rvec, _ = cv2.Rodrigues(np.asarray(r, dtype=np.float64))
+    return rvec.reshape(3)
+
+
+def huber_weights(res: np.ndarray, threshold: float) -> np.ndarray:
+    """IRLS weights of the Huber loss, element by element: 1 within ``threshold``, ``threshold / |r|`` beyond."""
+    abs_r = np.abs(res)
+    return np.where(abs_r <= threshold, 1.0, threshold / np.maximum(abs_r, 1e-12))
+
+
+def huber_loss(res: np.ndarray, threshold: float) -> np.ndarray:
+    """Huber loss element by element: ``r**2 / 2`` within ``threshold``, ``threshold * (|r| - threshold / 2)`` beyond
+    (continuous, with the gradient ``huber_weights(r) * r``)."""
+    abs_r = np.abs(res)
+    return np.where(abs_r <= threshold, 0.5 * abs_r**2, threshold * (abs_r - 0.5 * threshold))
 
 
 def so3_exp(omega: np.ndarray) -> np.ndarray:

@@ -7,8 +7,16 @@ import numpy as np
 import pytest
 
 from twohr.dataset import CAMERA_PRESETS, RGBDSequence
-from twohr.geometry import make_pose, rotation_angle, so3_exp
-from twohr_lab.tracking.consistency import Tracks, build_tracks, candidate_trajectories, fit_rotations, main
+from twohr.geometry import huber_loss, invert_pose, make_pose, rotation_angle, so3_exp
+from twohr_lab.tracking.consistency import (
+    Tracks,
+    build_tracks,
+    candidate_trajectories,
+    fit_rotations,
+    initial_points,
+    main,
+)
+from twohr_services.tracker.optim import observation_residuals
 
 K = CAMERA_PRESETS["bonn"].matrix
 
@@ -48,6 +56,20 @@ def test_rotations_settle_and_the_true_centres_cost_least():
     wobble[0] = start[0]  # the first camera fixes the gauge in both
     wobbled_fit = fit_rotations(K, wobble, tracks, depth_noise=0.05)
     assert wobbled_fit.cost > 1.5 * true_fit.cost
+
+
+def test_the_fit_scores_what_bundle_adjustment_minimises():
+    """Same residuals (pixels, inverse depth over the tracker's depth noise) and the same Huber loss as the BA."""
+    poses, tracks = _scene(frames=4, points=80)
+    kept, points = initial_points(tracks, poses, K)
+    t_cw = invert_pose(poses)[kept.frame]
+    cam = (t_cw[:, :3, :3] @ points[kept.point][:, :, None])[:, :, 0] + t_cw[:, :3, 3]
+    for depth_noise, huber in ((0.05, 2.0), (0.005, 1.0)):
+        res, _ = observation_residuals(K, cam, kept.xy, kept.depth, depth_noise)
+        start = fit_rotations(K, poses, tracks, depth_noise, iterations=0, huber=huber)
+        assert start.cost == pytest.approx(huber_loss(res, huber).sum(), rel=1e-12)
+        assert start.cost_depth == pytest.approx(huber_loss(res[:, 2], huber).sum(), rel=1e-12)
+        assert fit_rotations(K, poses, tracks, depth_noise, huber=huber).cost < start.cost
 
 
 def test_controls_move_the_estimate_as_far_as_the_ground_truth_does():

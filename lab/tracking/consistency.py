@@ -6,8 +6,11 @@
 Feature tracks are built over the run's keyframes independently of the pipeline (SIFT, ratio test, a
 fundamental-matrix RANSAC per pair, pairs up to ``--max-gap`` keyframes apart joined into tracks; people masked by
 YOLO). Then, for each candidate trajectory, every keyframe's camera *centre* is held at the candidate's while the
-rotations and the 3-D points settle (Levenberg-Marquardt, Huber loss on pixels and on depth relative to
-``--depth-noise``). The cost that remains says how well the candidate's translations explain the observations.
+rotations and the 3-D points settle. The cost is the one the tracker's bundle adjustment minimises (the residuals of
+``twohr_services.tracker.optim.observation_residuals``: pixels and the inverse-depth residual with ``--depth-noise``
+as ``tracker.depth_noise``; Huber loss at ``--huber`` px), and so is the solver (Levenberg-Marquardt with the points
+eliminated by the same Schur complement). The cost that remains says how well the candidate's translations explain
+the observations.
 
 Candidates: the run's refined trajectory, the ground truth (SE(3)-aligned to it) and three controls that move the
 estimate by exactly as much as the ground truth does, in other directions (the difference reversed in time, its
@@ -27,15 +30,19 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import scipy.sparse as sparse
 
+from twohr.config import TrackerConfig
 from twohr.errors import TwohrError
-from twohr.geometry import depth_at_pixels, umeyama
+from twohr.geometry import depth_at_pixels, huber_loss, huber_weights, skew, so3_exp_batch, umeyama
 from twohr.trajectory import interpolate_poses, read_tum
-from twohr_services.tracker.optim import skew, so3_exp_batch
+from twohr_services.tracker.optim import normal_equations, observation_residuals, schur_layout, solve_schur
 
 from ..stamp import write_study
 from .sensitivity import DEFAULT_SEQUENCE
+
+#: The tracker's defaults: the fit scores what its bundle adjustment minimises.
+DEFAULT_DEPTH_NOISE = TrackerConfig.model_fields["depth_noise"].default
+DEFAULT_HUBER_PX = TrackerConfig.model_fields["huber_px"].default
 
 
 @dataclass
@@ -144,85 +151,52 @@ def initial_points(tracks: Tracks, poses: np.ndarray, k: np.ndarray) -> tuple[Tr
     return kept_tracks, points
 
 
-def _huber(r: np.ndarray) -> np.ndarray:
-    a = np.abs(r)
-    return np.where(a < 1.0, 0.5 * a * a, a - 0.5)
-
-
-def fit_rotations(k: np.ndarray, poses: np.ndarray, tracks: Tracks, depth_noise: float,
-                  iterations: int = 2000, tolerance: float = 1e-9) -> Fit:
+def fit_rotations(k: np.ndarray, poses: np.ndarray, tracks: Tracks, depth_noise: float = DEFAULT_DEPTH_NOISE,
+                  iterations: int = 2000, tolerance: float = 1e-9, huber: float = DEFAULT_HUBER_PX) -> Fit:
     """Hold every camera centre of ``poses`` (camera-to-world) and let the rotations and points settle.
 
-    Residuals per observation: the pixel error (x, y) and, with measured depth, (z_pred - z) / (depth_noise * z);
-    Huber loss with a 1-unit threshold. Levenberg-Marquardt with the points eliminated (Schur complement); rotations
-    are perturbed on the left, R <- exp(w) R. Converged when a step lowers the cost by less than ``tolerance``
-    (relative)."""
+    Residuals per observation are the bundle adjustment's (``observation_residuals``: the pixel error (x, y) and,
+    with measured depth, ``(1/z_pred - 1/z) / depth_noise``); Huber loss at ``huber``. Levenberg-Marquardt with the
+    points eliminated by the bundle adjustment's Schur complement (``normal_equations``, ``solve_schur``); rotations
+    are perturbed on the left, R <- exp(w) R, and the first rotation fixes the gauge. Converged when a step lowers
+    the cost by less than ``tolerance`` (relative)."""
     tracks, points = initial_points(tracks, poses, k)
     rotations = poses[:, :3, :3].copy()
     centres = poses[:, :3, 3]
-    n_frames, n_obs = len(poses), len(tracks.frame)
-    has_depth = tracks.depth > 0
-    depth_sigma = depth_noise * np.maximum(tracks.depth, 0.3)
-    fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
+    n_frames = len(poses)
+    slot = np.arange(n_frames) - 1  # frame 0 has no slot: it is fixed
+    layout = schur_layout(slot[tracks.frame], tracks.point, n_frames - 1, tracks.num_points)
 
     def residuals(rotations: np.ndarray, points: np.ndarray):
         offset = points[tracks.point] - centres[tracks.frame]
         cam = np.einsum("nji,nj->ni", rotations[tracks.frame], offset)
-        pixel = np.c_[fx * cam[:, 0] / cam[:, 2] + cx, fy * cam[:, 1] / cam[:, 2] + cy] - tracks.xy
-        depth = np.where(has_depth, (cam[:, 2] - tracks.depth) / depth_sigma, 0.0)
-        return np.c_[pixel, depth], cam, offset
+        res, jac_cam = observation_residuals(k, cam, tracks.xy, tracks.depth, depth_noise)
+        return res, jac_cam, offset
 
-    res, cam, offset = residuals(rotations, points)
-    cost = _huber(res).sum()
-    n_points = tracks.num_points
-    # Sparse pattern of the rotation-point coupling: observation o couples frame[o] with point[o].
-    coupling_rows = (3 * tracks.frame[:, None, None] + np.arange(3)[:, None]).repeat(3, axis=2)
-    coupling_cols = (3 * tracks.point[:, None, None] + np.arange(3)[None, :]).repeat(3, axis=1)
-    point_rows = (3 * np.arange(n_points)[:, None, None] + np.arange(3)[:, None]).repeat(3, axis=2)
-    point_cols = np.swapaxes(point_rows, 1, 2)
+    res, jac_cam, offset = residuals(rotations, points)
+    cost = float(huber_loss(res, huber).sum())
     damping = 1e-3
     converged = False
     for _ in range(iterations):
-        x, y, z = cam.T
-        projection = np.zeros((n_obs, 3, 3))
-        projection[:, 0, 0], projection[:, 0, 2] = fx / z, -fx * x / z**2
-        projection[:, 1, 1], projection[:, 1, 2] = fy / z, -fy * y / z**2
-        projection[:, 2, 2] = np.where(has_depth, 1 / depth_sigma, 0.0)
-        weight = np.sqrt(np.where(np.abs(res) < 1.0, 1.0, 1.0 / np.maximum(np.abs(res), 1e-12)))[:, :, None]
-        jac_point = weight * (projection @ np.swapaxes(rotations[tracks.frame], 1, 2))
+        # cam = R^T (X - c): d cam / d X = R^T; R <- exp(w) R gives d cam / d w = R^T skew(X - c).
+        jac_point = jac_cam @ np.swapaxes(rotations[tracks.frame], 1, 2)
         jac_rotation = jac_point @ skew(offset)
-        weighted = (res * weight[:, :, 0])[:, :, None]
-        # Normal equations in blocks: A (rotations), C (points, 3x3 per point), B (their coupling).
-        block_a = np.zeros((n_frames, 3, 3))
-        np.add.at(block_a, tracks.frame, np.swapaxes(jac_rotation, 1, 2) @ jac_rotation)
-        block_c = np.zeros((n_points, 3, 3))
-        np.add.at(block_c, tracks.point, np.swapaxes(jac_point, 1, 2) @ jac_point)
-        grad_r = np.zeros((n_frames, 3))
-        np.add.at(grad_r, tracks.frame, (np.swapaxes(jac_rotation, 1, 2) @ weighted)[:, :, 0])
-        grad_p = np.zeros((n_points, 3))
-        np.add.at(grad_p, tracks.point, (np.swapaxes(jac_point, 1, 2) @ weighted)[:, :, 0])
-        coupling = sparse.csr_matrix(((np.swapaxes(jac_rotation, 1, 2) @ jac_point).ravel(),
-                                      (coupling_rows.ravel(), coupling_cols.ravel())),
-                                     shape=(3 * n_frames, 3 * n_points))
+        normal = normal_equations(layout, jac_rotation, jac_point, res, huber_weights(res, huber))
         for _attempt in range(8):
-            # Levenberg-Marquardt, then the points eliminated (Schur complement): a dense 3F x 3F solve.
-            damp_a = block_a + damping * block_a * np.eye(3) + 1e-9 * np.eye(3)
-            c_inv = np.linalg.inv(block_c + damping * block_c * np.eye(3) + 1e-9 * np.eye(3))
-            c_inv_sparse = sparse.csr_matrix((c_inv.ravel(), (point_rows.ravel(), point_cols.ravel())),
-                                             shape=(3 * n_points, 3 * n_points))
-            reduced = sparse.block_diag(list(damp_a)).toarray() - (coupling @ c_inv_sparse @ coupling.T).toarray()
-            rhs = -grad_r.ravel() + coupling @ (c_inv_sparse @ grad_p.ravel())
-            step_r = np.zeros(3 * n_frames)
-            step_r[3:] = np.linalg.solve(reduced[3:, 3:], rhs[3:])  # the first rotation fixes the gauge
-            step_p = c_inv_sparse @ (-grad_p.ravel() - coupling.T @ step_r)
-            trial_rotations = so3_exp_batch(step_r.reshape(-1, 3)) @ rotations
-            trial_points = points + step_p.reshape(-1, 3)
-            trial_res, trial_cam, trial_offset = residuals(trial_rotations, trial_points)
-            trial_cost = _huber(trial_res).sum()
+            steps = solve_schur(normal, damping)
+            if steps is None:
+                damping *= 10
+                continue
+            step_rotation, step_point = steps
+            trial_rotations = rotations.copy()
+            trial_rotations[1:] = so3_exp_batch(step_rotation) @ rotations[1:]
+            trial_points = points + step_point
+            trial_res, trial_jac, trial_offset = residuals(trial_rotations, trial_points)
+            trial_cost = float(huber_loss(trial_res, huber).sum())
             if trial_cost < cost:
                 converged = cost - trial_cost < tolerance * cost
-                rotations, points, res, cam, offset, cost = (trial_rotations, trial_points, trial_res, trial_cam,
-                                                             trial_offset, trial_cost)
+                rotations, points, res, jac_cam, offset, cost = (trial_rotations, trial_points, trial_res, trial_jac,
+                                                                 trial_offset, trial_cost)
                 damping = max(damping / 3, 1e-7)
                 break
             damping *= 5
@@ -232,7 +206,7 @@ def fit_rotations(k: np.ndarray, poses: np.ndarray, tracks: Tracks, depth_noise:
             break
     fitted = poses.copy()
     fitted[:, :3, :3] = rotations
-    costs = _huber(res)
+    costs = huber_loss(res, huber)
     return Fit(float(costs[:, :2].sum()), float(costs[:, 2].sum()), float(np.median(np.hypot(res[:, 0], res[:, 1]))),
                fitted, bool(converged))
 
@@ -288,8 +262,11 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run", required=True, help="output folder of `twohr run` on --sequence")
     parser.add_argument("--sequence", default=DEFAULT_SEQUENCE, help="the run's TUM-layout RGB-D folder")
-    parser.add_argument("--depth-noise", default="0.05,1.0",
-                        help="comma-separated relative depth noise for the depth term (1.0 = pixels only)")
+    parser.add_argument("--depth-noise", default=f"{DEFAULT_DEPTH_NOISE:g},1.0",
+                        help="comma-separated inverse-depth sigmas (1/m) of the depth term, as tracker.depth_noise "
+                             f"(default: the tracker's {DEFAULT_DEPTH_NOISE:g}, and 1.0, about pixels only)")
+    parser.add_argument("--huber", type=float, default=DEFAULT_HUBER_PX,
+                        help=f"Huber scale (px), as tracker.huber_px (default {DEFAULT_HUBER_PX:g})")
     parser.add_argument("--max-gap", type=int, default=8, help="match keyframes at most this many apart")
     parser.add_argument("--iterations", type=int, default=2000, help="Levenberg-Marquardt iterations at most")
     parser.add_argument("--out", default="runs/consistency", help="output folder (default runs/consistency)")
@@ -306,6 +283,8 @@ def main(argv: list[str] | None = None) -> int:
         noises = [float(v) for v in args.depth_noise.split(",") if v.strip()]
         if not noises or min(noises) <= 0:
             raise TwohrError(f"--depth-noise needs positive values, got {args.depth_noise!r}")
+        if args.huber <= 0:
+            raise TwohrError(f"--huber needs a positive value, got {args.huber!r}")
         sequence = RGBDSequence(args.sequence)
         indices, estimate, truth = load_keyframes(Path(args.run), sequence)
         masker = DynamicMasker()
@@ -323,10 +302,10 @@ def main(argv: list[str] | None = None) -> int:
         for noise in noises:
             baseline = None
             for name, poses in candidate_trajectories(estimate, truth).items():
-                fit = fit_rotations(k, poses, tracks, noise, args.iterations)
+                fit = fit_rotations(k, poses, tracks, noise, args.iterations, huber=args.huber)
                 baseline = fit.cost if baseline is None else baseline
                 moved = np.sqrt(np.mean(np.sum((poses[:, :3, 3] - estimate[:, :3, 3]) ** 2, 1))) * 1000
-                rows.append({"depth_noise": noise, "candidate": name, "cost": fit.cost,
+                rows.append({"depth_noise": noise, "huber_px": args.huber, "candidate": name, "cost": fit.cost,
                              "cost_reprojection": fit.cost_reprojection, "cost_depth": fit.cost_depth,
                              "median_px": fit.median_px, "converged": fit.converged,
                              "relative": fit.cost / baseline - 1, "moved_mm": moved})
@@ -336,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     table = format_table(rows)
     summary = (f"{len(indices)} keyframes, {tracks.num_points} SIFT tracks, {len(tracks.frame)} observations "
-               f"(keyframes at most {args.max_gap} apart matched).")
+               f"(keyframes at most {args.max_gap} apart matched); Huber at {args.huber:g} px.")
     out = write_study(args.out, "consistency", f"{summary}\n\n{table}", rows, argv, program)
     print(table)
     print(f"written: {out / 'consistency.md'}, consistency.json")

@@ -1,5 +1,6 @@
 """Geometry and least squares of the tracker: projection, depth sampling, RANSAC PnP, pose refinement
-and local bundle adjustment. Pure functions on numpy arrays.
+and local bundle adjustment, with its block normal equations and Schur-complement solve (shared with the lab's
+consistency check). Pure functions on numpy arrays.
 
 Conventions: ``T_cw`` maps world points into the camera (x right, y down, z forward); ``T_wc`` is its
 inverse, the camera-to-world pose that the tracker reports. Every residual is expressed in units of
@@ -7,7 +8,8 @@ one pixel of reprojection noise, so a single robust (Huber) scale applies to all
 
 * reprojection ``(u - u_meas, v - v_meas)`` in pixels;
 * depth ``(1/z - 1/z_meas) / depth_noise`` where the sensor's depth noise grows as
-  ``depth_noise * z**2`` (structured light and ToF sensors behave so): an inverse-depth error.
+  ``depth_noise * z**2`` (structured light and ToF sensors behave so): an inverse-depth error
+  (:func:`depth_residual`).
 """
 
 from __future__ import annotations
@@ -17,37 +19,20 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from twohr.geometry import invert_pose, transform_points
+# skew, so3_exp_batch and so3_log live in twohr.geometry; they are also re-exported for the tracker room
+# (motion.py and the tests import them from here).
+from twohr.geometry import (  # noqa: F401
+    huber_loss,
+    huber_weights,
+    invert_pose,
+    rotation_angle,
+    skew,
+    so3_exp_batch,
+    so3_log,
+    transform_points,
+)
 
 # ----------------------------------------------------------------------------- SE(3) helpers
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices (..., 3, 3) of vectors (..., 3)."""
-    v = np.asarray(v, dtype=np.float64)
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def so3_exp_batch(omega: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) from axis-angle vectors (..., 3) (Rodrigues, stable near zero)."""
-    omega = np.asarray(omega, dtype=np.float64)
-    theta = np.linalg.norm(omega, axis=-1)[..., None, None]
-    k = skew(omega)
-    small = theta < 1e-8
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5, (1 - np.cos(safe)) / safe**2)
-    return np.eye(3) + a * k + b * (k @ k)
-
-
-def so3_log(r: np.ndarray) -> np.ndarray:
-    """Axis-angle vector of a rotation matrix (inverse of Rodrigues)."""
-    rvec, _ = cv2.Rodrigues(np.asarray(r, dtype=np.float64))
-    return rvec.reshape(3)
 
 
 def pose_from_vectors(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
@@ -61,8 +46,7 @@ def pose_from_vectors(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
 def pose_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """Translation (m) and rotation (deg) between two camera-to-world poses."""
     rel = invert_pose(a) @ b
-    cos = np.clip((np.trace(rel[:3, :3]) - 1) / 2, -1.0, 1.0)
-    return float(np.linalg.norm(rel[:3, 3])), float(np.degrees(np.arccos(cos)))
+    return float(np.linalg.norm(rel[:3, 3])), float(np.degrees(rotation_angle(rel[:3, :3])))
 
 
 def scale_motion(rel: np.ndarray, factor: float) -> np.ndarray:
@@ -114,6 +98,21 @@ def sample_depth(depth: np.ndarray, xy: np.ndarray, min_depth: float, max_depth:
 # ----------------------------------------------------------------------------- residuals
 
 
+def _depth_slope(inv_z: np.ndarray, has_depth: np.ndarray, depth_noise: float) -> np.ndarray:
+    """Derivative of :func:`depth_residual` with respect to the predicted depth z, given ``inv_z = 1 / z``."""
+    return np.where(has_depth, -(inv_z**2) / depth_noise, 0.0)
+
+
+def depth_residual(inv_z: np.ndarray, z_meas: np.ndarray, depth_noise: float) -> tuple[np.ndarray, np.ndarray]:
+    """The depth residual ``(1/z - 1/z_meas) / depth_noise`` of predicted inverse depths ``inv_z = 1 / z`` against
+    measured depths ``z_meas`` (0 = no reading: residual and slope 0), in units of one pixel of reprojection noise,
+    and its derivative with respect to z."""
+    has_depth = z_meas > 0
+    with np.errstate(divide="ignore"):
+        res = np.where(has_depth, (inv_z - 1.0 / np.where(has_depth, z_meas, 1.0)) / depth_noise, 0.0)
+    return res, _depth_slope(inv_z, has_depth, depth_noise)
+
+
 def observation_residuals(K: np.ndarray, points_cam: np.ndarray, xy: np.ndarray, z_meas: np.ndarray,
                           depth_noise: float) -> tuple[np.ndarray, np.ndarray]:
     """Residuals (N, 3) of observations (u, v, inverse depth; the last is 0 without a depth reading) and
@@ -125,15 +124,13 @@ def observation_residuals(K: np.ndarray, points_cam: np.ndarray, xy: np.ndarray,
     res = np.empty((len(points_cam), 3))
     res[:, 0] = fx * x * inv_z + K[0, 2] - xy[:, 0]
     res[:, 1] = fy * y * inv_z + K[1, 2] - xy[:, 1]
-    has_depth = z_meas > 0
-    with np.errstate(divide="ignore"):
-        res[:, 2] = np.where(has_depth, (inv_z - 1.0 / np.where(has_depth, z_meas, 1.0)) / depth_noise, 0.0)
+    res[:, 2], depth_slope = depth_residual(inv_z, z_meas, depth_noise)
     jac = np.zeros((len(points_cam), 3, 3))
     jac[:, 0, 0] = fx * inv_z
     jac[:, 0, 2] = -fx * x * inv_z**2
     jac[:, 1, 1] = fy * inv_z
     jac[:, 1, 2] = -fy * y * inv_z**2
-    jac[:, 2, 2] = np.where(has_depth, -(inv_z**2) / depth_noise, 0.0)
+    jac[:, 2, 2] = depth_slope
     return res, jac
 
 
@@ -155,7 +152,7 @@ def pose_jacobian(K: np.ndarray, points_cam: np.ndarray, has_depth: np.ndarray, 
     jac[:, 1, 2] = fy * xz
     jac[:, 1, 4] = fy * inv_z
     jac[:, 1, 5] = -fy * yz * inv_z
-    depth_term = np.where(has_depth, -(inv_z**2) / depth_noise, 0.0)
+    depth_term = _depth_slope(inv_z, has_depth, depth_noise)
     jac[:, 2, 0] = depth_term * y
     jac[:, 2, 1] = -depth_term * x
     jac[:, 2, 5] = depth_term
@@ -228,8 +225,7 @@ def refine_pose(K: np.ndarray, T_cw: np.ndarray, points_w: np.ndarray, xy: np.nd
             j_prior[3:, 3:] = np.eye(3) / prior.sigma_translation
             r = np.concatenate([r, r_prior])
             jac = np.concatenate([jac, j_prior])
-        abs_r = np.abs(r)
-        weights = np.where(abs_r <= huber, 1.0, huber / np.maximum(abs_r, 1e-12))
+        weights = huber_weights(r, huber)
         hessian = jac.T @ (jac * weights[:, None])
         gradient = jac.T @ (weights * r)
         try:
@@ -291,16 +287,6 @@ def estimate_pose(K: np.ndarray, points_w: np.ndarray, xy: np.ndarray, z_meas: n
     return T_cw, inliers, ""
 
 
-def _huber_weights(res: np.ndarray, huber: float) -> np.ndarray:
-    abs_r = np.abs(res)
-    return np.where(abs_r <= huber, 1.0, huber / np.maximum(abs_r, 1e-12))
-
-
-def _huber_cost(res: np.ndarray, huber: float) -> float:
-    abs_r = np.abs(res)
-    return float(np.where(abs_r <= huber, 0.5 * abs_r**2, huber * (abs_r - 0.5 * huber)).sum())
-
-
 def _sum_by(index: np.ndarray, values: np.ndarray, count: int) -> np.ndarray:
     """Sum rows of ``values`` (N, ...) into ``count`` bins given by ``index`` (N,)."""
     flat = values.reshape(len(values), -1)
@@ -321,6 +307,95 @@ def _same_point_pairs(obs_point: np.ndarray, members: np.ndarray) -> tuple[np.nd
     return members[first], members[second]
 
 
+@dataclass
+class SchurLayout:
+    """Who touches what in a least-squares problem where each observation touches one pose and one point.
+
+    ``obs_slot[o]`` is the free-pose slot of observation ``o`` (-1: its pose is fixed) and ``obs_point[o]`` its
+    point; ``pair_a``/``pair_b`` are all ordered pairs of observations from free poses that see the same point
+    (they fill the reduced pose system)."""
+
+    obs_slot: np.ndarray
+    obs_point: np.ndarray
+    n_free: int
+    n_points: int
+    free_obs: np.ndarray
+    pair_a: np.ndarray
+    pair_b: np.ndarray
+
+
+def schur_layout(obs_slot: np.ndarray, obs_point: np.ndarray, n_free: int, n_points: int) -> SchurLayout:
+    """The :class:`SchurLayout` of observations with free-pose slots ``obs_slot`` (-1 = fixed pose) and points
+    ``obs_point``; computed once per problem, reused by every iteration."""
+    obs_slot = np.asarray(obs_slot, np.int64)
+    obs_point = np.asarray(obs_point, np.int64)
+    free_obs = np.flatnonzero(obs_slot >= 0)
+    pair_a, pair_b = _same_point_pairs(obs_point, free_obs)
+    return SchurLayout(obs_slot, obs_point, int(n_free), int(n_points), free_obs, pair_a, pair_b)
+
+
+@dataclass
+class NormalEquations:
+    """Gauss-Newton normal equations ``J^T W J step = -J^T W r`` in blocks: ``h_pose`` (F, d, d) and ``g_pose``
+    (F, d) per free pose, ``h_point`` (M, 3, 3) and ``g_point`` (M, 3) per point (from every observation, fixed
+    poses' included) and the pose-point coupling ``h_cross`` (O, d, 3) per observation (used for free poses')."""
+
+    layout: SchurLayout
+    h_pose: np.ndarray
+    g_pose: np.ndarray
+    h_point: np.ndarray
+    g_point: np.ndarray
+    h_cross: np.ndarray
+
+
+def normal_equations(layout: SchurLayout, jac_pose: np.ndarray, jac_point: np.ndarray, res: np.ndarray,
+                     weights: np.ndarray) -> NormalEquations:
+    """The block normal equations of residuals ``res`` (O, R) with IRLS ``weights`` (O, R) and Jacobians
+    ``jac_pose`` (O, R, d) with respect to the observing pose's update and ``jac_point`` (O, R, 3) with respect to
+    the point."""
+    free_obs, obs_slot, obs_point = layout.free_obs, layout.obs_slot, layout.obs_point
+    w_jac_pose = jac_pose * weights[:, :, None]
+    w_jac_point = jac_point * weights[:, :, None]
+    w_jac_pose_t = np.swapaxes(w_jac_pose, 1, 2)
+    h_pose = _sum_by(obs_slot[free_obs], w_jac_pose_t[free_obs] @ jac_pose[free_obs], layout.n_free)
+    g_pose = _sum_by(obs_slot[free_obs], (w_jac_pose_t[free_obs] @ res[free_obs, :, None])[:, :, 0], layout.n_free)
+    w_jac_point_t = np.swapaxes(w_jac_point, 1, 2)
+    h_point = _sum_by(obs_point, w_jac_point_t @ jac_point, layout.n_points)
+    g_point = _sum_by(obs_point, (w_jac_point_t @ res[:, :, None])[:, :, 0], layout.n_points)
+    h_cross = w_jac_pose_t @ jac_point  # (O, d, 3), used for free observations
+    return NormalEquations(layout, h_pose, g_pose, h_point, g_point, h_cross)
+
+
+def solve_schur(normal: NormalEquations, damping: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """One Levenberg-Marquardt step ``(step_pose (F, d), step_point (M, 3))`` of block normal equations.
+
+    The diagonals are scaled by ``1 + damping`` (plus 1e-9 for rank-deficient blocks); the points are eliminated
+    per 3x3 block (Schur complement), the dense (d F x d F) reduced pose system is solved and the point steps are
+    substituted back. ``None`` when the reduced system is singular (retry with more damping)."""
+    lay = normal.layout
+    h_pose, h_point, h_cross, g_point = normal.h_pose, normal.h_point, normal.h_cross, normal.g_point
+    n_free, dim = lay.n_free, h_pose.shape[1]
+    free_obs, obs_slot, obs_point, pair_a, pair_b = lay.free_obs, lay.obs_slot, lay.obs_point, lay.pair_a, lay.pair_b
+    hp = h_pose + damping * np.einsum("pii->pi", h_pose)[:, :, None] * np.eye(dim) + 1e-9 * np.eye(dim)
+    hl = h_point + damping * np.einsum("mii->mi", h_point)[:, :, None] * np.eye(3) + 1e-9 * np.eye(3)
+    hl_inv = np.linalg.inv(hl)
+    reduced = h_cross[pair_a] @ hl_inv[obs_point[pair_a]] @ np.swapaxes(h_cross[pair_b], 1, 2)
+    schur = -_sum_by(obs_slot[pair_a] * n_free + obs_slot[pair_b], reduced, n_free * n_free).reshape(
+        n_free, n_free, dim, dim)
+    schur[np.arange(n_free), np.arange(n_free)] += hp
+    rhs = -normal.g_pose + _sum_by(obs_slot[free_obs], (h_cross[free_obs] @ hl_inv[obs_point[free_obs]] @ g_point[
+        obs_point[free_obs], :, None])[:, :, 0], n_free)
+    system = schur.transpose(0, 2, 1, 3).reshape(dim * n_free, dim * n_free)
+    try:
+        step_pose = np.linalg.solve(system, rhs.reshape(-1)).reshape(n_free, dim) if n_free else np.zeros((0, dim))
+    except np.linalg.LinAlgError:
+        return None
+    coupling = _sum_by(obs_point[free_obs], (np.swapaxes(h_cross[free_obs], 1, 2) @ step_pose[
+        obs_slot[free_obs], :, None])[:, :, 0], lay.n_points)
+    step_point = (hl_inv @ (-g_point - coupling)[:, :, None])[:, :, 0]
+    return step_pose, step_point
+
+
 def bundle_adjust(K: np.ndarray, poses_cw: np.ndarray, points_w: np.ndarray, obs_pose: np.ndarray,
                   obs_point: np.ndarray, obs_xy: np.ndarray, obs_depth: np.ndarray, fixed: np.ndarray,
                   depth_noise: float, huber: float, max_iterations: int = 10,
@@ -331,7 +406,8 @@ def bundle_adjust(K: np.ndarray, poses_cw: np.ndarray, points_w: np.ndarray, obs
     ``obs_point[o]`` from pose ``obs_pose[o]`` at pixel ``obs_xy[o]`` with depth ``obs_depth[o]`` (0 = none).
     Poses with ``fixed`` set stay put (they fix the gauge). Each observation touches one pose and one
     point, so the pose block and the point block of the normal equations are block-diagonal: the
-    points are eliminated per 3x3 block and only a small dense (6 x free poses) system is solved.
+    points are eliminated per 3x3 block and only a small dense (6 x free poses) system is solved
+    (:func:`normal_equations`, :func:`solve_schur`).
     ``outliers`` flags observations whose reprojection or depth residual exceeds ``outlier_threshold``
     after the adjustment.
     """
@@ -344,9 +420,7 @@ def bundle_adjust(K: np.ndarray, poses_cw: np.ndarray, points_w: np.ndarray, obs
     slot = np.full(len(poses), -1)
     slot[free] = np.arange(free.sum())
     n_free = int(free.sum())
-    obs_slot = slot[obs_pose]
-    free_obs = np.flatnonzero(obs_slot >= 0)
-    pair_a, pair_b = _same_point_pairs(obs_point, free_obs)
+    layout = schur_layout(slot[obs_pose], obs_point, n_free, n_points)
 
     def evaluate(poses: np.ndarray, points: np.ndarray):
         rot = poses[obs_pose, :3, :3]
@@ -360,50 +434,26 @@ def bundle_adjust(K: np.ndarray, poses_cw: np.ndarray, points_w: np.ndarray, obs
     pc, rot, res, jac_pc = evaluate(poses, points)
     inliers0 = (np.hypot(res[:, 0], res[:, 1]) < outlier_threshold) & (np.abs(res[:, 2]) < outlier_threshold)
     initial_rms = reprojection_rms(res, inliers0)
-    cost = _huber_cost(res, huber)
+    cost = float(huber_loss(res, huber).sum())
     damping = 1e-4
     iterations = 0
     for _ in range(max_iterations):
         iterations += 1
-        weights = _huber_weights(res, huber)
         jac_pose = pose_jacobian(K, pc, obs_depth > 0, depth_noise)
-        jac_point = jac_pc @ rot
-        w_jac_pose = jac_pose * weights[:, :, None]
-        w_jac_point = jac_point * weights[:, :, None]
-        w_jac_pose_t = np.swapaxes(w_jac_pose, 1, 2)
-        h_pose = _sum_by(obs_slot[free_obs], w_jac_pose_t[free_obs] @ jac_pose[free_obs], n_free)
-        g_pose = _sum_by(obs_slot[free_obs], (w_jac_pose_t[free_obs] @ res[free_obs, :, None])[:, :, 0], n_free)
-        w_jac_point_t = np.swapaxes(w_jac_point, 1, 2)
-        h_point = _sum_by(obs_point, w_jac_point_t @ jac_point, n_points)
-        g_point = _sum_by(obs_point, (w_jac_point_t @ res[:, :, None])[:, :, 0], n_points)
-        h_cross = w_jac_pose_t @ jac_point  # (O, 6, 3), used for free observations
+        normal = normal_equations(layout, jac_pose, jac_pc @ rot, res, huber_weights(res, huber))
         improved = False
         for _attempt in range(6):
-            hp = h_pose + damping * np.einsum("pii->pi", h_pose)[:, :, None] * np.eye(6) + 1e-9 * np.eye(6)
-            hl = h_point + damping * np.einsum("mii->mi", h_point)[:, :, None] * np.eye(3) + 1e-9 * np.eye(3)
-            hl_inv = np.linalg.inv(hl)
-            reduced = h_cross[pair_a] @ hl_inv[obs_point[pair_a]] @ np.swapaxes(h_cross[pair_b], 1, 2)
-            schur = -_sum_by(obs_slot[pair_a] * n_free + obs_slot[pair_b], reduced, n_free * n_free).reshape(
-                n_free, n_free, 6, 6)
-            schur[np.arange(n_free), np.arange(n_free)] += hp
-            rhs = -g_pose + _sum_by(obs_slot[free_obs], (h_cross[free_obs] @ hl_inv[obs_point[free_obs]] @ g_point[
-                obs_point[free_obs], :, None])[:, :, 0], n_free)
-            system = schur.transpose(0, 2, 1, 3).reshape(6 * n_free, 6 * n_free)
-            try:
-                step_pose = np.linalg.solve(system, rhs.reshape(-1)).reshape(n_free, 6) if n_free else np.zeros(
-                    (0, 6))
-            except np.linalg.LinAlgError:
+            steps = solve_schur(normal, damping)
+            if steps is None:
                 damping *= 10
                 continue
-            coupling = _sum_by(obs_point[free_obs], (np.swapaxes(h_cross[free_obs], 1, 2) @ step_pose[
-                obs_slot[free_obs], :, None])[:, :, 0], n_points)
-            step_point = (hl_inv @ (-g_point - coupling)[:, :, None])[:, :, 0]
+            step_pose, step_point = steps
             trial_poses = poses.copy()
             for p in np.flatnonzero(free):
                 trial_poses[p] = apply_update(poses[p], step_pose[slot[p]])
             trial_points = points + step_point
             t_pc, t_rot, t_res, t_jac = evaluate(trial_poses, trial_points)
-            trial_cost = _huber_cost(t_res, huber)
+            trial_cost = float(huber_loss(t_res, huber).sum())
             if trial_cost < cost:
                 converged = cost - trial_cost < 1e-6 * cost
                 poses, points, pc, rot, res, jac_pc, cost = trial_poses, trial_points, t_pc, t_rot, t_res, t_jac, \
