@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | sha256sum | cut -c1-12)
 DEMO_SEQUENCE ?= ../shared/data/rgbd_bonn_crowd_dev
 DEMO_OUT ?= runs/demo
 
-.PHONY: demo test compose-test venv models lint clean
+.PHONY: demo test compose-test venv models lint clean test-prerequisites
 
 venv: $(STAMP)
 
@@ -25,7 +25,11 @@ models: venv
 lint: venv
 	$(BIN)/ruff check .
 
-test: venv models lint
+# chromium and iproute2 from Debian where missing (scripts/test-prerequisites.sh says what to do where it cannot)
+test-prerequisites:
+	scripts/test-prerequisites.sh
+
+test: venv models lint test-prerequisites
 	$(BIN)/python -m pytest -q
 
 # The whole system in containers (docker compose), with an engine started here if none answers;

@@ -10,8 +10,9 @@ from twohr.dataset import Frame, RGBDSequence
 from twohr.foxglove_live import LiveView
 from twohr.geometry import rot_to_quat
 
-from .tracker.core import TrackResult
-from .tracker.keyframes import FrameStats, KeyframePipeline, map_snapshot
+from .tracker.schedule import Schedule
+from .tracker.stages import FrameStats
+from .tracker.trajectory import TrackResult
 
 
 class PipelineLiveView:
@@ -25,7 +26,7 @@ class PipelineLiveView:
         self.sequence, self.robot_id = sequence, robot_id
         self.map_sent = -1
 
-    def __call__(self, frame: Frame, result: TrackResult, stats: FrameStats, pipeline) -> None:
+    def __call__(self, frame: Frame, result: TrackResult, stats: FrameStats, schedule: Schedule) -> None:
         convert, robot, t = self.view.converter, self.robot_id, frame.stamp
         # the colour image's own file, as the source sends it: no encoding on the per-frame path
         path = self.sequence.records[frame.index].rgb_path
@@ -33,14 +34,11 @@ class PipelineLiveView:
                               encoding="png" if path.suffix.lower() == ".png" else "jpeg")
         messages = [*image,
                     *convert.pose(robot, t, result.pose[:3, 3], rot_to_quat(result.pose[:3, :3]))]
-        keyframes = isinstance(pipeline, KeyframePipeline)
-        # the keyframes schedule tracks the map's points by optical flow; every_frame reports its inliers
-        tracked = pipeline.frames.track_xy if keyframes else result.observed_xy
-        if tracked is not None:
-            messages += convert.keypoints(robot, t, tracked)
-        if keyframes and pipeline.mask is not None:
-            messages += convert.dynamic_mask(robot, t, pipeline.mask)
-        version, points = map_snapshot(pipeline if keyframes else pipeline.tracker, since=self.map_sent)
+        if result.observed_xy is not None:
+            messages += convert.keypoints(robot, t, result.observed_xy)
+        if schedule.mask is not None:
+            messages += convert.dynamic_mask(robot, t, schedule.mask)
+        version, points = schedule.map_snapshot(since=self.map_sent)
         if points is not None and len(points):
             self.map_sent = version
             messages += convert.landmarks(robot, t, points)

@@ -32,7 +32,7 @@ def write_run(out: Path, sequence, config, result) -> dict:
 
     from .pipeline import stats_rows
     from .run_report import keyframe_indices, plot_run_timeline, plot_run_trajectory, write_report_html
-    from .tracker.core import TRACKED_STATUSES
+    from .tracker.trajectory import TRACKED_STATUSES
 
     out.mkdir(parents=True, exist_ok=True)
     write_tum(out / "trajectory.txt", result.trajectory, header=f"twohr {sequence.name}: refined, camera-to-world")

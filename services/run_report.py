@@ -15,8 +15,8 @@ import numpy as np
 from twohr.plots import plot_timeline, plot_trajectories, plot_trajectory
 from twohr.trajectory import Trajectory
 
-from .tracker.core import TRACKED_STATUSES
-from .tracker.keyframes import FrameStats
+from .tracker.stages import FrameStats
+from .tracker.trajectory import TRACKED_STATUSES
 
 
 def keyframe_indices(result) -> set[int] | None:

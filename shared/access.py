@@ -56,14 +56,15 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
         # every stream: the session table follows poses and statuses, the live view shows the rest
         "gateway": Grants(publish=_robots("control"), subscribe=[f"{PREFIX}/*/*"], watch_liveliness=True),
         "source": Grants(publish=_robots("frames", "status"), subscribe=_robots("control", "pose", "camera")),
-        "detector": Grants(publish=_robots("keypoints", "status"), subscribe=_robots("control", "frames"),
+        # the networks answer the tracker's queries only (each answer is published for recordings and views)
+        "detector": Grants(publish=_robots("keypoints", "status"), subscribe=_robots("control"),
                            serve=_robots("rpc/detect")),
-        "yolo": Grants(publish=_robots("dynamics", "status"), subscribe=_robots("control", "frames"),
+        "yolo": Grants(publish=_robots("dynamics", "status"), subscribe=_robots("control"),
                        serve=_robots("rpc/dynamics")),
         "matcher": Grants(publish=_robots("matches", "status"), subscribe=_robots("control"),
                           serve=_robots("rpc/match")),
         "tracker": Grants(publish=_robots("pose", "status", "landmarks"),
-                          subscribe=_robots("control", "frames", "keypoints", "dynamics"),
+                          subscribe=_robots("control", "frames"),
                           ask=_robots("rpc/detect", "rpc/dynamics", "rpc/match")),
         "recorder": Grants(publish=_robots("status"), subscribe=[f"{PREFIX}/*/*"]),
         "ros2": Grants(publish=_robots("camera") + ros2, subscribe=_robots("pose", "landmarks") + ros2),

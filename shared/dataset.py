@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import functools
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -156,14 +156,41 @@ class FrameRecord:
     depth_path: Path
 
 
-@dataclass
 class Frame:
-    """One RGB-D frame: ``rgb`` (H, W, 3) uint8 in RGB order, ``depth`` (H, W) float32 metres, 0 = no reading."""
+    """One RGB-D frame, as every stage sees it: ``rgb`` (H, W, 3) uint8 in RGB order, ``depth`` (H, W) float32
+    metres (0 = no reading) and ``gray`` (H, W) uint8, all undistorted.
 
-    index: int
-    stamp: float
-    rgb: np.ndarray
-    depth: np.ndarray
+    A frame read from disk holds its arrays. A frame that came over the bus holds ``message``, the bytes as the
+    source sent them (for a stage in another service), and decodes each image on first use (``decoders``:
+    image name -> function), so that a stage pays only for the images it reads."""
+
+    def __init__(self, index: int, stamp: float, rgb: np.ndarray | None = None, depth: np.ndarray | None = None,
+                 *, message: bytes | None = None, decoders: dict[str, Callable[[], np.ndarray]] | None = None) -> None:
+        self.index = index
+        self.stamp = stamp
+        self.message = message
+        self._images: dict[str, np.ndarray | None] = {"rgb": rgb, "depth": depth, "gray": None}
+        self._decoders = decoders or {}
+
+    def _image(self, name: str) -> np.ndarray | None:
+        if self._images[name] is None and name in self._decoders:
+            self._images[name] = self._decoders[name]()
+        return self._images[name]
+
+    @property
+    def rgb(self) -> np.ndarray:
+        return self._image("rgb")
+
+    @property
+    def depth(self) -> np.ndarray:
+        return self._image("depth")
+
+    @property
+    def gray(self) -> np.ndarray:
+        """The grayscale image; decoded straight to grey where the frame came encoded (3x faster than colour)."""
+        if self._image("gray") is None:
+            self._images["gray"] = cv2.cvtColor(self.rgb, cv2.COLOR_RGB2GRAY)
+        return self._images["gray"]
 
 
 def _read_list(path: Path) -> list[tuple[float, str]]:

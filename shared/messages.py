@@ -23,7 +23,7 @@ import numpy as np
 from pydantic import BaseModel, Field, ValidationError
 
 from .config import PipelineConfig
-from .dataset import CameraIntrinsics
+from .dataset import CameraIntrinsics, Frame, depth_in_metres, undistorted
 from .errors import TwohrError
 from .geometry import make_pose, quat_to_rot
 from .trajectory import Trajectory
@@ -302,6 +302,19 @@ def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None
     Raises :class:`MessageError` if anything is off."""
     message, parts = split(payload, expect)
     return message, {spec.name: decode_array(spec, blob) for spec, blob in parts if only is None or spec.name in only}
+
+
+def received_frame(payload: bytes) -> tuple[FrameMsg, Frame]:
+    """A frame message as its header and a :class:`~twohr.dataset.Frame` that keeps the message and decodes each
+    image (undistorted; depth in metres) on first use. Raises :class:`MessageError` for a malformed message;
+    a corrupt image raises it when that image is first read."""
+    header, parts = split(payload, FrameMsg)
+    images = {spec.name: (spec, blob) for spec, blob in parts}
+    camera = header.camera
+    decoders = {"rgb": lambda: undistorted(decode_array(*images["rgb"]), camera),
+                "gray": lambda: undistorted(decode_gray(*images["rgb"]), camera),
+                "depth": lambda: depth_in_metres(decode_array(*images["depth"]), camera)}
+    return header, Frame(header.frame_index, header.stamp, message=bytes(payload), decoders=decoders)
 
 
 def pose_trajectory(poses: list[PoseMsg]) -> Trajectory:

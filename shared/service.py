@@ -31,7 +31,7 @@ from . import keys
 from .bus import BusConfig, open_session
 from .config import PipelineConfig
 from .keys import ALIVE_PREFIX, HEALTH_PREFIX
-from .messages import ControlMsg, FrameMsg, MessageError, StatusMsg, decode, encode, split
+from .messages import ControlMsg, MessageError, StatusMsg, decode, encode, split
 
 QueuePolicy = Literal["drop_oldest", "backpressure"]
 #: distinct model configs a service keeps loaded at once (each holds a network); the least recently used goes
@@ -184,12 +184,6 @@ class Service:
         if config is None:
             raise UnknownSession(session_id)
         return config
-
-    def streams_frame(self, payload: bytes) -> bool:
-        """Whether a streamed frame is this stage's to process: not in a ``keyframes`` session, where the
-        tracker asks the detector and yolo stages by query for the frames it needs."""
-        header, _ = decode(payload, FrameMsg, only=())
-        return self.config_for(header.session_id).pipeline.mode != "keyframes"
 
     def _handle_control(self, payload: bytes) -> None:
         control, _ = decode(payload, ControlMsg)

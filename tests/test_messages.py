@@ -100,3 +100,28 @@ def test_ids_are_validated():
         keys.key("bad robot", "pose")
     assert keys.key("r1", "pose") == "twohr/r1/pose"
     assert keys.parse("twohr/r1/rpc/match") == ("r1", "rpc/match")
+
+
+def test_a_received_frame_decodes_each_image_on_first_use(dev_sequence):
+    """A frame from the bus keeps its message for remote stages and decodes only the images a stage reads: a
+    corrupt colour image fails when (and only when) the colour image is read."""
+    from twohr.dataset import depth_in_metres
+    from twohr.messages import received_frame
+
+    camera = CAMERA_PRESETS["bonn"]
+    jpg = sorted((dev_sequence / "rgb").iterdir())[0].read_bytes()
+    depth = np.full((480, 640), 5000, np.uint16)
+    payload = encode(FrameMsg(**IDS, camera=camera), {"depth": depth},
+                     blobs={"rgb": encoded_image("rgb", jpg, "jpeg", "uint8", (480, 640, 3))})
+    header, frame = received_frame(payload)
+    assert (frame.index, frame.stamp, frame.message) == (7, IDS["stamp"], payload)
+    assert np.array_equal(frame.depth, depth_in_metres(depth, camera))
+    assert frame.rgb.shape == (480, 640, 3) and frame.gray.shape == (480, 640)
+    assert abs(float(frame.gray.astype(float).mean()) - float(frame.rgb.mean())) < 5  # the same image, in grey
+
+    broken = encode(FrameMsg(**IDS, camera=camera), {"depth": depth},
+                    blobs={"rgb": encoded_image("rgb", b"not a jpeg", "jpeg", "uint8", (480, 640, 3))})
+    _, frame = received_frame(broken)
+    assert frame.depth.shape == (480, 640)  # the depth alone is fine
+    with pytest.raises(MessageError, match="corrupt"):
+        _ = frame.rgb

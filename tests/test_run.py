@@ -52,17 +52,17 @@ def test_bad_frames_are_reported_not_fatal(synthetic_sequence, tmp_path):
 
 
 def test_every_keypoint_masked_is_reported(synthetic_sequence):
-    from twohr_services.pipeline import Pipeline, StageOutput
+    from twohr_services.pipeline import FrontEnd, StageOutput
 
     seq = RGBDSequence(synthetic_sequence)
-    config = load_config(None, {"detector.features": "orb", "yolo.enabled": False, "matcher.method": "mutual_nn"})
-    pipeline = Pipeline(config, seq.camera)
-    statuses = []
+    config = load_config(None, {"detector.features": "orb", "matcher.method": "mutual_nn",
+                                "pipeline.mode": "every_frame"})
+    front_end = FrontEnd(load_config(None, {"detector.features": "orb", "yolo.enabled": False}))
+    fronts = {}
     for frame in seq.frames(0, 8):
-        front = pipeline.front_end(frame)
-        if frame.index == 5:  # a person fills the whole view
-            front = StageOutput(front.keypoints, np.ones(frame.depth.shape, bool), 1, 0.0, 0.0)
-        result, stats = pipeline.process(frame, front)
-        statuses.append((stats.kept, result.status))
+        mask = np.full(frame.depth.shape, frame.index == 5)  # a person fills the whole view of frame 5
+        fronts[frame.index] = StageOutput(front_end(frame).keypoints, mask, int(frame.index == 5), 0.0, 0.0)
+    result = run_sequence(seq, config, stop=8, progress=False, front_cache=fronts)
+    statuses = [(stats.kept, stats.status) for stats in result.stats]
     assert statuses[5][0] == 0 and statuses[5][1] == "lost"
     assert statuses[7][1] in ("tracking", "relocalised")

@@ -11,7 +11,7 @@ import numpy as np
 
 from twohr.trajectory import read_tum
 from twohr_services.run_report import flags_for, frame_flags
-from twohr_services.tracker.keyframes import FrameStats
+from twohr_services.tracker.stages import FrameStats
 
 
 def test_run_writes_a_linked_html_report(dev_sequence, tmp_path):

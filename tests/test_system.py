@@ -149,7 +149,8 @@ def test_malformed_payloads_on_every_key_leave_services_alive(system):
         for name, health in services.items():
             assert health is not None, f"{name} stopped answering"
             assert health["errors"] == 0, (name, health)
-        assert services["detector"]["malformed"] >= 3 and services["tracker"]["malformed"] >= 9
+        # the detector hears control messages (3 junk), the tracker frames and control messages (6 junk)
+        assert services["detector"]["malformed"] >= 3 and services["tracker"]["malformed"] >= 6
         assert services["recorder"]["malformed"] >= 3 and services["matcher"]["malformed"] >= 1
     finally:
         for session in sessions.values():

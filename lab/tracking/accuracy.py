@@ -49,7 +49,7 @@ def run_metrics(sequence, config, start: int = 0, step: int = 1, frames: int | N
     figures against the camera-frame ground truth."""
     from twohr.evaluation import evaluate
     from twohr_services.pipeline import run_sequence
-    from twohr_services.tracker.core import TRACKED_STATUSES
+    from twohr_services.tracker.trajectory import TRACKED_STATUSES
 
     stop = None if frames is None else start + frames * step
     run = run_sequence(sequence, config, start=start, stop=stop, step=step, progress=False)

@@ -38,7 +38,7 @@ def run_point(sequence, config: PipelineConfig, start: int, stop: int | None, st
     """ATE (online and refined, camera-frame ground truth), untracked frames, keyframes and ms/frame of one run."""
     from twohr.evaluation import evaluate
     from twohr_services.pipeline import run_sequence
-    from twohr_services.tracker.core import TRACKED_STATUSES
+    from twohr_services.tracker.trajectory import TRACKED_STATUSES
 
     front_cache = None
     if fronts is not None and config.pipeline.mode == "every_frame":

@@ -30,6 +30,7 @@ from twohr.paths import DEV_SEQUENCE
 from twohr.trajectory import Trajectory
 from twohr_services.tracker.core import Tracker
 from twohr_services.tracker.optim import pnp_ransac, sample_depth
+from twohr_services.tracker.trajectory import AnchoredTrajectory
 
 from ..bench import FrontCache
 from ..stamp import provenance
@@ -96,14 +97,16 @@ def main(argv: list[str] | None = None) -> int:
     for _ in range(args.repeats):
         # interleaved, so both back ends see the same load on a shared machine
         tracker = Tracker(sequence.camera, conf, match=mutual_nn)
+        record = AnchoredTrajectory(conf)
         start = time.perf_counter()
         for stamp, (kps, depth) in zip(stamps, frames, strict=True):
-            tracker.track(stamp, kps, depth)
+            result = tracker.track(stamp, kps, depth)
+            record.add(stamp, result.pose, result.tracked, len(tracker.keyframes) - 1, tracker.keyframe_poses)
         tracker_ms.append((time.perf_counter() - start) * 1000 / len(frames))
         baseline_poses, times = frame_to_frame_vo(sequence.camera, frames, conf)
         baseline_ms.append(float(np.sum(times)) / len(frames))
     extrinsic = sequence.default_gt_extrinsic()
-    tracker_report, _ = evaluate(gt, tracker.trajectory(), gt_extrinsic=extrinsic)
+    tracker_report, _ = evaluate(gt, record.trajectory(tracker.keyframe_poses), gt_extrinsic=extrinsic)
     baseline_report, _ = evaluate(gt, Trajectory(np.asarray(stamps), baseline_poses), gt_extrinsic=extrinsic)
     summary = {
         "provenance": provenance(argv, "python -m twohr_lab.tracking.vo_bench"),

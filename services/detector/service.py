@@ -1,8 +1,8 @@
-"""The detector service: 2HR keypoints for the pipeline, in either schedule (``pipeline.mode``).
+"""The detector service: 2HR keypoints for the tracker's schedule.
 
-* ``every_frame``: ``twohr/<robot>/frames`` in, ``twohr/<robot>/keypoints`` out, for every frame.
-* ``keyframes``: the tracker asks for a keyframe's keypoints on ``twohr/<robot>/rpc/detect`` (query: the frame
-  message as the source sent it; reply: the keypoints). Each answer is also published on ``keypoints``.
+The tracker asks for a frame's keypoints on ``twohr/<robot>/rpc/detect`` (query: the frame message as the source
+sent it; reply: the keypoints): for keyframes in the ``keyframes`` schedule, for every frame in ``every_frame``.
+Each answer is also published on ``twohr/<robot>/keypoints``, for recordings and views.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ class DetectorService(Service):
             lambda conf_json: build_detector(DetectorConfig.model_validate_json(conf_json)))
 
     def subscriptions(self) -> list[str]:
-        return [keys.all_robots("frames")]
+        return []  # queries only
 
     def on_start(self) -> None:
         self.queryable = self.session.declare_queryable(keys.all_robots(keys.DETECT_QUERY), self._on_query)
@@ -46,10 +46,6 @@ class DetectorService(Service):
     def handle(self, key: str, payload) -> None:
         if key.endswith(keys.DETECT_QUERY):
             reply_to(payload, self._keypoints)
-            return
-        if not self.streams_frame(payload):
-            return
-        self._keypoints(payload)
 
     def _keypoints(self, payload: bytes) -> bytes:
         frame, arrays = decode(payload, FrameMsg, only=("rgb",))

@@ -11,9 +11,10 @@ Per frame (:meth:`FrameTracker.track`):
 4. :meth:`FrameTracker.wants_keyframe` asks for a keyframe when the tracks thin out, the camera leaves
    the keyframes behind, tracking is lost, or at least every ``keyframe_max_interval`` frames.
 
-Keyframes are built off this path (the :class:`~.core.Tracker` on 2HR keypoints, descriptor matching and
-bundle adjustment, in the mapping worker); each one comes back as a :class:`MapUpdate` that refreshes the
-landmark positions and re-seeds the tracks with the keyframe's observations.
+Keyframes are built off this path (the keyframe job: :class:`~.core.Tracker` on 2HR keypoints, descriptor
+matching and bundle adjustment, in the mapping worker); each one comes back as a :class:`MapUpdate` whose
+:class:`~.map.MapSnapshot` refreshes the landmark positions and whose observations re-seed the tracks. The
+per-frame record of poses is the schedule's (:class:`~.trajectory.AnchoredTrajectory`).
 """
 
 from __future__ import annotations
@@ -28,11 +29,11 @@ from twohr.config import TrackerConfig
 from twohr.dataset import CameraIntrinsics
 from twohr.features import masked
 from twohr.geometry import invert_pose, project, transform_points
-from twohr.trajectory import Trajectory, interpolate_poses
 
-from .core import TrackResult, near_any_keyframe, reattach_to_keyframes, smoothed
+from .map import MapSnapshot
 from .motion import MotionModel
 from .optim import estimate_pose, sample_depth
+from .trajectory import TrackResult, near_any_keyframe
 
 
 @dataclass
@@ -42,19 +43,15 @@ class MapUpdate:
     frame_index: int
     stamp: float
     result: TrackResult
-    """the keyframe tracker's answer for that frame (``init``, ``tracking``, ``relocalised``, ``lost`` ...)"""
+    """the keyframe job's answer for that frame (``init``, ``tracking``, ``relocalised``, ``lost`` ...)"""
     keyframe_id: int
     """the new keyframe's id, -1 when the frame did not become one"""
     seeds_xy: np.ndarray
     """(M, 2) the keyframe's keypoints that observe a landmark, in that frame's pixels"""
     seeds_landmark: np.ndarray
     """(M,) their landmark ids, best observed first"""
-    landmark_positions: np.ndarray
-    """(L, 3) every landmark's world position, after bundle adjustment"""
-    landmark_usable: np.ndarray
-    """(L,) False for landmarks retired as outliers"""
-    keyframe_poses: np.ndarray
-    """(K, 4, 4) camera-to-world poses of all keyframes, after bundle adjustment"""
+    snapshot: MapSnapshot
+    """the map after the job (landmark positions and keyframe poses after bundle adjustment)"""
     gray: np.ndarray | None = None
     """the frame's grayscale image, to carry the seeds to a later frame by optical flow"""
     timings: dict[str, float] | None = None
@@ -86,19 +83,6 @@ def flow_points(source: np.ndarray, target: np.ndarray, xy: np.ndarray, guess: n
     return forward, ok
 
 
-def bridge_coasted(trajectory: Trajectory, measured: np.ndarray, max_gap_s: float = 3.0) -> Trajectory:
-    """Replace poses that only coasted on the motion model (``measured`` False) by interpolation between
-    the measured poses on either side, for gaps up to ``max_gap_s``: afterwards, the pose found again
-    says more about the gap than the extrapolation did. Gaps at the ends are left as they are."""
-    if measured.all() or measured.sum() < 2:
-        return trajectory
-    known = Trajectory(trajectory.stamps[measured], trajectory.poses[measured])
-    poses, valid = interpolate_poses(known, trajectory.stamps[~measured], max_gap=max_gap_s)
-    out = trajectory.poses.copy()
-    out[np.flatnonzero(~measured)[valid]] = poses[valid]
-    return Trajectory(trajectory.stamps, out)
-
-
 class FrameTracker:
     """Camera-rate tracking: landmarks followed by optical flow, pose by PnP; keyframes come from outside."""
 
@@ -109,10 +93,7 @@ class FrameTracker:
         self.conf = conf or self.default_conf
         self.K = camera.matrix
         self.motion = MotionModel(self.conf.velocity_frames, self.conf.coast_velocity_decay)
-        # the map as the latest MapUpdate described it (read-only copies; the mapper owns the map)
-        self.landmarks = np.zeros((0, 3))
-        self.usable = np.zeros(0, bool)
-        self.keyframe_poses = np.zeros((0, 4, 4))
+        self.snapshot = MapSnapshot.empty()  # the map as the latest MapUpdate described it (read-only)
         # the tracks: landmark ids and their sub-pixel positions in the previous frame
         self.track_xy = np.zeros((0, 2), np.float32)
         self.track_landmark = np.zeros(0, np.int64)
@@ -120,11 +101,21 @@ class FrameTracker:
         self.frames_since_keyframe = 0
         # (grayscale image, observations xy, landmark ids) of the latest keyframes, to find lost landmarks again
         self._recent_keyframes: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-        self.anchor = -1  # the keyframe this frame's pose is kept relative to, for trajectory()
-        self._stamps: list[float] = []
-        self._measured: list[bool] = []  # False where the pose only coasted on the motion model
-        self._anchors: list[int] = []
-        self._relative: list[np.ndarray] = []
+
+    @property
+    def landmarks(self) -> np.ndarray:
+        """(L, 3) the landmarks' world positions, as of the latest map update."""
+        return self.snapshot.landmark_positions
+
+    @property
+    def usable(self) -> np.ndarray:
+        """(L,) False for landmarks retired as outliers."""
+        return self.snapshot.landmark_usable
+
+    @property
+    def keyframe_poses(self) -> np.ndarray:
+        """(K, 4, 4) the keyframes' camera-to-world poses, as of the latest map update."""
+        return self.snapshot.keyframe_poses
 
     @property
     def initialised(self) -> bool:
@@ -143,7 +134,6 @@ class FrameTracker:
         self.motion.advance(stamp, result.pose)
         self.previous = gray
         self.frames_since_keyframe += 1
-        self._record(stamp, result.pose, result.tracked)
         result.timings = {"total": (time.perf_counter() - start) * 1000}
         result.num_landmarks = len(self.track_landmark)
         return result
@@ -234,25 +224,16 @@ class FrameTracker:
     def apply(self, update: MapUpdate) -> None:
         """Take a finished keyframe job: refreshed landmarks and keyframe poses, and new tracks seeded from the
         keyframe's observations (carried by optical flow from the keyframe's image to the latest frame)."""
-        self.landmarks = update.landmark_positions
-        self.usable = update.landmark_usable
-        self.keyframe_poses = update.keyframe_poses
+        self.snapshot = update.snapshot
         keep = self.usable[self.track_landmark]
         self.track_xy, self.track_landmark = self.track_xy[keep], self.track_landmark[keep]
+        new_map = update.keyframe_id >= 0 and update.result.status in ("init", "reinitialised")
+        if new_map:
+            self.track_xy, self.track_landmark = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
         if update.keyframe_id >= 0:
-            if update.result.status in ("init", "reinitialised"):
-                self.track_xy, self.track_landmark = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
-                self.motion.restart(update.result.pose, update.stamp)
-                if self.motion.last_stamp is None or self.motion.last_stamp <= update.stamp:
-                    self.motion.advance(update.stamp, update.result.pose)
-            self.anchor = update.keyframe_id
             self.frames_since_keyframe = 0
-            self._attach_to_keyframe(update)
-        if update.result.tracked and self.motion.lost_frames > 0:
-            # found again: predict from the keyframe's measured pose, not from the coasted one
-            if self.motion.last_stamp == update.stamp:
-                self.motion.tracked(update.stamp, update.result.pose)
-            self.motion.last_pose = update.result.pose
+        if update.result.tracked:
+            self.motion.correct(update.result.pose, update.stamp, new_map)
         seeds = self.usable[update.seeds_landmark] & ~np.isin(update.seeds_landmark, self.track_landmark)
         xy, landmark = update.seeds_xy[seeds].astype(np.float32), update.seeds_landmark[seeds]
         if update.gray is not None and self.previous is not None and update.gray is not self.previous:
@@ -268,38 +249,3 @@ class FrameTracker:
         room = max(0, self.conf.flow_max_tracks - len(self.track_landmark))
         self.track_xy = np.concatenate([self.track_xy, xy[:room].astype(np.float32)])
         self.track_landmark = np.concatenate([self.track_landmark, landmark[:room]])
-
-    def _attach_to_keyframe(self, update: MapUpdate) -> None:
-        """A frame that became a keyframe takes the keyframe's pose in the trajectory (measured from 2HR
-        matches and refined by bundle adjustment since), whatever optical flow had reported for it. With
-        ``reanchor_lagging_frames``, the frames tracked while its job ran follow it: they keep their flow
-        motion relative to that frame, so the keyframe's correction does not come and go as a spike."""
-        for i in range(len(self._stamps) - 1, -1, -1):
-            if self._stamps[i] == update.stamp:
-                if self.conf.reanchor_lagging_frames and i + 1 < len(self._stamps):
-                    later = slice(i, len(self._stamps))
-                    absolute = reattach_to_keyframes(self._stamps[later], self._anchors[later],
-                                                     self._relative[later], self.keyframe_poses).poses
-                    self._relative[i + 1:] = list(invert_pose(absolute[0]) @ absolute[1:])
-                    self._anchors[i + 1:] = [update.keyframe_id] * (len(self._stamps) - i - 1)
-                self._anchors[i] = update.keyframe_id
-                self._relative[i] = np.eye(4)
-                self._measured[i] = update.result.tracked
-                return
-            if self._stamps[i] < update.stamp:
-                return
-
-    # ------------------------------------------------------------------ trajectory
-
-    def _record(self, stamp: float, pose: np.ndarray, measured: bool) -> None:
-        self._measured.append(measured)
-        self._stamps.append(stamp)
-        self._anchors.append(self.anchor)
-        self._relative.append(pose if self.anchor < 0 else invert_pose(self.keyframe_poses[self.anchor]) @ pose)
-
-    def trajectory(self, keyframe_poses: np.ndarray | None = None) -> Trajectory:
-        """Every frame's pose re-attached to its keyframe as bundle adjustment has refined it since
-        (``keyframe_poses``: the final ones from the mapper; default: the latest update's)."""
-        poses = self.keyframe_poses if keyframe_poses is None else keyframe_poses
-        trajectory = reattach_to_keyframes(self._stamps, self._anchors, self._relative, poses)
-        return smoothed(bridge_coasted(trajectory, np.asarray(self._measured, bool)), self.conf)

@@ -88,6 +88,19 @@ class MotionModel:
             return f"implausible jump from the prediction ({moved:.3f} m, {turned:.1f} deg)"
         return ""
 
+    def correct(self, pose: np.ndarray, stamp: float, new_map: bool = False) -> None:
+        """A keyframe job measured camera-to-world ``pose`` for the frame at ``stamp``, some frames ago.
+        ``new_map``: that frame started a map, so the model restarts there. Otherwise, while this model is lost,
+        the prediction continues from that measured pose rather than from the coasted one."""
+        if new_map:
+            self.restart(pose, stamp)
+            if self.last_stamp is None or self.last_stamp <= stamp:
+                self.advance(stamp, pose)
+        elif self.lost_frames > 0:
+            if self.last_stamp == stamp:
+                self.tracked(stamp, pose)
+            self.last_pose = pose
+
     def advance(self, stamp: float, pose: np.ndarray) -> None:
         """Remember the pose reported for this frame, tracked or coasted."""
         self.last_pose, self.last_stamp = pose, stamp

@@ -1,9 +1,8 @@
-"""The yolo service: dynamic-object detections and masks, in either schedule (``pipeline.mode``).
+"""The yolo service: dynamic-object detections and masks for the tracker's schedule.
 
-* ``every_frame``: ``twohr/<robot>/frames`` in, ``twohr/<robot>/dynamics`` (detections + mask) out, with
-  detection on every n-th frame and masks propagated between.
-* ``keyframes``: the tracker asks on ``twohr/<robot>/rpc/dynamics`` (query: the frame message; reply: that
-  frame's fresh detections and mask) when its YOLO worker is free. Each answer is also published.
+The tracker asks on ``twohr/<robot>/rpc/dynamics`` (query: the frame message; reply: that frame's detections and
+mask): every few frames and for keyframes in the ``keyframes`` schedule, for every frame in ``every_frame``. Each
+answer is also published on ``twohr/<robot>/dynamics``, for recordings and views.
 """
 
 from __future__ import annotations
@@ -20,7 +19,7 @@ from twohr.messages import ControlMsg, DynamicsMsg, FrameMsg, decode, encode
 from twohr.service import MODEL_CACHE_SIZE, Service, reply_to, serve
 
 from .core import YoloDetector
-from .masks import DynamicMasker, propagated_mask
+from .masks import DynamicMasker
 
 
 class YoloService(Service):
@@ -38,7 +37,7 @@ class YoloService(Service):
             lambda conf_json: YoloDetector(YoloConfig.model_validate_json(conf_json)))
 
     def subscriptions(self) -> list[str]:
-        return [keys.all_robots("frames")]
+        return []  # queries only
 
     def on_start(self) -> None:
         self.queryable = self.session.declare_queryable(keys.all_robots(keys.DYNAMICS_QUERY), self._on_query)
@@ -62,23 +61,16 @@ class YoloService(Service):
 
     def handle(self, key: str, payload) -> None:
         if key.endswith(keys.DYNAMICS_QUERY):
-            reply_to(payload, self._fresh_dynamics)
-            return
-        if not self.streams_frame(payload):
-            return
+            reply_to(payload, self._dynamics)
+
+    def _dynamics(self, payload: bytes) -> bytes:
+        """The dynamic regions of the frame in a query, from the session's masker (``yolo.every_n``: it detects
+        on every n-th query and propagates its boxes between), as ``twohr run`` masks its frames."""
         frame, rgb, depth = _frame_images(payload)
         masker = self._masker(frame.session_id)
         t0 = time.perf_counter()
         regions = masker(rgb, depth)
-        self._publish(frame, masker, regions.dynamic, regions.mask, (time.perf_counter() - t0) * 1000)
-
-    def _fresh_dynamics(self, payload: bytes) -> bytes:
-        frame, rgb, depth = _frame_images(payload)
-        masker = self._masker(frame.session_id)
-        t0 = time.perf_counter()
-        dynamic = masker.detect_dynamic(rgb)
-        mask = propagated_mask(dynamic, 0, depth.shape, masker.conf, depth)
-        return self._publish(frame, masker, dynamic, mask, (time.perf_counter() - t0) * 1000)
+        return self._publish(frame, masker, regions.dynamic, regions.mask, (time.perf_counter() - t0) * 1000)
 
     def _publish(self, frame: FrameMsg, masker: DynamicMasker, dynamic, mask: np.ndarray, elapsed: float) -> bytes:
         out = DynamicsMsg(session_id=frame.session_id, robot_id=frame.robot_id, frame_index=frame.frame_index,

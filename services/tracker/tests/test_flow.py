@@ -6,14 +6,13 @@ import numpy as np
 import pytest
 
 from twohr.config import load_config
-from twohr.dataset import CameraIntrinsics, RGBDSequence
+from twohr.dataset import RGBDSequence
 from twohr.evaluation import evaluate, static_trajectory
 from twohr.geometry import make_pose
 from twohr.trajectory import Trajectory
 from twohr_services.pipeline import local_stages, run_sequence
-from twohr_services.tracker.core import TrackResult, smoothed
-from twohr_services.tracker.flow import FrameTracker, MapUpdate
 from twohr_services.tracker.keyframes import KeyframePipeline
+from twohr_services.tracker.trajectory import AnchoredTrajectory, smoothed
 
 #: the synthetic sensor's depth is exact, so it gets the tight depth term of an unbiased sensor (the default,
 #: 0.05, is weak on purpose: the real dev sensor's depth is biased)
@@ -57,10 +56,10 @@ class SlowStage:
     def __init__(self, inner, delay_s: float) -> None:
         self.inner, self.delay_s, self.calls = inner, delay_s, 0
 
-    def __call__(self, frame, source):
+    def __call__(self, frame):
         self.calls += 1
         time.sleep(self.delay_s)
-        return self.inner(frame, source)
+        return self.inner(frame)
 
 
 @pytest.mark.parametrize("stage", ["detect", "dynamic_mask"])
@@ -93,36 +92,29 @@ def test_a_slow_stage_does_not_slow_the_poses(synthetic_sequence, stage):
     assert report.ate.rmse < 0.05
 
 
-def _keyframe_update(index: int, stamp: float, keyframe_id: int, keyframe_poses: np.ndarray) -> MapUpdate:
-    empty = np.zeros(0, np.int64)
-    status = "init" if keyframe_id == 0 else "tracking"
-    return MapUpdate(index, stamp, TrackResult(stamp, keyframe_poses[-1], status), keyframe_id, np.zeros((0, 2)),
-                     empty, np.zeros((0, 3)), np.zeros(0, bool), keyframe_poses)
-
-
 @pytest.mark.parametrize("reanchor", [True, False])
 def test_frames_tracked_during_a_keyframe_job_follow_the_keyframe(reanchor):
     """The keyframe job of frame 3 returns at frame 9 and moves frame 3 by 2 cm: with re-anchoring, frames 4-9 keep
     their 1 cm flow steps from frame 3's new pose; without, frame 3 alone jumps (a spike in the trajectory)."""
-    camera = CameraIntrinsics(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
     config = load_config(None, {"tracker.reanchor_lagging_frames": reanchor,
                                 "tracker.smoothing_acceleration": 0}).tracker  # the poses as re-attached
-    tracker = FrameTracker(camera, config)
-    tracker.apply(_keyframe_update(0, 0.0, 0, np.eye(4)[None]))
+    record = AnchoredTrajectory(config, bridge_gaps=True)
+    first = np.eye(4)[None]
     flow = np.array([make_pose(np.eye(3), [0.01 * i, 0.0, 0.0]) for i in range(10)])
     stamps = np.arange(10) * 0.1
     for stamp, pose in zip(stamps, flow, strict=True):
-        tracker._record(stamp, pose, True)
+        record.add(stamp, pose, True, 0, first)
     keyframe = make_pose(np.eye(3), [0.05, 0.0, 0.0])  # flow said 0.03
-    tracker.apply(_keyframe_update(3, stamps[3], 1, np.stack([np.eye(4), keyframe])))
-    positions = tracker.trajectory().positions[:, 0]
+    keyframe_poses = np.stack([np.eye(4), keyframe])
+    record.attach_to_keyframe(stamps[3], 1, True, keyframe_poses)
+    positions = record.trajectory(keyframe_poses).positions[:, 0]
     assert positions[:3] == pytest.approx([0.0, 0.01, 0.02], abs=1e-12)
     assert positions[3] == pytest.approx(0.05, abs=1e-12)
     expected_later = 0.05 + 0.01 * np.arange(1, 7) if reanchor else 0.01 * np.arange(4, 10)
     assert positions[4:] == pytest.approx(expected_later, abs=1e-12)
     # later frames anchor on the new keyframe: when bundle adjustment moves it, they move with it
     moved = make_pose(np.eye(3), [0.06, 0.0, 0.0])
-    shifted = tracker.trajectory(np.stack([np.eye(4), moved])).positions[4:, 0]
+    shifted = record.trajectory(np.stack([np.eye(4), moved])).positions[4:, 0]
     assert shifted - positions[4:] == pytest.approx(np.full(6, 0.01 if reanchor else 0.0), abs=1e-12)
 
 

@@ -1,0 +1,75 @@
+"""The every-frame schedule, as in the paper: 2HR detection -> dynamic mask -> matching -> the keyframe job, on
+every frame. Kept for the paper's ablations (``twohr bench --ablations``); the default is the camera-rate
+schedule (:mod:`.keyframes`)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from twohr.config import PipelineConfig
+from twohr.dataset import CameraIntrinsics, Frame
+from twohr.features import drop_masked
+from twohr.trajectory import Trajectory
+
+from .core import Tracker
+from .map import Map
+from .stages import FrameStats, KeyframeLog, Stages
+from .trajectory import AnchoredTrajectory, TrackResult
+
+
+class EveryFrameSchedule:
+    """Every frame through every stage, in the calling thread. ``process(frame)`` returns the pose and stats."""
+
+    def __init__(self, config: PipelineConfig, camera: CameraIntrinsics, stages: Stages) -> None:
+        self.stages = stages
+        self.map = Map(camera, config.tracker)
+        self.tracker = Tracker(camera, config.tracker, world=self.map)
+        self.record = AnchoredTrajectory(config.tracker)
+        self.keyframe_log: list[KeyframeLog] = []  # no keyframe jobs apart from the frames
+        self.mask: np.ndarray | None = None
+        """the dynamic mask the latest frame was tracked with, for live views"""
+
+    def process(self, frame: Frame) -> tuple[TrackResult, FrameStats]:
+        """Detect, mask, match and track one frame."""
+        t0 = time.perf_counter()
+        keypoints = self.stages.detect(frame)
+        t1 = time.perf_counter()
+        mask, objects = (None, 0) if self.stages.dynamic_mask is None else self.stages.dynamic_mask(frame)
+        self.mask = mask
+        t2 = time.perf_counter()
+        kept = keypoints if mask is None else drop_masked(keypoints, mask)
+        result = self.tracker.track(frame.stamp, kept, frame.depth, match=lambda a, b: self.stages.match(frame, a, b))
+        self.record.add(frame.stamp, result.pose, result.tracked, len(self.map.keyframes) - 1,
+                        self.map.keyframe_poses)
+        t3 = time.perf_counter()
+        stats = FrameStats(
+            index=frame.index, stamp=frame.stamp, status=result.status, keypoints=len(keypoints),
+            kept=len(kept), with_depth=result.num_with_depth, matches=result.num_matches,
+            inliers=result.num_inliers, keyframe=result.is_keyframe, dynamic_objects=objects,
+            mask_percent=0.0 if mask is None else float(100 * mask.mean()),
+            ms_detector=(t1 - t0) * 1000, ms_yolo=(t2 - t1) * 1000, ms_tracker=(t3 - t2) * 1000,
+            ms_total=(t3 - t0) * 1000, reason=result.reason,
+        )
+        return result, stats
+
+    def map_snapshot(self, since: int = -1) -> tuple[int, np.ndarray | None]:
+        """(version, (N, 3) world points of the usable landmarks); the points are None while the version (the
+        number of keyframes) is still ``since``."""
+        version = self.map.version
+        return version, None if version == since else self.map.landmarks.good_positions()
+
+    def finish(self) -> None:
+        """Nothing runs apart from the frames: nothing to wait for."""
+
+    def refine(self) -> None:
+        """After the last frame: bundle adjustment over the whole map refines :meth:`trajectory`."""
+        self.map.final_bundle_adjustment()
+
+    def close(self) -> None:
+        """No worker threads to stop."""
+
+    def trajectory(self) -> Trajectory:
+        """Every frame's pose, re-attached to its keyframe as bundle adjustment left it."""
+        return self.record.trajectory(self.map.keyframe_poses)

@@ -1,0 +1,225 @@
+"""The map: landmarks, keyframes and the only copy of the keyframe poses, with local and final bundle adjustment.
+
+Plain arrays and integer ids, nothing that refers to a thread, a session or a tracker, so that a map can be
+copied into a snapshot for the per-frame path (:meth:`Map.snapshot`) and, later, saved and loaded.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from twohr.config import TrackerConfig
+from twohr.dataset import CameraIntrinsics
+from twohr.geometry import invert_pose, transform_points
+
+from .optim import bundle_adjust
+
+
+@dataclass
+class Keyframe:
+    """A frame kept in the map: its keypoints with depth and the landmark each one observes (-1 = none). Its pose
+    is row ``id`` of :attr:`Map.keyframe_poses`."""
+
+    id: int
+    stamp: float
+    xy: np.ndarray
+    depth: np.ndarray
+    descriptors: np.ndarray
+    landmark_ids: np.ndarray
+
+
+class Landmarks:
+    """3-D landmarks in growable arrays: world positions, one descriptor each, and vote counts."""
+
+    def __init__(self) -> None:
+        self.positions = np.zeros((0, 3))
+        self.descriptors: np.ndarray | None = None
+        self.accepted = np.zeros(0, np.int64)
+        self.rejected = np.zeros(0, np.int64)
+        self.bad = np.zeros(0, bool)
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    @property
+    def num_good(self) -> int:
+        return int((~self.bad).sum())
+
+    def good_positions(self) -> np.ndarray:
+        """(N, 3) world positions of the landmarks not retired as outliers."""
+        return self.positions[~self.bad]
+
+    def add(self, positions: np.ndarray, descriptors: np.ndarray) -> np.ndarray:
+        """Append landmarks; returns their ids."""
+        start = len(self)
+        self.positions = np.concatenate([self.positions, positions])
+        self.descriptors = descriptors.copy() if self.descriptors is None else np.concatenate(
+            [self.descriptors, descriptors])
+        self.accepted = np.concatenate([self.accepted, np.zeros(len(positions), np.int64)])
+        self.rejected = np.concatenate([self.rejected, np.zeros(len(positions), np.int64)])
+        self.bad = np.concatenate([self.bad, np.zeros(len(positions), bool)])
+        return np.arange(start, len(self))
+
+    def vote(self, accepted: np.ndarray, rejected: np.ndarray, max_outlier_ratio: float) -> None:
+        """Count matches that agreed / disagreed with the tracked pose; retire landmarks that mostly disagree
+        (moving objects that slipped past the mask, or repeated texture)."""
+        np.add.at(self.accepted, accepted, 1)
+        np.add.at(self.rejected, rejected, 1)
+        ids = np.unique(rejected)
+        self.bad[ids] |= (self.rejected[ids] >= 3) & (self.rejected[ids] > max_outlier_ratio * self.accepted[ids])
+
+
+@dataclass
+class MapSnapshot:
+    """A read-only copy of what the per-frame path needs of the map, as of ``version`` keyframes."""
+
+    version: int
+    landmark_positions: np.ndarray
+    """(L, 3) every landmark's world position"""
+    landmark_usable: np.ndarray
+    """(L,) False for landmarks retired as outliers"""
+    keyframe_poses: np.ndarray
+    """(K, 4, 4) camera-to-world poses of all keyframes"""
+
+    @classmethod
+    def empty(cls) -> MapSnapshot:
+        return cls(0, np.zeros((0, 3)), np.zeros(0, bool), np.zeros((0, 4, 4)))
+
+
+class Map:
+    """Landmarks and keyframes of one camera's map. Nothing else writes keyframe poses: they change only when a
+    keyframe is added and when :meth:`local_bundle_adjustment` or :meth:`final_bundle_adjustment` refine them."""
+
+    def __init__(self, camera: CameraIntrinsics, conf: TrackerConfig) -> None:
+        self.camera = camera
+        self.conf = conf
+        self.K = camera.matrix
+        self.landmarks = Landmarks()
+        self.keyframes: list[Keyframe] = []
+        self.keyframe_poses = np.zeros((0, 4, 4))
+        """(K, 4, 4) camera-to-world poses of the keyframes, as bundle adjustment has refined them"""
+
+    def __bool__(self) -> bool:
+        return bool(self.keyframes)
+
+    @property
+    def version(self) -> int:
+        """Changes when the map does (a keyframe was added)."""
+        return len(self.keyframes)
+
+    def snapshot(self) -> MapSnapshot:
+        """A copy of the landmark positions and keyframe poses, for a reader on another thread."""
+        return MapSnapshot(self.version, self.landmarks.positions.copy(), ~self.landmarks.bad,
+                           self.keyframe_poses.copy())
+
+    def add_keyframe(self, stamp: float, pose: np.ndarray, xy: np.ndarray, depth: np.ndarray,
+                     descriptors: np.ndarray, landmark_ids: np.ndarray) -> Keyframe:
+        """Keep a frame at camera-to-world ``pose``, observing ``landmark_ids`` (-1 = none) with its keypoints."""
+        keyframe = Keyframe(len(self.keyframes), stamp, xy, depth, descriptors, landmark_ids)
+        self.keyframes.append(keyframe)
+        self.keyframe_poses = np.concatenate([self.keyframe_poses, pose[None]])
+        return keyframe
+
+    def local_keyframes(self, pose: np.ndarray, count: int) -> np.ndarray:
+        """Indices of the latest keyframe and the keyframes nearest to ``pose`` (translation + weighted angle)."""
+        rel = np.einsum("ij,njk->nik", invert_pose(pose), self.keyframe_poses)
+        cos = np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)
+        distance = np.linalg.norm(rel[:, :3, 3], axis=1) + self.conf.keyframe_distance_per_rad * np.arccos(cos)
+        distance[-1] = -1.0  # always keep the latest keyframe
+        return np.argsort(distance, kind="stable")[:count]
+
+    def usable_landmarks(self, keyframe_indices: np.ndarray) -> np.ndarray:
+        """Sorted ids of the landmarks that keyframes ``keyframe_indices`` observe, retired ones left out."""
+        ids = np.unique(np.concatenate([self.keyframes[i].landmark_ids for i in keyframe_indices]))
+        ids = ids[ids >= 0]
+        return ids[~self.landmarks.bad[ids]]
+
+    # ------------------------------------------------------------------ bundle adjustment
+
+    def local_bundle_adjustment(self) -> None:
+        """Refine the latest keyframes and the landmarks they share; keyframes outside the window that see
+        those landmarks are held fixed."""
+        window = np.arange(max(0, len(self.keyframes) - self.conf.ba_window_keyframes), len(self.keyframes))
+        self.bundle_adjust(window, self.conf.ba_max_iterations)
+
+    def final_bundle_adjustment(self) -> None:
+        """Bundle adjustment over every keyframe (at most ``final_ba_max_keyframes`` latest) and the landmarks
+        they see, for the end of a run (``final_ba_iterations``; 0 = off)."""
+        conf = self.conf
+        if conf.final_ba_iterations > 0:
+            first = max(0, len(self.keyframes) - conf.final_ba_max_keyframes)
+            self.bundle_adjust(np.arange(first, len(self.keyframes)), conf.final_ba_iterations)
+
+    def bundle_adjust(self, window: np.ndarray, iterations: int) -> None:
+        """Refine the keyframes in ``window`` and the landmarks they see; other keyframes that see those
+        landmarks are held fixed, and so is the oldest keyframe of any part of the map that has none held (the
+        gauge). Landmarks seen only once move rigidly with their keyframe, and outlying observations are cut
+        from their keyframe."""
+        conf = self.conf
+        landmarks = self.landmarks
+        if len(self.keyframes) < 2:
+            return
+        in_window = np.zeros(len(landmarks), bool)
+        for i in window:
+            ids = self.keyframes[i].landmark_ids
+            in_window[ids[ids >= 0]] = True
+        in_window &= ~landmarks.bad
+        frame_parts, keypoint_parts = [], []  # (keyframe index, keypoint index) of every observation
+        for i, kf in enumerate(self.keyframes):
+            seen = np.flatnonzero((kf.landmark_ids >= 0) & in_window[np.maximum(kf.landmark_ids, 0)])
+            frame_parts.append(np.full(len(seen), i))
+            keypoint_parts.append(seen)
+        obs_frame, obs_keypoint = np.concatenate(frame_parts), np.concatenate(keypoint_parts)
+        obs_landmark = np.concatenate([self.keyframes[i].landmark_ids[k] for i, k in
+                                       zip(range(len(self.keyframes)), keypoint_parts, strict=True)])
+        shared = np.bincount(obs_landmark, minlength=len(landmarks)) >= 2
+        keep = shared[obs_landmark]  # a landmark seen once constrains no pose
+        obs_frame, obs_keypoint, obs_landmark = obs_frame[keep], obs_keypoint[keep], obs_landmark[keep]
+        if len(obs_frame) == 0:
+            return
+        used_frames, obs_pose = np.unique(obs_frame, return_inverse=True)
+        landmark_ids, obs_point = np.unique(obs_landmark, return_inverse=True)
+        fixed = hold_gauge(~np.isin(used_frames, window), obs_pose, obs_point)
+        xy = np.concatenate([self.keyframes[f].xy[obs_keypoint[obs_frame == f]] for f in used_frames])
+        depth = np.concatenate([self.keyframes[f].depth[obs_keypoint[obs_frame == f]] for f in used_frames])
+        order = np.argsort(obs_frame, kind="stable")  # xy and depth were gathered frame by frame
+        obs_pose, obs_point, obs_frame, obs_keypoint = obs_pose[order], obs_point[order], obs_frame[order], \
+            obs_keypoint[order]
+        poses_cw = invert_pose(self.keyframe_poses[used_frames])
+        result = bundle_adjust(self.K, poses_cw, landmarks.positions[landmark_ids], obs_pose, obs_point, xy, depth,
+                               fixed, conf.depth_noise, conf.huber_px, iterations,
+                               outlier_threshold=2 * conf.ransac_reprojection_px)
+        landmarks.positions[landmark_ids] = result.points_w
+        for j, f in enumerate(used_frames):
+            if fixed[j]:
+                continue
+            kf = self.keyframes[f]
+            new_pose = invert_pose(result.poses_cw[j])
+            alone = kf.landmark_ids[(kf.landmark_ids >= 0)]
+            alone = alone[~shared[alone]]
+            landmarks.positions[alone] = transform_points(new_pose @ invert_pose(self.keyframe_poses[f]),
+                                                          landmarks.positions[alone])
+            self.keyframe_poses[f] = new_pose
+        for f in np.unique(obs_frame[result.outliers]):
+            cut = obs_keypoint[result.outliers & (obs_frame == f)]
+            self.keyframes[f].landmark_ids[cut] = -1
+
+
+def hold_gauge(fixed: np.ndarray, obs_pose: np.ndarray, obs_point: np.ndarray) -> np.ndarray:
+    """``fixed`` (P,) with the first pose of every connected part of the problem held where that part holds
+    none: poses joined by shared points form a part, and a part with nothing fixed could drift freely (a map
+    restarted after a long loss shares no landmark with the one before)."""
+    n_poses = len(fixed)
+    n_nodes = n_poses + int(obs_point.max()) + 1
+    graph = coo_matrix((np.ones(len(obs_pose)), (obs_pose, n_poses + obs_point)), shape=(n_nodes, n_nodes))
+    _, part = connected_components(graph, directed=False)
+    fixed = fixed.copy()
+    for label in np.unique(part[:n_poses]):
+        members = np.flatnonzero(part[:n_poses] == label)
+        if not fixed[members].any():
+            fixed[members[0]] = True
+    return fixed

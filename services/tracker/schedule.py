@@ -1,0 +1,52 @@
+"""The one interface of the tracker room: a :class:`Schedule` takes frames and gives poses, whichever schedule it
+is. ``twohr run``, the live view and the tracker service hold a Schedule and never ask which one."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from twohr.config import PipelineConfig
+from twohr.dataset import CameraIntrinsics, Frame
+from twohr.trajectory import Trajectory
+
+from .every_frame import EveryFrameSchedule
+from .keyframes import KeyframePipeline
+from .stages import FrameStats, KeyframeLog, Stages
+from .trajectory import TrackResult
+
+
+class Schedule(Protocol):
+    """How the stages and the tracker are run over one camera's frames (``pipeline.mode``)."""
+
+    keyframe_log: list[KeyframeLog]
+    """what each keyframe job cost (empty where keyframes are not built apart from the frames)"""
+    mask: np.ndarray | None
+    """the dynamic mask the latest frame was tracked with"""
+
+    def process(self, frame: Frame) -> tuple[TrackResult, FrameStats]:
+        """The pose of one frame (online: final when returned), and what each stage did with it."""
+
+    def finish(self) -> None:
+        """After the last frame: let running work finish and take its result."""
+
+    def refine(self) -> None:
+        """After :meth:`finish`: bundle adjustment over the whole map, which refines :meth:`trajectory`."""
+
+    def trajectory(self) -> Trajectory:
+        """Every frame's pose, re-attached to the keyframes as bundle adjustment left them, and smoothed."""
+
+    def map_snapshot(self, since: int = -1) -> tuple[int, np.ndarray | None]:
+        """(version, (N, 3) world points of the map); the points are None while the version is ``since``."""
+
+    def close(self) -> None:
+        """Stop any worker threads."""
+
+
+def build_schedule(config: PipelineConfig, camera: CameraIntrinsics, stages: Stages, live: bool = False) -> Schedule:
+    """The schedule that ``config.pipeline.mode`` names, over ``stages``. ``live``: frames come from a camera, so
+    the per-frame path never waits for a keyframe job (a replay from disk may, see ``max_keyframe_lag``)."""
+    if config.pipeline.mode == "keyframes":
+        return KeyframePipeline(config, camera, stages, live=live)
+    return EveryFrameSchedule(config, camera, stages)

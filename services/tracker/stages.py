@@ -1,0 +1,66 @@
+"""What a schedule is given (the :class:`Stages`, where the networks run) and what it reports per frame
+(:class:`FrameStats`) and per keyframe job (:class:`KeyframeLog`)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from twohr.dataset import Frame
+from twohr.features import Keypoints, Matches
+
+
+@dataclass
+class Stages:
+    """Where the networks of a schedule run: in this process (``twohr_services.pipeline.local_stages``) or in the
+    detector, yolo and matcher services, asked over the bus (the tracker service builds those). Every stage takes
+    the :class:`~twohr.dataset.Frame` it works for: a local stage reads its images, a remote one sends its
+    message and names it in the request."""
+
+    detect: Callable[[Frame], Keypoints]
+    """frame -> the frame's 2HR keypoints"""
+    dynamic_mask: Callable[[Frame], tuple[np.ndarray, int]] | None
+    """frame -> (the frame's dynamic mask, True = moving; how many dynamic objects), or None = no masking"""
+    match: Callable[[Frame, np.ndarray, np.ndarray], Matches]
+    """(frame, its descriptors, the map's descriptors) -> Matches"""
+
+
+@dataclass
+class FrameStats:
+    """One row of ``stats.csv``: what each stage did with a frame, and how long it took (ms)."""
+
+    index: int
+    stamp: float
+    status: str
+    keypoints: int
+    kept: int
+    with_depth: int
+    matches: int
+    inliers: int
+    keyframe: bool
+    dynamic_objects: int
+    mask_percent: float
+    ms_detector: float
+    ms_yolo: float
+    ms_tracker: float
+    ms_total: float
+    reason: str = ""
+    mask_age: int = -1
+    """frames since the YOLO detection behind this frame's mask (-1: no mask)"""
+
+
+@dataclass
+class KeyframeLog:
+    """What one keyframe job cost and how late its map arrived (``lag_frames``), for the bench."""
+
+    index: int
+    status: str
+    keyframe: bool
+    keypoints: int
+    kept: int
+    ms_detector: float
+    ms_yolo: float
+    ms_mapping: float
+    lag_frames: int = 0

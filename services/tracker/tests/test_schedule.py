@@ -1,0 +1,76 @@
+"""The tracker room's interfaces: one Schedule whichever the mode, one Map that owns the keyframe poses, and the
+motion model's correction by a late keyframe job."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twohr.config import load_config
+from twohr.dataset import RGBDSequence
+from twohr.evaluation import evaluate, static_trajectory
+from twohr.geometry import make_pose
+from twohr_services.pipeline import local_stages
+from twohr_services.tracker.every_frame import EveryFrameSchedule
+from twohr_services.tracker.keyframes import KeyframePipeline
+from twohr_services.tracker.map import Map
+from twohr_services.tracker.motion import MotionModel
+from twohr_services.tracker.schedule import Schedule, build_schedule
+
+SCHEDULE_MEMBERS = [name for name in dir(Schedule) if not name.startswith("_")] + ["keyframe_log", "mask"]
+
+
+@pytest.mark.parametrize(("mode", "kind"), [("keyframes", KeyframePipeline), ("every_frame", EveryFrameSchedule)])
+def test_both_schedules_answer_the_same_interface(static_synthetic_sequence, mode, kind):
+    """Each mode's schedule tracks synthetic frames through the Schedule interface alone: poses near the truth,
+    a map that grows with a new version, and a refined trajectory of every frame."""
+    sequence = RGBDSequence(static_synthetic_sequence)
+    config = load_config(None, {"detector.features": "orb", "yolo.enabled": False, "matcher.method": "mutual_nn",
+                                "pipeline.synchronous": True, "pipeline.mode": mode, "tracker.depth_noise": 0.005})
+    schedule = build_schedule(config, sequence.camera, local_stages(config, sequence.camera))
+    assert isinstance(schedule, kind)
+    assert all(hasattr(schedule, name) for name in SCHEDULE_MEMBERS), SCHEDULE_MEMBERS
+    version, points = schedule.map_snapshot()
+    results = [schedule.process(frame)[0] for frame in sequence.frames(0, 20)]
+    schedule.finish()
+    later, points = schedule.map_snapshot(since=version)
+    assert later != version and len(points) > 50
+    assert schedule.map_snapshot(since=later) == (later, None)
+    schedule.refine()
+    trajectory = schedule.trajectory()
+    assert len(trajectory) == len(results) == 20
+    report, _ = evaluate(sequence.ground_truth(), trajectory)
+    static, _ = evaluate(sequence.ground_truth(), static_trajectory(trajectory.stamps))
+    assert report.matched == 20 and report.ate.rmse < 0.015 and report.ate.rmse < static.ate.rmse / 5, (
+        report.ate.rmse, static.ate.rmse)
+
+
+def test_a_snapshot_is_a_copy_and_keyframes_hold_no_pose(synthetic_sequence):
+    sequence = RGBDSequence(synthetic_sequence)
+    world = Map(sequence.camera, load_config().tracker)
+    keyframe = world.add_keyframe(0.0, np.eye(4), np.zeros((3, 2)), np.ones(3), np.zeros((3, 8)), np.arange(3))
+    world.landmarks.add(np.ones((3, 3)), np.zeros((3, 8)))
+    snapshot = world.snapshot()
+    world.keyframe_poses[0, 0, 3] = 1.0
+    world.landmarks.positions[0] = 5.0
+    assert snapshot.version == 1 and snapshot.keyframe_poses[0, 0, 3] == 0.0
+    assert snapshot.landmark_positions[0, 0] == 1.0
+    assert not hasattr(keyframe, "pose")  # the map's array is the only copy
+
+
+def test_a_late_keyframe_measurement_corrects_a_lost_motion_model():
+    motion = MotionModel()
+    motion.tracked(0.0, np.eye(4))
+    motion.advance(0.0, np.eye(4))
+    for stamp in (0.1, 0.2):
+        motion.coast()
+        motion.advance(stamp, make_pose(np.eye(3), [0.5, 0, 0]))  # coasting off somewhere wrong
+    measured = make_pose(np.eye(3), [0.02, 0, 0])
+    motion.correct(measured, 0.1)  # the keyframe job of frame 0.1 found the camera again
+    assert np.array_equal(motion.last_pose, measured) and motion.lost_frames == 2
+    motion.correct(measured, 0.2)  # ... and of the latest frame: tracked again
+    assert motion.lost_frames == 0 and np.array_equal(motion.good_pose, measured)
+    restart = make_pose(np.eye(3), [1.0, 0, 0])
+    motion.correct(restart, 0.3, new_map=True)
+    assert np.array_equal(motion.last_pose, restart) and motion.last_stamp == 0.3
+    assert np.array_equal(motion.velocity, np.eye(4))

@@ -1,0 +1,156 @@
+"""What the tracker room answers per frame, and the one record of every frame's pose.
+
+:class:`TrackResult` is a tracker's answer for one frame. :class:`AnchoredTrajectory` keeps each frame's pose
+relative to a keyframe (its anchor), so that bundle adjustment's later corrections of the keyframes reach every
+frame; both schedules keep their frames in one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from twohr.config import TrackerConfig
+from twohr.geometry import invert_pose
+from twohr.trajectory import Trajectory, interpolate_poses, smooth_trajectory
+
+#: Statuses whose pose was measured (the others coast on the motion model or wait for a first frame).
+TRACKED_STATUSES = ("init", "tracking", "relocalised", "reinitialised")
+
+
+@dataclass
+class TrackResult:
+    """The tracker's answer for one frame.
+
+    ``pose`` is the 4x4 camera-to-world pose (world = the first keyframe's camera). ``status`` is one of
+    ``uninitialised`` (no map yet; identity pose), ``init`` (this frame started the map), ``tracking``,
+    ``relocalised`` (found again against an earlier keyframe), ``reinitialised`` (a new map started at the
+    coasted pose after a long loss) or ``lost`` (not trackable: the pose is the motion model's
+    prediction). ``reason`` says why in words; ``timings`` are milliseconds per stage.
+    """
+
+    stamp: float
+    pose: np.ndarray
+    status: str
+    num_keypoints: int = 0
+    num_with_depth: int = 0
+    num_matches: int = 0
+    num_inliers: int = 0
+    is_keyframe: bool = False
+    reason: str = ""
+    timings: dict[str, float] = field(default_factory=dict)
+    num_landmarks: int = 0
+    observed_xy: np.ndarray | None = None
+    """(M, 2) keypoints of this frame matched to a landmark (inliers of the pose), when tracked"""
+    observed_landmarks: np.ndarray | None = None
+    """(M,) the landmark id of each of those keypoints"""
+
+    @property
+    def tracked(self) -> bool:
+        """True when the pose was measured from this frame, False when it coasted or there is no map yet."""
+        return self.status in TRACKED_STATUSES
+
+
+def near_any_keyframe(pose: np.ndarray, keyframe_poses: np.ndarray, max_translation: float,
+                      max_rotation_deg: float) -> bool:
+    """True when some keyframe lies within ``max_translation`` metres and ``max_rotation_deg`` of ``pose``."""
+    if len(keyframe_poses) == 0:
+        return False
+    rel = np.einsum("ij,njk->nik", invert_pose(pose), keyframe_poses)
+    moved = np.linalg.norm(rel[:, :3, 3], axis=1)
+    turned = np.degrees(np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    return bool(((moved < max_translation) & (turned < max_rotation_deg)).any())
+
+
+def reattach_to_keyframes(stamps: list[float], anchors: list[int], relative: list[np.ndarray],
+                          keyframe_poses: np.ndarray) -> Trajectory:
+    """Frames' poses from their pose relative to an anchor keyframe (-1 = none: the pose itself) and the
+    keyframes' current poses, so that bundle adjustment's corrections reach every frame."""
+    anchors = np.asarray(anchors, np.int64)
+    base = np.tile(np.eye(4), (len(anchors), 1, 1))
+    base[anchors >= 0] = keyframe_poses[anchors[anchors >= 0]]
+    return Trajectory(np.asarray(stamps), base @ np.asarray(relative).reshape(-1, 4, 4))
+
+
+def bridge_coasted(trajectory: Trajectory, measured: np.ndarray, max_gap_s: float = 3.0) -> Trajectory:
+    """Replace poses that only coasted on the motion model (``measured`` False) by interpolation between
+    the measured poses on either side, for gaps up to ``max_gap_s``: afterwards, the pose found again
+    says more about the gap than the extrapolation did. Gaps at the ends are left as they are."""
+    if measured.all() or measured.sum() < 2:
+        return trajectory
+    known = Trajectory(trajectory.stamps[measured], trajectory.poses[measured])
+    poses, valid = interpolate_poses(known, trajectory.stamps[~measured], max_gap=max_gap_s)
+    out = trajectory.poses.copy()
+    out[np.flatnonzero(~measured)[valid]] = poses[valid]
+    return Trajectory(trajectory.stamps, out)
+
+
+def smoothed(trajectory: Trajectory, conf: TrackerConfig) -> Trajectory:
+    """The refined trajectory under the motion smoother (``smoothing_acceleration``; 0 = as it is). Hand-held
+    and robot cameras move smoothly at camera rate, while each frame's pose carries its own few millimetres of
+    noise: landmarks entering and leaving the tracked set move it (measured on the dev sequence)."""
+    if conf.smoothing_acceleration <= 0:
+        return trajectory
+    return smooth_trajectory(trajectory, conf.smoothing_acceleration, conf.smoothing_angular_acceleration)
+
+
+def online_trajectory(results: Iterable[TrackResult]) -> Trajectory:
+    """The poses as they were estimated, frame by frame (what the tracker publishes live)."""
+    results = list(results)
+    return Trajectory(np.array([r.stamp for r in results]), np.array([r.pose for r in results]).reshape(-1, 4, 4))
+
+
+class AnchoredTrajectory:
+    """Every frame's pose, kept relative to an anchor keyframe so that the keyframes' refinements reach it.
+
+    ``bridge_gaps``: in the refined trajectory, frames that only coasted are interpolated between the measured
+    frames around them (the camera-rate schedule, whose keyframe jobs report a loss late)."""
+
+    def __init__(self, conf: TrackerConfig, bridge_gaps: bool = False) -> None:
+        self.conf = conf
+        self.bridge_gaps = bridge_gaps
+        self.stamps: list[float] = []
+        self.anchors: list[int] = []
+        self.relative: list[np.ndarray] = []
+        self.measured: list[bool] = []  # False where the pose only coasted on the motion model
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def add(self, stamp: float, pose: np.ndarray, measured: bool, anchor: int, keyframe_poses: np.ndarray) -> None:
+        """Record one frame's camera-to-world ``pose``, relative to keyframe ``anchor`` (-1: none yet) as
+        ``keyframe_poses`` has it now."""
+        self.stamps.append(stamp)
+        self.anchors.append(anchor)
+        self.relative.append(pose if anchor < 0 else invert_pose(keyframe_poses[anchor]) @ pose)
+        self.measured.append(measured)
+
+    def attach_to_keyframe(self, stamp: float, keyframe_id: int, measured: bool, keyframe_poses: np.ndarray) -> None:
+        """The frame at ``stamp`` became keyframe ``keyframe_id``: it takes the keyframe's pose (measured from 2HR
+        matches and refined by bundle adjustment since), whatever the per-frame path had reported for it. With
+        ``reanchor_lagging_frames``, the frames recorded while its keyframe job ran follow it: they keep their
+        motion relative to that frame, so the keyframe's correction does not come and go as a spike."""
+        for i in range(len(self.stamps) - 1, -1, -1):
+            if self.stamps[i] == stamp:
+                if self.conf.reanchor_lagging_frames and i + 1 < len(self.stamps):
+                    later = slice(i, len(self.stamps))
+                    absolute = reattach_to_keyframes(self.stamps[later], self.anchors[later],
+                                                     self.relative[later], keyframe_poses).poses
+                    self.relative[i + 1:] = list(invert_pose(absolute[0]) @ absolute[1:])
+                    self.anchors[i + 1:] = [keyframe_id] * (len(self.stamps) - i - 1)
+                self.anchors[i] = keyframe_id
+                self.relative[i] = np.eye(4)
+                self.measured[i] = measured
+                return
+            if self.stamps[i] < stamp:
+                return
+
+    def trajectory(self, keyframe_poses: np.ndarray) -> Trajectory:
+        """Every frame's pose re-attached to its keyframe in ``keyframe_poses`` (as bundle adjustment left them),
+        coasted gaps bridged where asked, then smoothed (:func:`smoothed`)."""
+        trajectory = reattach_to_keyframes(self.stamps, self.anchors, self.relative, keyframe_poses)
+        if self.bridge_gaps:
+            trajectory = bridge_coasted(trajectory, np.asarray(self.measured, bool))
+        return smoothed(trajectory, self.conf)
