@@ -22,7 +22,22 @@ def _bench(args: argparse.Namespace) -> int:
     out = Path(args.out or "runs/bench")
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {}
-    if args.bus:
+    if args.live or args.soak:
+        from . import live
+
+        if args.soak:
+            frames, busy, repeats = int(args.soak * 60 * 30), [args.soak_busy], 1
+        else:
+            frames, busy, repeats = args.frames or 300, [int(b) for b in args.busy.split(",")], args.runs
+        rows = live.live_runs(sequence, frames, busy, repeats, progress=not args.quiet)
+        report["live"] = rows
+        table = live.format_table(rows)
+        if args.soak:
+            report["soak"] = live.soak_summary(rows[0])
+            table += f"\n\nsoak: {json.dumps(report['soak'])}"
+        (out / "live.md").write_text(f"{stamp_line(args.argv)}\n\n{table}\n")
+        print(table)
+    elif args.bus:
         import numpy as np
 
         from twohr.config import merge_overrides
@@ -116,6 +131,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--zenoh-config", default=None, metavar="FILE", help="with --gateway: the Zenoh client config "
                    "(endpoint and credentials) of that system, e.g. the one twohr up writes")
     p.add_argument("--api-token", default=None, help="with --gateway: its HTTP API token")
+    p.add_argument("--live", action="store_true", help="live camera sessions over twohr up (twohr camera --replay "
+                   "at 30 Hz, --frames frames, default 300), --runs times for each count of busy processes in --busy: "
+                   "frames posed and dropped, FPS, frame->pose latency, ATE of the served and online trajectories, "
+                   "every service's RSS")
+    p.add_argument("--busy", default="0,1,2", help="with --live: counts of busy processes beside the stack "
+                   "(python3 -c 'while True: pass'), comma-separated (default 0,1,2)")
+    p.add_argument("--soak", type=float, default=None, metavar="MINUTES",
+                   help="one live camera session on the sequence looped at 30 Hz for MINUTES: every service's RSS "
+                   "every 10 s and the FPS per minute")
+    p.add_argument("--soak-busy", type=int, default=0, help="with --soak: busy processes beside the stack")
     p.add_argument("--rate", type=float, default=1.0,
                    help="with --bus: source speed, 1 = the camera's real rate (30 Hz for the dev sequence), "
                    "0 = as fast as the pipeline answers (at most two frames in flight)")

@@ -50,17 +50,38 @@ class RatePacer:
         self.count += 1
 
 
-def replay_payloads(sequence_dir: str, robot: str, rate: float, frames: int | None, start: int) -> Iterator[bytes]:
-    """Encoded frame messages of a recorded sequence, paced at ``rate`` frames per second."""
+def replay_payloads(sequence_dir: str, robot: str, rate: float, frames: int | None, start: int,
+                    loop: bool = False) -> Iterator[bytes]:
+    """Encoded frame messages of a recorded sequence, paced at ``rate`` frames per second. ``loop`` plays it
+    again and again (for soak runs), each pass stamped after the one before; ``frames`` then counts over all
+    passes. A missing or broken sequence raises :class:`TwohrError` at once, before any frame."""
+    import numpy as np
+
     from twohr.dataset import RGBDSequence
-    from twohr.ros2.convert import LIVE_SESSION
-    from twohr_services.source.core import frame_payloads
 
     sequence = RGBDSequence(sequence_dir)
     if not 0 <= start < len(sequence):
         raise TwohrError(f"--start {start} is outside the sequence's {len(sequence)} frames")
-    items = frame_payloads(sequence, LIVE_SESSION, robot, start=start, max_frames=frames, pace=RatePacer(rate).wait)
-    return (item.payload for item in items)
+    stamps = sequence.stamps[start:]
+    period = float(stamps[-1] - stamps[0]) + (float(np.median(np.diff(stamps))) if len(stamps) > 1 else 1 / 30)
+    return _replay(sequence, robot, RatePacer(rate), frames, start, period if loop else None)
+
+
+def _replay(sequence, robot: str, pacer: RatePacer, frames: int | None, start: int,
+            period: float | None) -> Iterator[bytes]:
+    from twohr.ros2.convert import LIVE_SESSION
+    from twohr_services.source.core import frame_payloads
+
+    sent, offset = 0, 0.0
+    while frames is None or sent < frames:
+        remaining = None if frames is None else frames - sent
+        for item in frame_payloads(sequence, LIVE_SESSION, robot, start=start, max_frames=remaining,
+                                   pace=pacer.wait, stamp_offset=offset):
+            sent += 1
+            yield item.payload
+        if period is None:
+            return
+        offset += period
 
 
 def realsense_payloads(robot: str, width: int, height: int, fps: int, frames: int | None) -> Iterator[bytes]:
@@ -125,7 +146,7 @@ def _camera(args: argparse.Namespace) -> int:
     if args.rate < 0:
         raise TwohrError("--rate must be 0 (as fast as possible) or a frame rate in Hz")
     if args.replay:
-        payloads = replay_payloads(args.replay, args.robot, args.rate, args.frames, args.start)
+        payloads = replay_payloads(args.replay, args.robot, args.rate, args.frames, args.start, args.loop)
     else:
         payloads = realsense_payloads(args.robot, args.width, args.height, args.fps, args.frames)
     session = open_bus(args.zenoh_config, args.router)
@@ -153,6 +174,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "(default 30)")
     p.add_argument("--frames", type=int, default=None, help="stop after N frames (default: all / until Ctrl-C)")
     p.add_argument("--start", type=int, default=0, help="replay from this frame index (default 0)")
+    p.add_argument("--loop", action="store_true", help="replay the sequence again and again, stamps going on in "
+                   "time (for soak runs; stop with --frames or Ctrl-C)")
     p.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh client configuration to open the session "
                    "from (default: connect to $TWOHR_ZENOH_ROUTER or tcp/127.0.0.1:7447)")
     p.add_argument("--router", help="router endpoint to connect to, instead of --zenoh-config")

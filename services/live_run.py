@@ -38,10 +38,10 @@ class PipelineLiveView:
             messages += convert.keypoints(robot, t, result.observed_xy)
         if schedule.mask is not None:
             messages += convert.dynamic_mask(robot, t, schedule.mask)
-        version, points = schedule.map_snapshot(since=self.map_sent)
-        if points is not None and len(points):
-            self.map_sent = version
-            messages += convert.landmarks(robot, t, points)
+        snapshot = schedule.map_snapshot(since=self.map_sent)
+        if snapshot is not None and len(snapshot.points):
+            self.map_sent = snapshot.version
+            messages += convert.landmarks(robot, t, snapshot.points)
         self.view.log(messages)
 
     def close(self) -> None:

@@ -50,7 +50,7 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
     """Every role's grants; ROS 2 keys are granted in ``ros2_domain`` only."""
     ros2 = ros2_keys(ros2_domain)
     # what twohr hands to the outside: camera drivers, other robots, viewers, ROS 2 nodes, `twohr health`
-    client = Grants(publish=_robots("camera") + ros2, subscribe=_robots("pose", "status", "landmarks") + ros2,
+    client = Grants(publish=_robots("camera") + ros2, subscribe=_robots("pose", "path", "status", "landmarks") + ros2,
                     watch_liveliness=True)
     return {
         # every stream: the session table follows poses and statuses, the live view shows the rest
@@ -63,11 +63,11 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
                        serve=_robots("rpc/dynamics")),
         "matcher": Grants(publish=_robots("matches", "status"), subscribe=_robots("control"),
                           serve=_robots("rpc/match")),
-        "tracker": Grants(publish=_robots("pose", "status", "landmarks"),
+        "tracker": Grants(publish=_robots("pose", "path", "status", "landmarks"),
                           subscribe=_robots("control", "frames"),
                           ask=_robots("rpc/detect", "rpc/dynamics", "rpc/match")),
         "recorder": Grants(publish=_robots("status"), subscribe=[f"{PREFIX}/*/*"]),
-        "ros2": Grants(publish=_robots("camera") + ros2, subscribe=_robots("pose", "landmarks") + ros2),
+        "ros2": Grants(publish=_robots("camera") + ros2, subscribe=_robots("pose", "path", "landmarks") + ros2),
         "client": client,
         # a robot's own router linked to this one: it forwards what its clients may do, no more
         "router": client,

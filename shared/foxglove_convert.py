@@ -9,6 +9,7 @@ One converter serves the recorder (MCAP) and the live views (Foxglove WebSocket 
 
 from __future__ import annotations
 
+import collections
 import math
 
 import cv2
@@ -16,7 +17,18 @@ import numpy as np
 from foxglove import messages as fm
 
 from .dataset import CameraIntrinsics
-from .messages import DynamicsMsg, FrameMsg, KeypointsMsg, LandmarksMsg, PoseMsg, decode, split
+from .messages import (
+    DynamicsMsg,
+    FrameMsg,
+    KeypointsMsg,
+    LandmarksMsg,
+    PathMsg,
+    PoseMsg,
+    decode,
+    path_trajectory,
+    split,
+)
+from .trajectory import Trajectory
 
 WORLD = "world"
 TF_TOPIC = "/tf"
@@ -30,14 +42,15 @@ def topics(robot_id: str) -> dict[str, str]:
     return {"image": f"/{robot_id}/camera/image", "keypoints": f"/{robot_id}/camera/keypoints",
             "dynamic_mask": f"/{robot_id}/camera/dynamic_mask",
             "calibration": f"/{robot_id}/camera/calibration", "pose": f"/{robot_id}/pose",
-            "path": f"/{robot_id}/path", "map": f"/{robot_id}/map", "tf": TF_TOPIC}
+            "path": f"/{robot_id}/path", "keyframes": f"/{robot_id}/keyframes",
+            "path_refined": f"/{robot_id}/path_refined", "map": f"/{robot_id}/map", "tf": TF_TOPIC}
 
 
 #: the Foxglove message type of each kind of topic in :func:`topics`
 TOPIC_TYPES: dict[str, type] = {
     "image": fm.CompressedImage, "keypoints": fm.ImageAnnotations, "dynamic_mask": fm.ImageAnnotations,
-    "calibration": fm.CameraCalibration, "pose": fm.PoseInFrame, "path": fm.PosesInFrame, "map": fm.PointCloud,
-    "tf": fm.FrameTransforms,
+    "calibration": fm.CameraCalibration, "pose": fm.PoseInFrame, "path": fm.PosesInFrame,
+    "keyframes": fm.PosesInFrame, "path_refined": fm.PosesInFrame, "map": fm.PointCloud, "tf": fm.FrameTransforms,
 }
 
 
@@ -145,15 +158,19 @@ def image_annotations(stamp: float, keypoints: np.ndarray | None = None,
 
 
 class FoxgloveConverter:
-    """twohr data of any number of robots -> ``(topic, Foxglove message)`` pairs. Keeps each robot's path.
+    """twohr data of any number of robots -> ``(topic, Foxglove message)`` pairs. Keeps each robot's recent path.
 
     ``jpeg_quality`` re-encodes colour images (None passes JPEG bytes through as they arrived);
-    ``path_every`` sends the growing path with every n-th pose (it is O(frames) long)."""
+    ``path_every`` sends the path with every n-th pose: its latest ``path_window`` poses, so that neither the
+    converter's memory nor the messages grow with a session that runs for hours. The corrected keyframes of the
+    tracker's live corrections go on ``keyframes``, and the refined trajectory at a session's end on
+    ``path_refined``."""
 
-    def __init__(self, jpeg_quality: int | None = 80, path_every: int = 10) -> None:
+    def __init__(self, jpeg_quality: int | None = 80, path_every: int = 10, path_window: int = 1800) -> None:
         self.jpeg_quality = jpeg_quality
         self.path_every = max(1, path_every)
-        self.paths: dict[str, tuple[list, list]] = {}
+        self.path_window = max(1, path_window)
+        self.paths: dict[str, tuple[collections.deque, collections.deque, list[int]]] = {}
 
     def reset(self, robot_id: str) -> None:
         """Forget a robot's path (a new session starts)."""
@@ -188,12 +205,22 @@ class FoxgloveConverter:
         names = topics(robot_id)
         out = [(names["pose"], pose_in_frame(stamp, position, orientation)),
                (names["tf"], frame_transforms(stamp, WORLD, camera_frame(robot_id), position, orientation))]
-        positions, orientations = self.paths.setdefault(robot_id, ([], []))
+        positions, orientations, count = self.paths.setdefault(
+            robot_id, (collections.deque(maxlen=self.path_window), collections.deque(maxlen=self.path_window), [0]))
         positions.append(list(position))
         orientations.append(list(orientation))
-        if (len(positions) - 1) % self.path_every == 0:
-            out.append((names["path"], poses_in_frame(stamp, positions, orientations)))
+        count[0] += 1
+        if (count[0] - 1) % self.path_every == 0:
+            out.append((names["path"], poses_in_frame(stamp, list(positions), list(orientations))))
         return out
+
+    def corrected_path(self, robot_id: str, stamp: float, trajectory: Trajectory, final: bool
+                       ) -> list[tuple[str, object]]:
+        """A tracker's corrected path: the keyframes after bundle adjustment (live), or the refined trajectory of
+        every frame (``final``, at the session's end)."""
+        rows = trajectory.to_tum_array()
+        topic = topics(robot_id)["path_refined" if final else "keyframes"]
+        return [(topic, poses_in_frame(stamp, rows[:, 1:4].tolist(), rows[:, 4:8].tolist()))]
 
     def landmarks(self, robot_id: str, stamp: float, points: np.ndarray) -> list[tuple[str, object]]:
         return [(topics(robot_id)["map"], point_cloud(stamp, points))]
@@ -219,4 +246,7 @@ class FoxgloveConverter:
         if isinstance(message, LandmarksMsg):
             _, arrays = decode(payload, only=("points",))
             return self.landmarks(robot, t, arrays["points"])
+        if isinstance(message, PathMsg):
+            _, arrays = decode(payload)
+            return self.corrected_path(robot, t, path_trajectory(arrays), message.final)
         return []

@@ -6,7 +6,7 @@ import re
 
 PREFIX = "twohr"
 #: Data streams every robot publishes.
-STREAMS = ("frames", "keypoints", "dynamics", "matches", "pose", "landmarks", "status")
+STREAMS = ("frames", "keypoints", "dynamics", "matches", "pose", "landmarks", "path", "status")
 #: Control and request keys (not recorded as data streams).
 CONTROL = "control"
 MATCH_QUERY = "rpc/match"

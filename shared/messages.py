@@ -133,6 +133,17 @@ class LandmarksMsg(Message):
     required_arrays: ClassVar[tuple[str, ...]] = ("points",)
 
 
+class PathMsg(Message):
+    """Corrected camera-to-world poses: ``stamps`` (N,) float64 and ``poses`` (N, 7) float64 rows of
+    ``tx ty tz qx qy qz qw``. ``final`` False: a live correction, the keyframes' poses after bundle adjustment
+    (a robot's earlier poses move with their keyframe); True: the refined trajectory of every frame, once the
+    session has ended (final bundle adjustment, re-anchoring, smoothing; ``twohr run``'s ``trajectory.txt``)."""
+
+    schema_name: ClassVar[str] = "twohr.Path"
+    required_arrays: ClassVar[tuple[str, ...]] = ("stamps", "poses")
+    final: bool = False
+
+
 class StatusMsg(Message):
     """Session lifecycle and service health: ``state`` is started, running, finished, stopped or error."""
 
@@ -159,8 +170,8 @@ class ControlMsg(Message):
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.schema_name: cls
-    for cls in (FrameMsg, KeypointsMsg, DynamicsMsg, MatchesMsg, MatchRequestMsg, PoseMsg, LandmarksMsg, StatusMsg,
-                ControlMsg)
+    for cls in (FrameMsg, KeypointsMsg, DynamicsMsg, MatchesMsg, MatchRequestMsg, PoseMsg, LandmarksMsg, PathMsg,
+                StatusMsg, ControlMsg)
 }
 
 
@@ -315,6 +326,23 @@ def received_frame(payload: bytes) -> tuple[FrameMsg, Frame]:
                 "gray": lambda: undistorted(decode_gray(*images["rgb"]), camera),
                 "depth": lambda: depth_in_metres(decode_array(*images["depth"]), camera)}
     return header, Frame(header.frame_index, header.stamp, message=bytes(payload), decoders=decoders)
+
+
+def path_arrays(trajectory: Trajectory) -> dict[str, np.ndarray]:
+    """The arrays of a :class:`PathMsg` for a trajectory."""
+    rows = trajectory.to_tum_array() if len(trajectory) else np.zeros((0, 8))
+    return {"stamps": np.asarray(trajectory.stamps, np.float64), "poses": np.ascontiguousarray(rows[:, 1:])}
+
+
+def path_trajectory(arrays: dict[str, np.ndarray]) -> Trajectory:
+    """The trajectory of a decoded :class:`PathMsg`; :class:`MessageError` when its arrays do not fit."""
+    stamps, rows = np.asarray(arrays["stamps"], np.float64), np.asarray(arrays["poses"], np.float64)
+    if stamps.ndim != 1 or rows.shape != (len(stamps), 7) or not np.isfinite(rows).all() or (
+            len(rows) and np.linalg.norm(rows[:, 3:], axis=1).min() < 1e-9):
+        raise MessageError(f"a path needs stamps (N,) and finite poses (N, 7) with unit quaternions, got "
+                           f"{stamps.shape} and {rows.shape}")
+    poses = [make_pose(quat_to_rot(row[3:]), row[:3]) for row in rows]
+    return Trajectory(stamps, np.array(poses).reshape(-1, 4, 4))
 
 
 def pose_trajectory(poses: list[PoseMsg]) -> Trajectory:

@@ -36,10 +36,17 @@ from .messages import ControlMsg, MessageError, StatusMsg, decode, encode, split
 QueuePolicy = Literal["drop_oldest", "backpressure"]
 #: distinct model configs a service keeps loaded at once (each holds a network); the least recently used goes
 MODEL_CACHE_SIZE = 3
-#: niceness of the stages off the per-frame path (``Service.background``) when they run as programs: on a small
-#: CPU the tracker must get a core the moment a frame arrives, while keyframe, mask and recording work can wait
-#: a few milliseconds (``TWOHR_BACKGROUND_NICE`` overrides it; 0 turns it off)
+#: CPU priority of a service run as a program, by what it does (``Service.priority``; niceness, lower = first):
+#: * ``per_frame`` (the tracker): raised by :data:`PER_FRAME_NICE` (``TWOHR_PER_FRAME_NICE``) where the process may
+#:   (root, or the capability CAP_SYS_NICE), so that a frame's pose goes first on a robot's busy CPU;
+#: * ``keyframe`` (detector, yolo, matcher): normal priority. The map's work takes the same share of the CPU as any
+#:   other process of the robot, never less: at a lower priority, one busy process beside the stack starved the
+#:   keyframe jobs and made a live trajectory six times worse;
+#: * ``background`` (the recorder): lowered by :data:`BACKGROUND_NICE` (``TWOHR_BACKGROUND_NICE``): a recording may
+#:   lag, nothing waits for it.
+PER_FRAME_NICE = -5
 BACKGROUND_NICE = 10
+ServicePriority = Literal["per_frame", "keyframe", "normal", "background"]
 COUNTERS = ("received", "processed", "dropped", "malformed", "ignored", "errors")
 
 
@@ -118,8 +125,8 @@ class Service:
     name = "service"
     #: subscribe to control messages and keep ``session_configs`` (the pipeline stages do)
     follows_sessions = False
-    #: off the per-frame path of a live session: runs at a lower CPU priority (:data:`BACKGROUND_NICE`)
-    background = False
+    #: the CPU priority it takes when run as a program (see :data:`PER_FRAME_NICE`)
+    priority: ServicePriority = "normal"
 
     def __init__(self, bus: BusConfig | None = None, queue_size: int = 8, policy: QueuePolicy = "backpressure") -> None:
         self.bus = bus or BusConfig()
@@ -261,34 +268,53 @@ class Service:
             queryable.undeclare()
             self.session.close()
 
+    def take_priority(self) -> None:
+        """Set this process's CPU priority for its :attr:`priority` (see :data:`PER_FRAME_NICE`)."""
+        if self.priority == "per_frame":
+            nice = nice_from_env("TWOHR_PER_FRAME_NICE", PER_FRAME_NICE, self.log)
+            if not change_priority(nice):
+                self.log.info("running at normal priority: raising it by %d needs root or CAP_SYS_NICE", -nice)
+        elif self.priority == "background":
+            change_priority(nice_from_env("TWOHR_BACKGROUND_NICE", BACKGROUND_NICE, self.log))
+
     def run_forever(self) -> None:
         """Entry point for ``python -m``: stop cleanly on SIGINT and SIGTERM."""
         logging.basicConfig(level=os.environ.get("TWOHR_LOG_LEVEL", "INFO"),
                             format="%(asctime)s %(levelname)s %(name)s: %(message)s")
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: self.stopping.set())
-        if self.background:
-            nice = os.environ.get("TWOHR_BACKGROUND_NICE", str(BACKGROUND_NICE))
-            if nice.strip().isdigit():
-                lower_priority(int(nice))
-            else:
-                self.log.warning("TWOHR_BACKGROUND_NICE=%r is not a whole number >= 0; using %d", nice, BACKGROUND_NICE)
-                lower_priority(BACKGROUND_NICE)
+        self.take_priority()
         self.run(self.stopping)
 
 
-def lower_priority(nice: int) -> None:
-    """Raise this process's niceness by ``nice``, for every thread it has (Linux keeps niceness per thread;
-    threads started later inherit it). Needs no privileges."""
-    if nice <= 0:
-        return
+def nice_from_env(name: str, default: int, log: logging.Logger) -> int:
+    """A niceness change from the environment variable ``name`` (a whole number, may be negative), else ``default``;
+    a value that is no whole number is one warning."""
+    value = os.environ.get(name, str(default)).strip()
+    try:
+        return int(value)
+    except ValueError:
+        log.warning("%s=%r is not a whole number; using %d", name, value, default)
+        return default
+
+
+def change_priority(nice: int) -> bool:
+    """Change this process's niceness by ``nice`` (negative: higher priority), for every thread it has (Linux keeps
+    niceness per thread; threads started later inherit it). Lowering needs no privileges; raising needs root or
+    CAP_SYS_NICE, and returns False where it is not allowed (nothing changes then)."""
+    if nice == 0:
+        return True
     task_dir = "/proc/self/task"
     threads = [int(t) for t in os.listdir(task_dir)] if os.path.isdir(task_dir) else [0]
     for thread in threads:
         try:
-            os.setpriority(os.PRIO_PROCESS, thread, min(19, os.getpriority(os.PRIO_PROCESS, thread) + nice))
+            current = os.getpriority(os.PRIO_PROCESS, thread)
+            os.setpriority(os.PRIO_PROCESS, thread, max(-20, min(19, current + nice)))
+        except PermissionError:
+            return False
         except OSError:
             pass  # a thread that has just ended
+    return True
 
 
 def check_robot(key: str, payload) -> None:

@@ -88,3 +88,40 @@ def test_camera_session_over_ros2_end_to_end(live_stack, dev_sequence, tmp_path)
     print(f"live: {info['frames']} poses of {FRAMES} frames ({info['frames_dropped']} dropped), "
           f"{len(decoded)} PoseStamped decoded, ATE {report.ate.rmse:.4f} m")
     assert report.ate.rmse < 0.05
+
+
+def test_a_busy_process_beside_the_stack_does_not_break_the_map(live_stack, dev_sequence, tmp_path):
+    """A robot's CPU is never idle: with one busy process at normal priority beside the stack on the two cores, the
+    keyframe work must still get its share. The served (refined) trajectory stays near the ground truth; with the
+    keyframe stages below normal priority it was 0.07-0.14 m off (issue 29's measurement)."""
+    frames = 2 * FRAMES
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        with httpx.Client(base_url=live_stack["url"], timeout=60) as client:
+            session_id = client.post("/sessions", json={"source": "camera", "robot_id": "busy1",
+                                                        "record": False}).json()["id"]
+            camera = subprocess.run(
+                [sys.executable, "-m", "twohr_services.cli", "camera", "--replay", str(dev_sequence), "--rate", "30",
+                 "--robot", "busy1", "--zenoh-config", str(live_stack["client_config"]), "--frames", str(frames)],
+                capture_output=True, text=True, timeout=300)
+            assert camera.returncode == 0, camera.stderr
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:
+                info = client.get(f"/sessions/{session_id}").json()
+                if info["frames_sent"] == frames and info["frames"] + info["frames_dropped"] >= frames:
+                    break
+                time.sleep(0.5)
+            client.delete(f"/sessions/{session_id}")
+            served = client.get(f"/sessions/{session_id}/trajectory")
+    finally:
+        busy.kill()
+    assert served.headers["x-twohr-trajectory"] == "refined"
+    (tmp_path / "busy.txt").write_text(served.text)
+    trajectory = read_tum(tmp_path / "busy.txt")
+    sequence = RGBDSequence(dev_sequence)
+    report, _ = evaluate(sequence.ground_truth(sequence.default_gt_extrinsic()), trajectory)
+    print(f"busy: {info['frames']} poses of {frames} frames, health {info['health']} ({info['health_detail']}), "
+          f"ATE {report.ate.rmse:.4f} m")
+    assert info["frames"] >= frames // 2, info
+    # measured here: 0.017-0.022 m; with the keyframe stages below normal priority 0.014-0.071 m (2 of 4 runs over)
+    assert report.ate.rmse < 0.03, report.ate.rmse

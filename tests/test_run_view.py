@@ -25,7 +25,8 @@ def test_twohr_run_view_streams_every_channel(dev_sequence, tmp_path, foxglove_l
     time.sleep(0.2)
     counts = client.counts
     assert set(client.topics()) == {"/run/camera/image", "/run/camera/calibration", "/run/camera/keypoints",
-                                    "/run/camera/dynamic_mask", "/run/pose", "/run/path", "/run/map", "/tf"}
+                                    "/run/camera/dynamic_mask", "/run/pose", "/run/path", "/run/keyframes",
+                                    "/run/path_refined", "/run/map", "/tf"}
     for topic in ("/run/camera/image", "/run/camera/calibration", "/run/pose", "/tf"):
         assert counts.get(topic) == 90, (topic, counts)
     assert counts["/run/path"] == 18 and 1 <= counts["/run/map"] < 90, counts

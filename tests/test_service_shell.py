@@ -1,5 +1,6 @@
 """The service shell on a real Zenoh router: queues, counters, health, malformed input."""
 
+import os
 import threading
 import time
 
@@ -125,9 +126,10 @@ def test_control_and_queries_are_never_dropped_with_frames():
     assert counters.dropped == 3
 
 
-def test_background_stages_run_at_lower_cpu_priority():
-    """Off the per-frame path (detector, yolo, matcher, recorder) a service lowers its priority for every thread
-    it has, including threads that started before; the per-frame stages keep theirs."""
+def test_services_take_their_cpu_priority_for_every_thread():
+    """Each service takes the CPU priority of its work: the tracker first, the keyframe stages at a normal
+    priority, the recorder lower. A change reaches every thread the process has, including threads that started
+    before, and threads started later inherit it."""
     import subprocess
     import sys
 
@@ -138,14 +140,16 @@ def test_background_stages_run_at_lower_cpu_priority():
     from twohr_services.tracker.service import TrackerService
     from twohr_services.yolo.service import YoloService
 
-    assert all(cls.background for cls in (DetectorService, YoloService, MatcherService, RecorderService))
-    assert not any(cls.background for cls in (TrackerService, SourceService))
+    # the map's work is never below a normal process of the robot: a busy process must not starve it
+    assert [cls.priority for cls in (DetectorService, YoloService, MatcherService)] == ["keyframe"] * 3
+    assert TrackerService.priority == "per_frame" and RecorderService.priority == "background"
+    assert SourceService.priority == "normal"
     script = (
         "import os, threading, time\n"
-        "from twohr.service import lower_priority\n"
+        "from twohr.service import change_priority\n"
         "stop = threading.Event(); early = threading.Thread(target=stop.wait); early.start()\n"
         "base = os.getpriority(os.PRIO_PROCESS, 0)\n"
-        "lower_priority(7)\n"
+        "change_priority(7)\n"
         "late = []\n"
         "t = threading.Thread(target=lambda: late.append(os.getpriority(os.PRIO_PROCESS, 0)))\n"
         "t.start(); t.join()\n"
@@ -154,3 +158,18 @@ def test_background_stages_run_at_lower_cpu_priority():
     )
     base, main, early, late = map(int, subprocess.check_output([sys.executable, "-c", script], text=True).split())
     assert (main, early, late) == (min(19, base + 7),) * 3
+
+
+def test_the_per_frame_path_is_raised_where_the_process_may():
+    """Raising priority needs root or CAP_SYS_NICE: with it every thread is raised, without it nothing changes
+    and the call says so."""
+    import subprocess
+    import sys
+
+    script = ("import os\nfrom twohr.service import change_priority\n"
+              "base = os.getpriority(os.PRIO_PROCESS, 0)\nok = change_priority(-3)\n"
+              "print(base, os.getpriority(os.PRIO_PROCESS, 0), int(ok))\n")
+    base, after, ok = map(int, subprocess.check_output([sys.executable, "-c", script], text=True).split())
+    may_raise = os.geteuid() == 0
+    assert bool(ok) == may_raise
+    assert after == (max(-20, base - 3) if may_raise else base)

@@ -78,8 +78,12 @@ def test_post_session_streams_every_pose_and_matches_twohr_run(system, dev_seque
             session_id = response.json()["id"]
             info = wait_finished(client, session_id)
             assert info["state"] == "finished" and info["frames"] == FRAMES, info
-            assert info["ate_rmse"] is not None
-            trajectory_text = client.get(f"/sessions/{session_id}/trajectory").text
+            served_response = client.get(f"/sessions/{session_id}/trajectory")
+            online_response = client.get(f"/sessions/{session_id}/trajectory", params={"online": True})
+            assert served_response.headers["x-twohr-trajectory"] == "refined"
+            assert online_response.headers["x-twohr-trajectory"] == "online"
+            info = client.get(f"/sessions/{session_id}").json()
+            assert info["trajectory"] == "refined" and info["ate_rmse"] is not None and info["ate_rmse_online"]
             recording = client.get(f"/sessions/{session_id}/recording")
             assert recording.status_code == 200
     finally:
@@ -90,17 +94,19 @@ def test_post_session_streams_every_pose_and_matches_twohr_run(system, dev_seque
     assert sorted(p.frame_index for p in received) == list(range(FRAMES))
     assert all(k == "twohr/robot_a/pose" for k, p in listener.poses if p.session_id == session_id)
 
-    # the same frames and config in one process give the same trajectory
+    # the same frames and config in one process give the same trajectories: online, and refined at the end
     local = run_sequence(RGBDSequence(dev_sequence), load_config(None, OVERRIDES), stop=FRAMES, progress=False)
-    (tmp_path / "served.txt").write_text(trajectory_text)
-    served = read_tum(tmp_path / "served.txt")
-    assert np.allclose(served.stamps, local.online.stamps)
-    assert np.abs(served.positions - local.online.positions).max() < 1e-6
+    for response, expected in ((online_response, local.online), (served_response, local.trajectory)):
+        (tmp_path / "served.txt").write_text(response.text)
+        served = read_tum(tmp_path / "served.txt")
+        assert np.allclose(served.stamps, expected.stamps)
+        assert np.abs(served.positions - expected.positions).max() < 1e-6
 
     (tmp_path / "rec.mcap").write_bytes(recording.content)
     counts = topic_counts(tmp_path / "rec.mcap")
     for stream in ("keypoints", "dynamics", "pose"):
         assert counts[f"/twohr/robot_a/{stream}"] == FRAMES, (stream, counts)
+    assert counts["/robot_a/path_refined"] == 1  # the refined trajectory, after the session's stop
     assert counts["/twohr/robot_a/matches"] >= FRAMES - 1
     assert counts["/robot_a/camera/image"] == FRAMES and counts["/tf"] == FRAMES
 

@@ -25,7 +25,7 @@ class DetectorService(Service):
     """2HR keypoints with the detector config of the frame's session."""
 
     name = "detector"
-    background = True  # keyframe work: the tracker goes first
+    priority = "keyframe"  # the map's work: an equal share of the CPU, never less
     follows_sessions = True
 
     def __init__(self, bus=None) -> None:

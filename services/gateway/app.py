@@ -68,6 +68,8 @@ class GatewaySettings(BaseModel):
                                 "for this long is finished")
     start_timeout: float = Field(180.0, gt=0, description="a session with no pose this long after its start fails")
     stall_timeout: float = Field(45.0, gt=0, description="a running session with no pose for this long fails")
+    refine_timeout: float = Field(30.0, gt=0, description="after a session ends, how long its refined trajectory "
+                                  "(from the tracker) is waited for before the online poses are served instead")
     keep_ended: int = Field(200, ge=1, description="ended sessions kept in the table (the oldest are forgotten)")
     max_request_bytes: int = Field(256 * 1024, ge=1024, description="larger request bodies get 413")
     foxglove_host: str = Field("127.0.0.1", description="interface of the Foxglove live view")
@@ -143,7 +145,10 @@ def create_app(settings: GatewaySettings) -> FastAPI:
             fps=round(session.fps(), 3),
             latest_pose=PoseOut(frame_index=latest.frame_index, stamp=latest.stamp, position=latest.position,
                                 orientation=latest.orientation, status=latest.status) if latest else None,
-            ate_rmse=session.ate_rmse, record=session.request.record,
+            ate_rmse=session.ate_rmse, ate_rmse_online=session.ate_rmse_online,
+            trajectory="online" if session.refined is None else "refined", corrections=session.corrections,
+            health=session.health, health_detail=session.health_detail,
+            record=session.request.record,
             recording=f"/sessions/{session.id}/recording" if recording.is_file() else None,
         )
 
@@ -207,10 +212,20 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         return info(session)
 
     @app.get("/sessions/{session_id}/trajectory", response_class=PlainTextResponse,
-             dependencies=[Depends(require_token)], responses=errors(401, 404))
-    def trajectory(session_id: str) -> str:
-        """The session's trajectory so far, in TUM format (camera-to-world)."""
-        return tum_text(lookup(session_id).trajectory())
+             dependencies=[Depends(require_token)], responses=errors(401, 404, 422))
+    async def trajectory(session_id: str, online: bool = False) -> PlainTextResponse:
+        """The session's trajectory in TUM format (camera-to-world). Once the session has ended: the refined
+        trajectory the tracker sends then (final bundle adjustment, re-anchoring, smoothing), waited for a few
+        seconds if it is not in yet; while it runs, or with ``online=true``: the poses as published. The header
+        ``X-Twohr-Trajectory`` says which (``refined`` or ``online``)."""
+        session = lookup(session_id)
+        while not online and session.refined is None and session.refined_due is not None and (
+                time.time() < session.refined_due) and "tracker" in bus.alive:
+            await asyncio.sleep(0.1)
+        refined = None if online else session.refined
+        trajectory = session.trajectory() if refined is None else refined
+        return PlainTextResponse(tum_text(trajectory),
+                                 headers={"X-Twohr-Trajectory": "online" if refined is None else "refined"})
 
     @app.get("/sessions/{session_id}/recording", dependencies=[Depends(require_token)],
              responses={200: {"content": {"application/octet-stream": {}},
@@ -224,9 +239,12 @@ def create_app(settings: GatewaySettings) -> FastAPI:
             raise HTTPException(status.HTTP_404_NOT_FOUND, "this session was not recorded")
         if session.state in ACTIVE:
             raise HTTPException(status.HTTP_409_CONFLICT, "the recording is finalised when the session ends")
-        deadline = time.monotonic() + 10
-        while not is_finalised(path) and time.monotonic() < deadline:
-            await asyncio.sleep(0.1)  # the recorder finalises the file when it sees the session's stop message
+        started = time.monotonic()
+        # the recorder finalises the file once the session's refined path is in (or no longer expected): a file it
+        # has opened is waited for that long, a file that is not there at all 10 s
+        while not is_finalised(path) and time.monotonic() - started < (
+                10 + settings.refine_timeout if path.is_file() else 10):
+            await asyncio.sleep(0.1)
         if not path.is_file():
             raise HTTPException(status.HTTP_404_NOT_FOUND, "no recording found (is the recorder running?)")
         if not is_finalised(path):

@@ -16,7 +16,7 @@ from twohr.config import PipelineConfig
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
 from twohr.evaluation import evaluate
-from twohr.messages import ControlMsg, MessageError, PoseMsg, StatusMsg, decode, encode
+from twohr.messages import ControlMsg, MessageError, PathMsg, PoseMsg, StatusMsg, decode, encode, path_trajectory
 from twohr.service import declare_publisher
 
 from .live import BusLiveView
@@ -48,6 +48,7 @@ class GatewayBus:
         self._subscribers = [
             self.session.declare_subscriber(keys.all_robots("pose"), self._decoded(PoseMsg, self.table.on_pose)),
             self.session.declare_subscriber(keys.all_robots("status"), self._decoded(StatusMsg, self._on_status)),
+            self.session.declare_subscriber(keys.all_robots("path"), self._on_path),
             self.session.liveliness().declare_subscriber(f"{keys.ALIVE_PREFIX}/*", self._on_liveliness,
                                                          history=True)]
         if self.settings.foxglove_port:
@@ -71,8 +72,11 @@ class GatewayBus:
         return [name for name in SERVICES if name not in self.alive]
 
     def send_control(self, session: Session, command: str, config: PipelineConfig | None = None) -> None:
-        """Publish a start or stop of ``session`` on ``twohr/<robot>/control``."""
+        """Publish a start or stop of ``session`` on ``twohr/<robot>/control``. After a stop, the tracker sends the
+        refined trajectory of a session that has poses: it is waited for up to ``refine_timeout``."""
         req = session.request
+        if command == "stop" and session.poses:
+            session.refined_due = time.time() + self.settings.refine_timeout
         control = ControlMsg(session_id=session.id, robot_id=req.robot_id, frame_index=-1, stamp=time.time(),
                              command=command, sequence=str(session.folder or ""), rate=req.rate,
                              max_frames=req.max_frames, record=req.record, record_descriptors=req.record_descriptors,
@@ -97,6 +101,37 @@ class GatewayBus:
             handle(message)
         return callback
 
+    def _on_path(self, sample) -> None:
+        """A path from the tracker: a live correction is counted; the final, refined trajectory is kept and
+        scored."""
+        try:
+            message, arrays = decode(sample.payload.to_bytes(), PathMsg)
+            robot, _ = keys.parse(sample.key_expr)
+            if robot != message.robot_id:
+                raise MessageError(f"a message for robot {message.robot_id!r} on {sample.key_expr}")
+            trajectory = path_trajectory(arrays)
+        except (MessageError, ValueError) as exc:
+            log.warning("dropped a path on %s: %s", sample.key_expr, exc)
+            return
+        session = self.table.on_path(message, trajectory)
+        if session is not None:
+            self._score(session)
+
+    def _score(self, session: Session) -> None:
+        """The ATE of the online poses and, once it is in, of the refined trajectory (when ground truth exists)."""
+        try:
+            if session.folder is None:
+                raise TwohrError("a camera session has no ground truth")
+            seq = RGBDSequence(session.folder)
+            if not seq.has_ground_truth() or len(session.poses) < 3:
+                return
+            gt = seq.ground_truth(seq.default_gt_extrinsic())
+            session.ate_rmse_online = evaluate(gt, session.trajectory())[0].ate.rmse
+            served = session.refined if session.refined is not None and len(session.refined) >= 3 else None
+            session.ate_rmse = session.ate_rmse_online if served is None else evaluate(gt, served)[0].ate.rmse
+        except (TwohrError, ValueError) as exc:
+            session.detail = f"no ATE: {exc}"
+
     def _fail(self, session: Session) -> None:
         log.warning("session %s failed: %s", session.id, session.detail)
         self.send_control(session, "stop")
@@ -117,15 +152,7 @@ class GatewayBus:
                 self._fail(session)
 
     def _finish(self, session: Session) -> None:
-        try:
-            if session.folder is None:
-                raise TwohrError("a camera session has no ground truth")
-            seq = RGBDSequence(session.folder)
-            if seq.has_ground_truth() and len(session.poses) >= 3:
-                report, _ = evaluate(seq.ground_truth(seq.default_gt_extrinsic()), session.trajectory())
-                session.ate_rmse = report.ate.rmse
-        except (TwohrError, ValueError) as exc:
-            session.detail = f"no ATE: {exc}"
+        self._score(session)
         self.send_control(session, "stop")
         session.state = "finished"
 

@@ -19,7 +19,7 @@ from twohr.messages import ControlMsg, MessageError, decode
 
 log = logging.getLogger("twohr.gateway.live")
 
-STREAMS = ("frames", "keypoints", "dynamics", "pose", "landmarks")
+STREAMS = ("frames", "keypoints", "dynamics", "pose", "landmarks", "path")
 
 
 class BusLiveView:

@@ -12,7 +12,7 @@ import numpy as np
 from pydantic import BaseModel, Field, model_validator
 
 from twohr.geometry import make_pose, quat_to_rot
-from twohr.messages import ID_PATTERN, PoseMsg, StatusMsg
+from twohr.messages import ID_PATTERN, PathMsg, PoseMsg, StatusMsg
 from twohr.trajectory import Trajectory
 
 SessionState = Literal["starting", "running", "finished", "stopped", "failed"]
@@ -77,7 +77,16 @@ class SessionInfo(BaseModel):
                                        "it has ended, a camera session as it goes")
     fps: float = 0.0
     latest_pose: PoseOut | None = None
-    ate_rmse: float | None = Field(None, description="ATE RMSE in metres (SE(3), 0.02 s) when ground truth exists")
+    ate_rmse: float | None = Field(None, description="ATE RMSE in metres (SE(3), 0.02 s) of the served trajectory "
+                                   "(`trajectory`), when ground truth exists")
+    ate_rmse_online: float | None = Field(None, description="ATE RMSE of the poses as published (online)")
+    trajectory: Literal["online", "refined"] = Field(
+        "online", description="what GET .../trajectory serves: 'online' (the poses as published) until the tracker "
+        "sends the refined trajectory after the session ends, then 'refined'")
+    corrections: int = Field(0, description="live corrections received: keyframe poses after bundle adjustment")
+    health: Literal["ok", "degraded"] = Field("ok", description="the tracker's word on a live session: 'degraded' "
+                                              "when it drops frames or its keyframe jobs come back late")
+    health_detail: str = Field("", description="why, with the figures: frames dropped, keyframe lag, CPU per frame")
     record: bool
     recording: str | None = None
 
@@ -98,7 +107,15 @@ class Session:
     started_at: float = field(default_factory=time.time)
     source_done_at: float | None = None
     ate_rmse: float | None = None
+    ate_rmse_online: float | None = None
     finalising: bool = False
+    refined: Trajectory | None = None
+    """the refined trajectory the tracker sent when the session ended"""
+    refined_due: float | None = None
+    """until when the refined trajectory is worth waiting for (set when the session's stop is sent)"""
+    corrections: int = 0
+    health: Literal["ok", "degraded"] = "ok"
+    health_detail: str = ""
 
     def trajectory(self) -> Trajectory:
         ordered = sorted(self.poses, key=lambda p: p.frame_index)
@@ -143,6 +160,18 @@ class SessionTable:
             if session.state == "starting":
                 session.state = "running"
 
+    def on_path(self, path: PathMsg, trajectory: Trajectory) -> Session | None:
+        """A corrected path from the tracker; returns the session when it is the final, refined trajectory."""
+        with self.lock:
+            session = self.sessions.get(path.session_id)
+            if session is None or session.request.robot_id != path.robot_id:
+                return None
+            if not path.final:
+                session.corrections += 1
+                return None
+            session.refined = trajectory
+            return session
+
     def on_status(self, status: StatusMsg) -> Session | None:
         """Follow a session's status; returns the session if this status failed it (a service reported an error)."""
         with self.lock:
@@ -152,6 +181,9 @@ class SessionTable:
             if status.state == "error":
                 session.state, session.detail = "failed", status.detail or f"the {status.service} service failed"
                 return session
+            if status.service == "tracker" and status.state in ("ok", "degraded"):
+                session.health, session.health_detail = status.state, status.detail
+                return None
             if status.service != "source":
                 return None
             if status.state == "relaying":

@@ -25,7 +25,7 @@ class MatcherService(Service):
     """Siamese (or baseline) matching as a query/reply service, with each session's matcher config."""
 
     name = "matcher"
-    background = True  # keyframe matching: the tracker goes first
+    priority = "keyframe"  # the map's work: an equal share of the CPU, never less
     follows_sessions = True
 
     def __init__(self, bus=None) -> None:

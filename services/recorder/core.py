@@ -29,7 +29,17 @@ from pydantic import BaseModel, Field
 from twohr import keys
 from twohr.errors import TwohrError
 from twohr.foxglove_convert import FoxgloveConverter
-from twohr.messages import FrameMsg, KeypointsMsg, PoseMsg, decode, encode, pose_trajectory, split
+from twohr.messages import (
+    FrameMsg,
+    KeypointsMsg,
+    PathMsg,
+    PoseMsg,
+    decode,
+    encode,
+    path_trajectory,
+    pose_trajectory,
+    split,
+)
 from twohr.trajectory import Trajectory
 
 WIRE_ENCODING = "twohr"
@@ -138,17 +148,24 @@ def topic_counts(path: str | Path) -> dict[str, int]:
     return counts
 
 
-def recorded_trajectory(path: str | Path, robot_id: str | None = None) -> Trajectory:
-    """The poses of a recording (its ``twohr.Pose`` messages) as a camera-to-world trajectory, ordered by frame.
-    ``robot_id`` picks one robot where a file holds several."""
+def recorded_trajectory(path: str | Path, robot_id: str | None = None, online: bool = False) -> Trajectory:
+    """A recording's trajectory, camera-to-world: the refined one the tracker sent when the session ended (its final
+    ``twohr.Path``) where the file has it and ``online`` is False, else the poses as published (its ``twohr.Pose``
+    messages, ordered by frame). ``robot_id`` picks one robot where a file holds several."""
     poses: dict[str, list[PoseMsg]] = {}
+    refined: dict[str, Trajectory] = {}
     for topic, data, _ in read_messages(path):
         if topic.startswith("/twohr/") and topic.endswith("/pose"):
             pose, _ = decode(data, PoseMsg)
             poses.setdefault(pose.robot_id, []).append(pose)
+        elif topic.startswith("/twohr/") and topic.endswith("/path") and not online:
+            message, arrays = decode(data, PathMsg)
+            if message.final:
+                refined[message.robot_id] = path_trajectory(arrays)
     if robot_id is not None:
         poses = {robot_id: poses.get(robot_id, [])}
     if len(poses) != 1 or not next(iter(poses.values())):
         found = ", ".join(sorted(poses)) or "none"
         raise TwohrError(f"{path}: need the poses of exactly one robot (found: {found}); pick one with --robot")
-    return pose_trajectory(next(iter(poses.values())))
+    robot, robot_poses = next(iter(poses.items()))
+    return refined[robot] if robot in refined else pose_trajectory(robot_poses)

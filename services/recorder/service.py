@@ -1,9 +1,10 @@
 """The recorder service: every stream of every recorded session into ``<recordings>/<session>.mcap``.
 
-A session's file opens on its ``start`` control message (when ``record`` is true) and is
-finalised on ``stop``. Files of sessions still open when the service exits are finalised too.
-A session's file stops growing at ``max_session_bytes`` (it is finalised there, and the session's
-status says so). At start, files that a killed recorder left unfinalised are recovered
+A session's file opens on its ``start`` control message (when ``record`` is true) and is finalised after
+``stop``: once the tracker's refined trajectory (the final ``path``) is in, for a session that has poses (at
+most ``final_path_wait`` seconds later), otherwise after a short grace. Files of sessions still open when the
+service exits are finalised too. A session's file stops growing at ``max_session_bytes`` (it is finalised there,
+and the session's status says so). At start, files that a killed recorder left unfinalised are recovered
 (``twohr.mcapfile.recover``): their readable prefix is re-indexed and marked partial.
 """
 
@@ -17,7 +18,7 @@ from pathlib import Path
 from twohr import keys
 from twohr.bus import BusConfig
 from twohr.mcapfile import recover
-from twohr.messages import ControlMsg, decode, split
+from twohr.messages import ControlMsg, PathMsg, decode, split
 from twohr.service import Service
 
 from .core import RecordingOptions, SessionRecorder
@@ -25,15 +26,17 @@ from .core import RecordingOptions, SessionRecorder
 
 class RecorderService(Service):
     name = "recorder"
-    background = True  # recording can lag a little: the tracker goes first
+    priority = "background"  # recording can lag a little; nothing waits for it
 
     def __init__(self, bus: BusConfig | None = None, recordings: Path = Path("recordings"),
-                 grace: float = 1.0, options: RecordingOptions | None = None, max_session_bytes: int = 4 << 30
-                 ) -> None:
+                 grace: float = 1.0, options: RecordingOptions | None = None, max_session_bytes: int = 4 << 30,
+                 final_path_wait: float = 30.0) -> None:
         super().__init__(bus, queue_size=256, policy="backpressure")
         self.recordings = recordings
         self.options = options or RecordingOptions()
         self.grace = grace
+        self.final_path_wait = final_path_wait
+        self.posed: set[str] = set()  # open sessions with a pose recorded: the tracker will send a final path
         self.max_session_bytes = max_session_bytes
         self.open: dict[str, SessionRecorder] = {}
         self.closing: dict[str, float] = {}
@@ -62,14 +65,20 @@ class RecorderService(Service):
             recorder = self.open.get(control.session_id)
             if recorder is not None:
                 recorder.write(key, payload, now)
-            if control.command == "stop":
-                # messages on other keys may still be in flight (Zenoh orders per key, not across keys)
-                self.closing[control.session_id] = time.monotonic() + self.grace
+            if control.command == "stop" and recorder is not None:
+                # messages on other keys may still be in flight (Zenoh orders per key, not across keys), and the
+                # refined trajectory comes after the stop
+                wait = self.final_path_wait if control.session_id in self.posed else self.grace
+                self.closing[control.session_id] = time.monotonic() + wait
             return
         message, _ = split(payload)
         recorder = self.open.get(message.session_id)
         if recorder is not None:
             recorder.write(key, payload, now)
+            if stream == "pose":
+                self.posed.add(message.session_id)
+            elif isinstance(message, PathMsg) and message.final and message.session_id in self.closing:
+                self.closing[message.session_id] = time.monotonic() + self.grace
             if recorder.file.tell() > self.max_session_bytes:
                 self.log.warning("session %s reached %d bytes: its recording ends here", message.session_id,
                                  self.max_session_bytes)
@@ -85,6 +94,7 @@ class RecorderService(Service):
 
     def _close(self, session_id: str) -> None:
         self.closing.pop(session_id, None)
+        self.posed.discard(session_id)
         recorder = self.open.pop(session_id, None)
         if recorder is not None:
             recorder.close()

@@ -26,7 +26,7 @@ from twohr import keys
 from twohr.bus import BusConfig
 from twohr.config import read_yaml_mapping
 from twohr.errors import ConfigError, validation_problems
-from twohr.messages import PoseMsg, decode, encode
+from twohr.messages import PathMsg, PoseMsg, decode, encode, path_trajectory
 from twohr.ros2 import msgs
 from twohr.ros2.config import Ros2Config
 from twohr.ros2.convert import CameraAssembler, PoseOutputs
@@ -95,7 +95,7 @@ class Ros2Service(Service):
                 self.inputs[prefix] = (role, cls)
 
     def subscriptions(self) -> list[str]:
-        return [keys.all_robots("pose")] + [prefix + "*" for prefix in self.inputs]
+        return [keys.all_robots("pose"), keys.all_robots("path")] + [prefix + "*" for prefix in self.inputs]
 
     def _node(self, namespace: str) -> RosNode:
         if namespace not in self.nodes:
@@ -114,9 +114,14 @@ class Ros2Service(Service):
 
     def handle(self, key: str, payload: bytes) -> None:
         if key.startswith(keys.PREFIX + "/"):
-            pose, _ = decode(payload, PoseMsg)
-            node = self._node(self.config.robot_namespace(pose.robot_id))
-            for topic, message in self.outputs.messages(pose):
+            if key.endswith("/path"):
+                path, arrays = decode(payload, PathMsg)
+                robot, outputs = path.robot_id, self.outputs.corrections(path, path_trajectory(arrays))
+            else:
+                pose, _ = decode(payload, PoseMsg)
+                robot, outputs = pose.robot_id, self.outputs.messages(pose)
+            node = self._node(self.config.robot_namespace(robot))
+            for topic, message in outputs:
                 node.publish(topic, message)
                 self.published[message.ros_type] = self.published.get(message.ros_type, 0) + 1
             return

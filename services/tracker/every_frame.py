@@ -14,7 +14,7 @@ from twohr.features import drop_masked
 from twohr.trajectory import Trajectory
 
 from .core import Tracker
-from .map import Map
+from .map import Map, MapSnapshot
 from .stages import FrameStats, KeyframeLog, Stages
 from .trajectory import AnchoredTrajectory, TrackResult
 
@@ -54,11 +54,9 @@ class EveryFrameSchedule:
         )
         return result, stats
 
-    def map_snapshot(self, since: int = -1) -> tuple[int, np.ndarray | None]:
-        """(version, (N, 3) world points of the usable landmarks); the points are None while the version (the
-        number of keyframes) is still ``since``."""
-        version = self.map.version
-        return version, None if version == since else self.map.landmarks.good_positions()
+    def map_snapshot(self, since: int = -1) -> MapSnapshot | None:
+        """A copy of the map, or None while its version (the number of keyframes) is still ``since``."""
+        return None if self.map.version == since else self.map.snapshot()
 
     def finish(self) -> None:
         """Nothing runs apart from the frames: nothing to wait for."""

@@ -23,12 +23,13 @@ import numpy as np
 from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics, Frame
 from twohr.features import drop_masked
+from twohr.messages import MessageError
 from twohr.trajectory import Trajectory
 from twohr.workers import Worker
 
 from .core import Tracker
 from .flow import FrameTracker, MapUpdate
-from .map import Map
+from .map import Map, MapSnapshot
 from .stages import FrameStats, KeyframeLog, Stages
 from .trajectory import AnchoredTrajectory, TrackResult
 
@@ -107,7 +108,6 @@ class KeyframePipeline:
         self._last_index = 0
         self._job_index = 0  # the frame of the latest keyframe job
         self._anchor = -1  # the latest keyframe taken: new frames' poses are kept relative to it
-        self._map_version = 0  # counts the map updates taken; a live view sends the map again when it changes
 
     def _dynamic_mask(self, frame: Frame) -> tuple[int, np.ndarray, int]:
         """YOLO worker: the dynamic mask of one frame (the frames after it reuse it, see :meth:`_mask`)."""
@@ -118,10 +118,13 @@ class KeyframePipeline:
         counted, and the per-frame path goes on without it."""
         try:
             return worker.wait() if wait else worker.poll()
+        except (MessageError, TimeoutError) as exc:  # a stage behind the bus failed or is gone: no traceback
+            self.worker_errors += 1
+            log.warning("the %s worker's job failed (%s); going on without its result", worker.name, exc)
         except Exception:
             self.worker_errors += 1
             log.exception("the %s worker failed; going on without its result", worker.name)
-            return None
+        return None
 
     def _take(self, update: MapUpdate | None, index: int) -> None:
         if update is None:
@@ -131,7 +134,6 @@ class KeyframePipeline:
             self._anchor = update.keyframe_id
             self.record.attach_to_keyframe(update.stamp, update.keyframe_id, update.result.tracked,
                                            update.snapshot.keyframe_poses)
-        self._map_version += 1
         t = update.timings
         self.keyframe_log.append(KeyframeLog(update.frame_index, update.result.status, update.keyframe_id >= 0,
                                              int(t["keypoints"]), int(t["kept"]), t["detector"], t["yolo"],
@@ -204,12 +206,10 @@ class KeyframePipeline:
         )
         return result, stats
 
-    def map_snapshot(self, since: int = -1) -> tuple[int, np.ndarray | None]:
-        """(version, (N, 3) world points of the usable landmarks) as of the latest map update taken; the points
-        are None while the version is still ``since``."""
-        if self._map_version == since:
-            return since, None
-        return self._map_version, self.frames.landmarks[self.frames.usable]
+    def map_snapshot(self, since: int = -1) -> MapSnapshot | None:
+        """The map as of the latest keyframe job taken, or None while its version is still ``since``."""
+        snapshot = self.frames.snapshot
+        return None if snapshot.version == since else snapshot
 
     def finish(self) -> None:
         """Let the mapping worker finish its job (its bundle adjustment refines the trajectory), then stop."""

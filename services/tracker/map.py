@@ -84,10 +84,17 @@ class MapSnapshot:
     """(L,) False for landmarks retired as outliers"""
     keyframe_poses: np.ndarray
     """(K, 4, 4) camera-to-world poses of all keyframes"""
+    keyframe_stamps: np.ndarray
+    """(K,) the keyframes' frame stamps"""
 
     @classmethod
     def empty(cls) -> MapSnapshot:
-        return cls(0, np.zeros((0, 3)), np.zeros(0, bool), np.zeros((0, 4, 4)))
+        return cls(0, np.zeros((0, 3)), np.zeros(0, bool), np.zeros((0, 4, 4)), np.zeros(0))
+
+    @property
+    def points(self) -> np.ndarray:
+        """(N, 3) world positions of the usable landmarks."""
+        return self.landmark_positions[self.landmark_usable]
 
 
 class Map:
@@ -114,7 +121,7 @@ class Map:
     def snapshot(self) -> MapSnapshot:
         """A copy of the landmark positions and keyframe poses, for a reader on another thread."""
         return MapSnapshot(self.version, self.landmarks.positions.copy(), ~self.landmarks.bad,
-                           self.keyframe_poses.copy())
+                           self.keyframe_poses.copy(), np.array([kf.stamp for kf in self.keyframes]))
 
     def add_keyframe(self, stamp: float, pose: np.ndarray, xy: np.ndarray, depth: np.ndarray,
                      descriptors: np.ndarray, landmark_ids: np.ndarray) -> Keyframe:

@@ -13,6 +13,7 @@ from twohr.trajectory import Trajectory
 
 from .every_frame import EveryFrameSchedule
 from .keyframes import KeyframePipeline
+from .map import MapSnapshot
 from .stages import FrameStats, KeyframeLog, Stages
 from .trajectory import TrackResult
 
@@ -37,8 +38,9 @@ class Schedule(Protocol):
     def trajectory(self) -> Trajectory:
         """Every frame's pose, re-attached to the keyframes as bundle adjustment left them, and smoothed."""
 
-    def map_snapshot(self, since: int = -1) -> tuple[int, np.ndarray | None]:
-        """(version, (N, 3) world points of the map); the points are None while the version is ``since``."""
+    def map_snapshot(self, since: int = -1) -> MapSnapshot | None:
+        """A copy of the map (landmarks, keyframe poses and stamps) as the per-frame path has it, or None while
+        its version (the number of keyframes) is still ``since``."""
 
     def close(self) -> None:
         """Stop any worker threads."""

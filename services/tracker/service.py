@@ -6,13 +6,17 @@ It feeds every frame of ``frames`` to the session's :class:`~.schedule.Schedule`
 schedule those are asked only for keyframes and every few frames' masks, from worker threads, so a pose never
 waits for a network; in ``every_frame`` they are asked for every frame, in turn.
 
-A session's trajectory over the bus is the poses as published (online); it is not refined after the session.
+Live corrections: whenever a keyframe changes the map, the keyframes' poses after bundle adjustment go out on
+``twohr/<robot>/path`` (``PathMsg``, ``final`` False). When a session ends, its refined trajectory of every frame
+(final bundle adjustment, re-anchoring, smoothing, as ``twohr run`` writes ``trajectory.txt``) goes out on the same
+key with ``final`` True; the gateway serves it as the session's trajectory.
 """
 
 from __future__ import annotations
 
+import collections
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import zenoh
@@ -30,16 +34,25 @@ from twohr.messages import (
     MatchesMsg,
     MatchRequestMsg,
     MessageError,
+    PathMsg,
     PoseMsg,
     decode,
     encode,
+    path_arrays,
     received_frame,
 )
 from twohr.service import Service, serve
+from twohr.trajectory import Trajectory
 
 from .schedule import Schedule, build_schedule
 from .stages import FrameStats, Stages
 from .trajectory import TrackResult
+
+#: a live session is ``degraded`` when, over its latest HEALTH_WINDOW frames, more than DEGRADED_DROPPED_PERCENT
+#: were dropped, or when its latest keyframe job came back more than DEGRADED_KEYFRAME_LAG frames late
+HEALTH_WINDOW = 90
+DEGRADED_DROPPED_PERCENT = 10
+DEGRADED_KEYFRAME_LAG = 30
 
 
 class RemoteStage:
@@ -89,13 +102,48 @@ class RemoteMatcher:
 
 
 @dataclass
+class SessionHealth:
+    """A live session's health over its latest frames: how many were dropped, how late the latest keyframe job came
+    back, and the tracker's CPU time per frame (every thread: flow, and the keyframe jobs' mapping)."""
+
+    frames: collections.deque = field(default_factory=lambda: collections.deque(maxlen=HEALTH_WINDOW))
+    state: str = "ok"
+    cpu_at: float = field(default_factory=time.process_time)
+    seen: int = 0  # frames seen, dropped ones included
+    reported_at: int = 0  # ``seen`` when the state was last reported
+
+    def add(self, dropped: bool) -> None:
+        self.seen += 1
+        cpu = time.process_time()
+        self.frames.append((dropped, 0.0 if dropped else (cpu - self.cpu_at) * 1000))
+        self.cpu_at = cpu
+
+    def verdict(self, keyframe_lag: int) -> tuple[str, str, dict[str, int]]:
+        """(``ok`` or ``degraded``, why in words, the figures)."""
+        dropped = sum(d for d, _ in self.frames)
+        tracked = [ms for d, ms in self.frames if not d]
+        cpu_ms = float(np.mean(tracked)) if tracked else 0.0
+        figures = {"dropped_percent": round(100 * dropped / max(1, len(self.frames))), "keyframe_lag": keyframe_lag,
+                   "cpu_ms_per_frame": round(cpu_ms)}
+        why = [f"{figures['dropped_percent']} % of the latest {len(self.frames)} frames dropped"
+               if figures["dropped_percent"] > DEGRADED_DROPPED_PERCENT else "",
+               f"keyframe job {keyframe_lag} frames late" if keyframe_lag > DEGRADED_KEYFRAME_LAG else ""]
+        why = [w for w in why if w]
+        detail = "; ".join(why) if why else "keeping up"
+        return ("degraded" if why else "ok"), f"{detail} (CPU {cpu_ms:.0f} ms per frame)", figures
+
+
+@dataclass
 class SessionTrack:
     """One session's schedule and what the adapter counts for it."""
 
     schedule: Schedule
+    last_header: FrameMsg
+    """the latest frame's header (the session's robot, and the frame a final path is stamped with)"""
     dropped: int = 0  # frames dropped because newer ones were waiting
     skipped: int = 0  # of them, in a row since the last tracked frame
     map_sent: int = -1  # the map version last published on ``landmarks``
+    health: SessionHealth = field(default_factory=SessionHealth)
 
 
 class TrackerService(Service):
@@ -103,6 +151,7 @@ class TrackerService(Service):
 
     name = "tracker"
     follows_sessions = True
+    priority = "per_frame"  # a frame's pose goes first
 
     def __init__(self, bus=None) -> None:
         super().__init__(bus, queue_size=64, policy="backpressure")
@@ -113,10 +162,22 @@ class TrackerService(Service):
         return [keys.all_robots("frames")]
 
     def on_session_stop(self, session_id: str) -> None:
+        """The session ended: its refined trajectory (after the keyframe work left, the final bundle adjustment,
+        re-anchoring and smoothing, as ``twohr run`` makes it) goes out on ``path`` as the final path."""
         self.paced.pop(session_id, None)
         track = self.tracks.pop(session_id, None)
-        if track is not None:
+        if track is None:
+            return
+        try:
+            track.schedule.finish()
+            track.schedule.refine()
+            refined = track.schedule.trajectory()
+        finally:
             track.schedule.close()
+        header = track.last_header
+        message = PathMsg(session_id=session_id, robot_id=header.robot_id, frame_index=header.frame_index,
+                          stamp=header.stamp, final=True)
+        self.publish(keys.key(header.robot_id, "path"), encode(message, path_arrays(refined)))
 
     def _track_for(self, header: FrameMsg) -> SessionTrack:
         """The session's schedule, built on its first frame (the camera intrinsics come with the frames)."""
@@ -127,7 +188,8 @@ class TrackerService(Service):
                             RemoteStage(self.session, robot_id, keys.DYNAMICS_QUERY, _dynamics_reply)
                             if config.yolo.enabled else None,
                             RemoteMatcher(self.session, robot_id, header.session_id))
-            self.tracks[header.session_id] = SessionTrack(build_schedule(config, header.camera, stages, live=True))
+            self.tracks[header.session_id] = SessionTrack(build_schedule(config, header.camera, stages, live=True),
+                                                          header)
         return self.tracks[header.session_id]
 
     def handle(self, key: str, payload: bytes) -> None:
@@ -144,22 +206,43 @@ class TrackerService(Service):
             self.counters.add("dropped")
             track.dropped += 1
             track.skipped += 1
+            track.health.add(dropped=True)
+            self._report_health(track, header)
             return
         track.skipped = 0
+        track.last_header = header
         _, frame = received_frame(payload)
         result, stats = track.schedule.process(frame)
+        track.health.add(dropped=False)
         self._publish_pose(header, result, stats)
         self._publish_map(track, header)
+        self._report_health(track, header)
+
+    def _report_health(self, track: SessionTrack, header: FrameMsg) -> None:
+        """``degraded`` (and why) or ``ok`` on the session's status, when it changes and every window while
+        degraded."""
+        log = track.schedule.keyframe_log
+        state, detail, figures = track.health.verdict(log[-1].lag_frames if log else 0)
+        health = track.health
+        if state == health.state and (state == "ok" or health.seen - health.reported_at < HEALTH_WINDOW):
+            return
+        health.state, health.reported_at = state, health.seen
+        self.report(header, state, detail, **figures)
 
     def _publish_map(self, track: SessionTrack, header: FrameMsg) -> None:
-        """The map points on ``landmarks``, whenever a keyframe has changed the map."""
-        version, points = track.schedule.map_snapshot(since=track.map_sent)
-        if points is None or not len(points):
+        """Whenever a keyframe has changed the map: its points on ``landmarks``, and the keyframes' poses after
+        bundle adjustment on ``path`` (a live correction: the robot's earlier poses move with their keyframe)."""
+        snapshot = track.schedule.map_snapshot(since=track.map_sent)
+        if snapshot is None:
             return
-        track.map_sent = version
-        message = LandmarksMsg(session_id=header.session_id, robot_id=header.robot_id, frame_index=header.frame_index,
-                               stamp=header.stamp)
-        self.publish(keys.key(header.robot_id, "landmarks"), encode(message, {"points": points.astype(np.float32)}))
+        track.map_sent = snapshot.version
+        ids = dict(session_id=header.session_id, robot_id=header.robot_id, frame_index=header.frame_index,
+                   stamp=header.stamp)
+        if len(snapshot.points):
+            self.publish(keys.key(header.robot_id, "landmarks"),
+                         encode(LandmarksMsg(**ids), {"points": snapshot.points.astype(np.float32)}))
+        keyframes = Trajectory(snapshot.keyframe_stamps, snapshot.keyframe_poses)
+        self.publish(keys.key(header.robot_id, "path"), encode(PathMsg(**ids, final=False), path_arrays(keyframes)))
 
     def _publish_pose(self, header: FrameMsg, result: TrackResult, stats: FrameStats) -> None:
         pose = PoseMsg(session_id=header.session_id, robot_id=header.robot_id, frame_index=header.frame_index,
@@ -171,7 +254,9 @@ class TrackerService(Service):
         self.publish(keys.key(header.robot_id, "pose"), encode(pose))
 
     def on_session_start(self, control: ControlMsg) -> None:
-        self.on_session_stop(control.session_id)
+        stale = self.tracks.pop(control.session_id, None)  # a start repeated: begin again
+        if stale is not None:
+            stale.schedule.close()
         # paced by the camera (a real-rate replay or a live camera): the source never waits for poses
         self.paced[control.session_id] = control.rate > 0 or not control.sequence
 

@@ -26,7 +26,7 @@ class YoloService(Service):
     """Dynamic-object masks; one stateful masker per session."""
 
     name = "yolo"
-    background = True  # masks arrive a little later: the tracker goes first
+    priority = "keyframe"  # the map's work: an equal share of the CPU, never less
     follows_sessions = True
 
     def __init__(self, bus=None) -> None:

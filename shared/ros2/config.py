@@ -48,6 +48,9 @@ class Ros2Config(BaseModel):
     odom_topic: str = "odom"
     tf_topic: str = "tf"
     path_topic: str = "path"
+    corrected_topic: str = Field("path_corrected", description="nav_msgs/Path of the tracker's corrections: the "
+                                 "keyframes after bundle adjustment while the session runs, then the refined "
+                                 "trajectory of every frame when it ends")
     path_every: int = Field(10, ge=1, description="publish the Path at keyframes and at least every N poses")
     path_max_poses: int = Field(10_000, ge=1, description="oldest Path poses are dropped beyond this")
     camera_input: Ros2CameraInput | None = Field(None, description="a live ROS 2 camera to relay into twohr")
@@ -59,7 +62,7 @@ class Ros2Config(BaseModel):
             raise ValueError(f"invalid frame id {value!r}")
         return value
 
-    @field_validator("namespace", "pose_topic", "odom_topic", "tf_topic", "path_topic")
+    @field_validator("namespace", "pose_topic", "odom_topic", "tf_topic", "path_topic", "corrected_topic")
     @classmethod
     def _name(cls, value: str) -> str:
         qualified_name(value.replace("{robot}", "robot"), "x")

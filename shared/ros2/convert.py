@@ -13,7 +13,8 @@ import cv2
 import numpy as np
 
 from ..dataset import CameraIntrinsics
-from ..messages import FrameMsg, MessageError, PoseMsg
+from ..messages import FrameMsg, MessageError, PathMsg, PoseMsg
+from ..trajectory import Trajectory
 from . import msgs
 from .config import Ros2CameraInput, Ros2Config
 
@@ -81,6 +82,18 @@ class PoseOutputs:
         if path is not None:
             out.append((topics[msgs.Path], path))
         return out
+
+    def corrections(self, path: PathMsg, trajectory: Trajectory) -> list[tuple[str, msgs.Path]]:
+        """A corrected path from the tracker (keyframes after bundle adjustment, or the refined trajectory at the
+        session's end) as one nav_msgs/Path on ``corrected_topic``."""
+        robot = path.robot_id
+        map_frame = self.config.frame(robot, self.config.map_frame)
+        rows = trajectory.to_tum_array() if len(trajectory) else np.zeros((0, 8))
+        poses = [msgs.PoseStamped(header=_header(float(r[0]), map_frame), pose=msgs.Pose(
+            position=msgs.Point(x=r[1], y=r[2], z=r[3]), orientation=msgs.Quaternion(x=r[4], y=r[5], z=r[6], w=r[7])))
+            for r in rows if np.isfinite(r).all()]
+        topic = self.config.topic(robot, self.config.corrected_topic)
+        return [(topic, msgs.Path(header=_header(path.stamp, map_frame), poses=poses))]
 
     def _path(self, robot: str, pose: PoseMsg, stamped: msgs.PoseStamped) -> msgs.Path | None:
         state = self.paths.get(robot)

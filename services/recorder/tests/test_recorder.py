@@ -18,9 +18,19 @@ from twohr import keys
 from twohr.bus import open_session, wait_for_services
 from twohr.dataset import RGBDSequence
 from twohr.geometry import rot_to_quat
-from twohr.messages import ControlMsg, DynamicsMsg, KeypointsMsg, LandmarksMsg, PoseMsg, decode, encode
+from twohr.messages import (
+    ControlMsg,
+    DynamicsMsg,
+    KeypointsMsg,
+    LandmarksMsg,
+    PathMsg,
+    PoseMsg,
+    decode,
+    encode,
+    path_arrays,
+)
 from twohr.service import declare_publisher
-from twohr.trajectory import write_tum
+from twohr.trajectory import Trajectory, write_tum
 from twohr_services.recorder.core import (
     RecordingOptions,
     SessionRecorder,
@@ -195,12 +205,19 @@ def test_recorder_service_over_the_bus(bus_config, dev_sequence, tmp_path):
             assert time.time() < deadline, service.counters
             time.sleep(0.1)
         control.put(encode(start.model_copy(update={"command": "stop"})))
+        time.sleep(2 * service.grace)
+        assert "sess2" in service.open  # a session with poses: the tracker's refined path is waited for
+        refined = Trajectory(np.array([0.0, 0.1]), np.stack([np.eye(4), np.eye(4)]))
+        path = PathMsg(session_id="sess2", robot_id="r1", frame_index=3, stamp=0.1, final=True)
+        declare_publisher(client, "twohr/r1/path").put(encode(path, path_arrays(refined)))
         while "sess2" in service.open:
             assert time.time() < deadline, service.counters
             time.sleep(0.1)
         counts = topic_counts(tmp_path / "sess2.mcap")
         assert counts["/r1/camera/image"] == 4 and counts["/twohr/r1/pose"] == 4 and "/twohr/r1/frames" not in counts
-        assert counts["/twohr/r1/control"] == 2
+        assert counts["/twohr/r1/control"] == 2 and counts["/twohr/r1/path"] == 1 and counts["/r1/path_refined"] == 1
+        np.testing.assert_allclose(recorded_trajectory(tmp_path / "sess2.mcap").poses, refined.poses)
+        assert len(recorded_trajectory(tmp_path / "sess2.mcap", online=True)) == 4
         assert service.counters.malformed == 1
     finally:
         stop.set()

@@ -94,6 +94,30 @@ def test_poses_become_ros2_samples_that_rosbags_decodes(ros2_service):
     assert len(camera_subscriptions) == 4
 
 
+def test_corrected_paths_become_a_nav_msgs_path(ros2_service):
+    """The tracker's corrections (keyframes after bundle adjustment, then the refined trajectory) reach ROS 2 as
+    nav_msgs/Path on <namespace>/path_corrected, decodable by rosbags, in the map frame."""
+    from twohr.messages import PathMsg, path_arrays
+    from twohr.trajectory import Trajectory
+
+    _, client = ros2_service
+    samples = []
+    key = topic_key(0, "/live2/path_corrected", msgs.Path)
+    subscriber = client.declare_subscriber(key, lambda s: samples.append(s.payload.to_bytes()))
+    publisher = declare_publisher(client, keys.key("live2", "path"))
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[:, 0, 3] = [0.0, 0.1, 0.25]
+    corrected = Trajectory(np.array([10.0, 10.5, 11.0]), poses)
+    for final in (False, True):
+        message = PathMsg(session_id="s2", robot_id="live2", frame_index=30, stamp=11.0, final=final)
+        publisher.put(encode(message, path_arrays(corrected)))
+    assert wait_until(lambda: len(samples) >= 2)
+    subscriber.undeclare()
+    decoded = [TYPESTORE.deserialize_cdr(payload, "nav_msgs/msg/Path") for payload in samples]
+    assert [[p.pose.position.x for p in m.poses] for m in decoded] == [pytest.approx([0.0, 0.1, 0.25])] * 2
+    assert decoded[0].header.frame_id == "map" and decoded[0].poses[1].header.stamp.nanosec == 500_000_000
+
+
 def test_ros2_camera_images_become_twohr_frames(ros2_service, dev_sequence):
     _, client = ros2_service
     received = []

@@ -30,12 +30,13 @@ def test_both_schedules_answer_the_same_interface(static_synthetic_sequence, mod
     schedule = build_schedule(config, sequence.camera, local_stages(config, sequence.camera))
     assert isinstance(schedule, kind)
     assert all(hasattr(schedule, name) for name in SCHEDULE_MEMBERS), SCHEDULE_MEMBERS
-    version, points = schedule.map_snapshot()
+    first = schedule.map_snapshot()
     results = [schedule.process(frame)[0] for frame in sequence.frames(0, 20)]
     schedule.finish()
-    later, points = schedule.map_snapshot(since=version)
-    assert later != version and len(points) > 50
-    assert schedule.map_snapshot(since=later) == (later, None)
+    later = schedule.map_snapshot(since=first.version)
+    assert later.version > first.version and len(later.points) > 50
+    assert len(later.keyframe_stamps) == len(later.keyframe_poses) == later.version
+    assert schedule.map_snapshot(since=later.version) is None
     schedule.refine()
     trajectory = schedule.trajectory()
     assert len(trajectory) == len(results) == 20
@@ -53,7 +54,7 @@ def test_a_snapshot_is_a_copy_and_keyframes_hold_no_pose(synthetic_sequence):
     snapshot = world.snapshot()
     world.keyframe_poses[0, 0, 3] = 1.0
     world.landmarks.positions[0] = 5.0
-    assert snapshot.version == 1 and snapshot.keyframe_poses[0, 0, 3] == 0.0
+    assert snapshot.version == 1 and snapshot.keyframe_poses[0, 0, 3] == 0.0 and list(snapshot.keyframe_stamps) == [0.0]
     assert snapshot.landmark_positions[0, 0] == 1.0
     assert not hasattr(keyframe, "pose")  # the map's array is the only copy
 

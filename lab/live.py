@@ -1,0 +1,198 @@
+"""Live camera sessions under field conditions: the camera check with busy processes beside it, and soak runs.
+
+``twohr bench --live`` starts ``twohr up`` (local processes, ROS 2 bridge on), then for each count of busy processes
+(``--busy 0,1,2``: ``python3 -c 'while True: pass'`` beside the stack) runs a camera session fed by ``twohr camera
+--replay SEQ --rate 30`` for ``--frames`` frames, ends it with DELETE, downloads the trajectory it serves (refined)
+and the online one, and scores both. ``twohr bench --soak MINUTES`` runs one camera session on the sequence looped
+at 30 Hz and samples every service's RSS and the session's FPS as it goes.
+
+Per session it reports frames posed, dropped, FPS, frame->pose latency p50/p99 (pose received minus the frame's
+send time), the ATE of the served and the online trajectory (SE(3), 0.02 s, camera-frame GT), the session's health
+as its status said, and each service's RSS.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+#: a busy process of the robot's own (its navigation stack, a browser): one core's worth of work at normal priority
+BUSY_LOOP = "while True: pass"
+
+
+def rss_mib(pid: int) -> float | None:
+    """Resident memory of a process in MiB (None once it has gone)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        return None
+    return None
+
+
+@dataclass
+class PoseLog:
+    """Poses of one robot as they arrive: frame index, receive time and the frame's send time."""
+
+    received: list[tuple[int, float, float]] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def __call__(self, sample) -> None:
+        from twohr.messages import PoseMsg, decode
+
+        pose, _ = decode(sample.payload.to_bytes(), PoseMsg)
+        with self.lock:
+            self.received.append((pose.frame_index, time.time(), pose.frame_sent_at))
+
+    def latency_ms(self) -> np.ndarray:
+        with self.lock:
+            return np.array([(r - s) * 1000 for _, r, s in self.received if s > 0])
+
+
+def _busy(count: int) -> list[subprocess.Popen]:
+    return [subprocess.Popen([sys.executable, "-c", BUSY_LOOP]) for _ in range(count)]
+
+
+def _score(sequence, text: str) -> float | None:
+    from twohr.evaluation import evaluate
+    from twohr.trajectory import read_tum
+
+    with tempfile.NamedTemporaryFile("w", suffix=".txt", delete=False) as handle:
+        handle.write(text)
+    try:
+        trajectory = read_tum(handle.name)
+        if len(trajectory) < 3:
+            return None
+        extrinsic = sequence.default_gt_extrinsic()
+        return round(float(evaluate(sequence.ground_truth(extrinsic), trajectory, gt_extrinsic=extrinsic)[0].ate.rmse),
+                     4)
+    finally:
+        os.unlink(handle.name)
+
+
+def camera_session(system, client_config: Path, url: str, sequence, robot: str, frames: int, busy: int,
+                   sample_every_s: float = 10.0, progress: bool = True) -> dict:
+    """One live camera session with ``busy`` busy processes beside the stack; see the module docstring."""
+    import httpx
+
+    from twohr import keys
+    from twohr.bus import BusConfig, open_session
+
+    looped = frames > len(sequence)
+    poses = PoseLog()
+    observer = open_session(BusConfig(config_file=client_config))
+    subscriber = observer.declare_subscriber(keys.key(robot, "pose"), poses)
+    hogs = _busy(busy)
+    rss: dict[str, list[tuple[float, float]]] = {}
+    try:
+        with httpx.Client(base_url=url, timeout=60) as client:
+            response = client.post("/sessions", json={"source": "camera", "robot_id": robot, "record": False})
+            response.raise_for_status()
+            session_id = response.json()["id"]
+            camera = subprocess.Popen(
+                [sys.executable, "-m", "twohr_services.cli", "camera", "--replay", str(sequence.root), "--rate", "30",
+                 "--robot", robot, "--zenoh-config", str(client_config), "--frames", str(frames),
+                 *(["--loop"] if looped else [])], stdout=subprocess.DEVNULL)
+            t0 = time.monotonic()
+            next_sample = t0
+            while camera.poll() is None:
+                if time.monotonic() >= next_sample:
+                    for child in system.group.children:
+                        value = rss_mib(child.proc.pid)
+                        if value is not None:
+                            rss.setdefault(child.name, []).append((round(time.monotonic() - t0, 1), round(value, 1)))
+                    next_sample += sample_every_s
+                    if progress:
+                        print(f"  {robot}: {len(poses.received)} poses after {time.monotonic() - t0:.0f} s",
+                              flush=True)
+                time.sleep(0.2)
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:  # until the last frames' poses are in
+                info = client.get(f"/sessions/{session_id}").json()
+                if info["frames_sent"] == frames and info["frames"] + (info["frames_dropped"] or 0) >= frames:
+                    break
+                time.sleep(0.5)
+            info = client.get(f"/sessions/{session_id}").json()
+            client.delete(f"/sessions/{session_id}")
+            served = client.get(f"/sessions/{session_id}/trajectory")
+            online = client.get(f"/sessions/{session_id}/trajectory", params={"online": True})
+    finally:
+        for hog in hogs:
+            hog.kill()
+        subscriber.undeclare()
+        observer.close()
+    latency = poses.latency_ms()
+    stamps = np.array([r for _, r, _ in poses.received])
+    row = {"busy_processes": busy, "frames": frames, "posed": info["frames"], "dropped": info["frames_dropped"],
+           "posed_percent": round(100 * info["frames"] / frames, 1), "fps": info["fps"],
+           "latency_ms_p50": round(float(np.percentile(latency, 50)), 1) if len(latency) else None,
+           "latency_ms_p99": round(float(np.percentile(latency, 99)), 1) if len(latency) else None,
+           "health": info.get("health"), "health_detail": info.get("health_detail"),
+           "served": served.headers.get("x-twohr-trajectory"),
+           "ate_served": None if looped else _score(sequence, served.text),
+           "ate_online": None if looped else _score(sequence, online.text), "rss_mib": rss}
+    if looped and len(stamps) > 1:
+        minutes = (stamps - stamps[0]) / 60
+        per_minute = np.bincount(minutes.astype(int))
+        row["fps_per_minute"] = [round(n / 60, 2) for n in per_minute[:-1]]  # the last minute is partial
+    return row
+
+
+def live_runs(sequence, frames: int, busy_counts: list[int], repeats: int, progress: bool = True) -> list[dict]:
+    """Start ``twohr up`` once and run :func:`camera_session` ``repeats`` times per busy count."""
+    from twohr.access import write_client_config
+    from twohr.bus import free_port
+    from twohr_services.launcher_cli import start_system
+
+    router, port = f"tcp/127.0.0.1:{free_port()}", free_port()
+    with tempfile.TemporaryDirectory(prefix="twohr-live-") as scratch:
+        system = start_system(router, [str(sequence.root.parent)], str(Path(scratch) / "recordings"), "127.0.0.1",
+                              port, timeout=300, ros2_domain=0)
+        try:
+            config = write_client_config(Path(scratch) / "C.json5", router, system.credentials)
+            rows = []
+            for busy in busy_counts:
+                for repeat in range(repeats):
+                    if progress:
+                        print(f"camera session: {frames} frames, {busy} busy process(es), run {repeat + 1}",
+                              flush=True)
+                    rows.append(camera_session(system, config, f"http://127.0.0.1:{port}", sequence,
+                                               f"live{busy}x{repeat}", frames, busy, progress=progress))
+            return rows
+        finally:
+            system.stop()
+
+
+def format_table(rows: list[dict]) -> str:
+    """The sessions as a Markdown table."""
+    lines = ["| busy | frames | posed % | dropped | FPS | latency p50 / p99 ms | ATE served | ATE online | health |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['busy_processes']} | {r['frames']} | {r['posed_percent']} | {r['dropped']} | {r['fps']} | "
+                     f"{r['latency_ms_p50']} / {r['latency_ms_p99']} | {r['ate_served']} ({r['served']}) | "
+                     f"{r['ate_online']} | {r['health']} {r['health_detail'] or ''} |")
+    return "\n".join(lines)
+
+
+def soak_summary(row: dict, warmup_minutes: float = 5.0, window_minutes: float = 5.0) -> dict:
+    """RSS growth of each service after ``warmup_minutes``, and the FPS of the first and last ``window_minutes``."""
+    growth = {}
+    for name, samples in row["rss_mib"].items():
+        later = [v for t, v in samples if t >= warmup_minutes * 60]
+        if len(later) >= 2:
+            growth[name] = round(later[-1] - later[0], 1)
+    per_minute = row.get("fps_per_minute", [])
+    window = int(window_minutes)
+    first = float(np.mean(per_minute[:window])) if len(per_minute) >= window else None
+    last = float(np.mean(per_minute[-window:])) if len(per_minute) >= 2 * window else None
+    return {"rss_growth_after_warmup_mib": growth, "fps_first_window": first, "fps_last_window": last,
+            "fps_change_percent": round(100 * (last - first) / first, 1) if first and last else None}
