@@ -172,6 +172,11 @@ class TrackerConfig(Section):
     final_ba_max_keyframes: int = Field(300, ge=2, description="the final bundle adjustment refines at most this "
                                         "many latest keyframes (holding older ones that share their landmarks): "
                                         "its cost grows with the cube of this (137 keyframes: about 1.5 s)")
+    keyframe_culling: float = Field(0.9, ge=0, le=1, description="after each keyframe, a keyframe of the local map "
+                                    "(not the first, nor one in the BA window) whose landmarks are at least this "
+                                    "share seen by three other keyframes is culled: its observations, keypoints and "
+                                    "descriptors are dropped (its pose stays, for the frames kept relative to it), so "
+                                    "the map stops growing where the camera stays in a known place; 0 = off")
     # relocalisation
     relocalisation: bool = Field(True, description="when local-map tracking fails, try RANSAC PnP against "
                                  "earlier keyframes")

@@ -132,14 +132,14 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         return JSONResponse({"detail": f"invalid request: {problems}"[:2000]}, status_code=422)
 
     def info(session: Session) -> SessionInfo:
-        latest = session.poses[-1] if session.poses else None
+        latest = session.poses.latest
         recording = settings.recordings / f"{session.id}.mcap"
         return SessionInfo(
             id=session.id, robot_id=session.request.robot_id, source=session.request.source,
             sequence=session.request.sequence,
             state=session.state, detail=session.detail, created=session.created,
             frames_total=session.frames_total, frames_sent=session.frames_sent, frames=len(session.poses),
-            frames_dropped=max(0, session.frames_sent - len({p.frame_index for p in session.poses}))
+            frames_dropped=max(0, session.frames_sent - session.poses.distinct_frames())
             if session.frames_sent is not None and (session.state not in ACTIVE or session.request.source == "camera")
             else None,
             fps=round(session.fps(), 3),

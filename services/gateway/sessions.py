@@ -91,6 +91,37 @@ class SessionInfo(BaseModel):
     recording: str | None = None
 
 
+class PoseRecord:
+    """A session's poses as they arrived, kept compactly: one row of 9 floats per pose (frame index, stamp,
+    position, quaternion), so that an hours-long session holds megabytes, not a message object per frame."""
+
+    def __init__(self) -> None:
+        self._rows = np.zeros((256, 9))
+        self._count = 0
+        self.latest: PoseMsg | None = None
+
+    def __len__(self) -> int:
+        return self._count
+
+    def append(self, pose: PoseMsg) -> None:
+        if self._count == len(self._rows):
+            self._rows = np.concatenate([self._rows, np.zeros_like(self._rows)])
+        self._rows[self._count] = [pose.frame_index, pose.stamp, *pose.position, *pose.orientation]
+        self._count += 1
+        self.latest = pose
+
+    def distinct_frames(self) -> int:
+        """How many different frames got a pose."""
+        return len(np.unique(self._rows[:self._count, 0]))
+
+    def trajectory(self) -> Trajectory:
+        """The poses as a camera-to-world trajectory, ordered by frame."""
+        rows = self._rows[:self._count]
+        rows = rows[np.argsort(rows[:, 0], kind="stable")]
+        poses = [make_pose(quat_to_rot(row[5:9]), row[2:5]) for row in rows]
+        return Trajectory(rows[:, 1].copy(), np.array(poses).reshape(-1, 4, 4))
+
+
 @dataclass
 class Session:
     id: str
@@ -101,7 +132,7 @@ class Session:
     created: float = field(default_factory=time.time)
     frames_total: int | None = None
     frames_sent: int | None = None
-    poses: list[PoseMsg] = field(default_factory=list)
+    poses: PoseRecord = field(default_factory=PoseRecord)
     first_pose_at: float | None = None
     last_pose_at: float | None = None
     started_at: float = field(default_factory=time.time)
@@ -118,9 +149,8 @@ class Session:
     health_detail: str = ""
 
     def trajectory(self) -> Trajectory:
-        ordered = sorted(self.poses, key=lambda p: p.frame_index)
-        poses = [make_pose(quat_to_rot(np.array(p.orientation)), p.position) for p in ordered]
-        return Trajectory(np.array([p.stamp for p in ordered]), np.array(poses).reshape(-1, 4, 4))
+        """The poses as published (online), ordered by frame."""
+        return self.poses.trajectory()
 
     def fps(self) -> float:
         if len(self.poses) < 2 or self.first_pose_at is None or self.last_pose_at == self.first_pose_at:

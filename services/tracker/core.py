@@ -233,6 +233,7 @@ class Tracker:
                 timings["bundle_adjustment"] = _ms(t0)
                 pose = self.map.keyframe_poses[keyframe.id].copy()
                 self.motion.good_pose = pose
+            self.map.cull_redundant(self.map.local_keyframes(pose, conf.local_map_keyframes))
         reason = estimate.reason if num_depth else f"{estimate.reason} (no depth: tracked from 2-D matches only)"
         observed = self.keyframes[-1].landmark_ids if is_keyframe else estimate.keypoint_landmarks
         return TrackResult(stamp, pose, status, num_matches=estimate.num_matches, num_inliers=estimate.num_inliers,

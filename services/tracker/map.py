@@ -30,6 +30,8 @@ class Keyframe:
     depth: np.ndarray
     descriptors: np.ndarray
     landmark_ids: np.ndarray
+    culled: bool = False
+    """redundant, so its observations, keypoints and descriptors were dropped (:meth:`Map.cull_redundant`)"""
 
 
 class Landmarks:
@@ -136,8 +138,37 @@ class Map:
         rel = np.einsum("ij,njk->nik", invert_pose(pose), self.keyframe_poses)
         cos = np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)
         distance = np.linalg.norm(rel[:, :3, 3], axis=1) + self.conf.keyframe_distance_per_rad * np.arccos(cos)
+        distance[[kf.culled for kf in self.keyframes]] = np.inf  # they observe nothing any more
         distance[-1] = -1.0  # always keep the latest keyframe
-        return np.argsort(distance, kind="stable")[:count]
+        order = np.argsort(distance, kind="stable")[:count]
+        return order[np.isfinite(distance[order])]
+
+    def cull_redundant(self, candidates: np.ndarray) -> list[int]:
+        """Cull the keyframes among ``candidates`` (indices; never the first keyframe, nor one of the latest
+        ``ba_window_keyframes``) whose usable landmarks are at least a ``keyframe_culling`` share observed by three
+        other keyframes as well: they add nothing the others do not (ORB-SLAM3's local mapping culls such keyframes).
+        A culled keyframe's observations, keypoints and descriptors are dropped; its pose stays, frozen, as the
+        anchor of the frames recorded against it. Returns the culled indices."""
+        share = self.conf.keyframe_culling
+        if share <= 0 or len(self.keyframes) <= self.conf.ba_window_keyframes + 1:
+            return []
+        observers = np.bincount(np.concatenate([kf.landmark_ids[kf.landmark_ids >= 0] for kf in self.keyframes]),
+                                minlength=len(self.landmarks))
+        newest_protected = len(self.keyframes) - self.conf.ba_window_keyframes
+        culled = []
+        for i in sorted(int(c) for c in candidates):
+            keyframe = self.keyframes[i]
+            if i == 0 or i >= newest_protected or keyframe.culled:
+                continue
+            ids = keyframe.landmark_ids[keyframe.landmark_ids >= 0]
+            ids = ids[~self.landmarks.bad[ids]]
+            if len(ids) == 0 or np.mean(observers[ids] >= 4) < share:  # itself and three others
+                continue
+            observers[keyframe.landmark_ids[keyframe.landmark_ids >= 0]] -= 1
+            self.keyframes[i] = Keyframe(keyframe.id, keyframe.stamp, np.zeros((0, 2)), np.zeros(0),
+                                         keyframe.descriptors[:0].copy(), np.zeros(0, np.int64), culled=True)
+            culled.append(i)
+        return culled
 
     def usable_landmarks(self, keyframe_indices: np.ndarray) -> np.ndarray:
         """Sorted ids of the landmarks that keyframes ``keyframe_indices`` observe, retired ones left out."""

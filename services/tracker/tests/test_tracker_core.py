@@ -223,3 +223,36 @@ def test_hold_gauge_fixes_one_pose_in_every_part_that_has_none():
     obs_point = np.array([0, 0, 1, 1, 2])
     held = hold_gauge(np.array([False, False, False, True, False]), obs_pose, obs_point)
     assert held.tolist() == [True, False, False, True, True]
+
+
+def _back_and_forth(tracker: Tracker, data, passes: int = 3, every: int = 2) -> list:
+    """The camera sweeps frames 0-19 forth and back ``passes`` times, every ``every``-th frame forced to be a
+    keyframe (as the camera-rate schedule asks at least every few frames); returns the results."""
+    sweep = list(range(20))
+    order = [i for p in range(passes) for i in (sweep if p % 2 == 0 else sweep[::-1])]
+    stamp, results = data.stamps[0], []
+    for n, index in enumerate(order):
+        results.append(tracker.track(stamp, data.keypoints[index], data.depths[index], force_keyframe=n % every == 0))
+        stamp += 1 / 30
+    return results, order
+
+
+def test_redundant_keyframes_are_culled_where_the_camera_stays(orb_synthetic):
+    """Sweeping the same place again and again: without culling, every forced keyframe stays with its keypoints
+    and descriptors; with it, the keyframes whose landmarks three others see give them up, the poses stay as
+    good, and culled keyframes are left out of the local map."""
+    kept = Tracker(orb_synthetic.camera, SYNTHETIC.model_copy(update={"keyframe_culling": 0.0}),
+                   match=orb_synthetic.match)
+    _back_and_forth(kept, orb_synthetic)
+    assert not any(kf.culled for kf in kept.keyframes)
+    tracker = Tracker(orb_synthetic.camera, SYNTHETIC, match=orb_synthetic.match)
+    results, order = _back_and_forth(tracker, orb_synthetic)
+    assert len(tracker.keyframes) == len(kept.keyframes) >= 25
+    culled = [kf for kf in tracker.keyframes if kf.culled]
+    assert len(culled) >= len(tracker.keyframes) // 5, (len(culled), len(tracker.keyframes))  # 8 of 30 here
+    assert not tracker.keyframes[0].culled and not any(kf.culled for kf in tracker.keyframes[-5:])
+    assert all(len(kf.descriptors) == 0 and len(kf.landmark_ids) == 0 for kf in culled)
+    assert not set(tracker.map.local_keyframes(tracker.keyframe_poses[-1], 6)) & {kf.id for kf in culled}
+    for index, result in zip(order, results, strict=True):
+        moved, _ = pose_difference(truth_in_first_camera(orb_synthetic, index), result.pose)
+        assert result.tracked and moved < 0.01, (index, moved)
