@@ -34,6 +34,24 @@ def live_stack(tmp_path_factory, dev_sequence):
     system.stop()
 
 
+def play_camera(client: httpx.Client, live_stack: dict, dev_sequence, robot: str, session_id: str,
+                frames: int) -> dict:
+    """`twohr camera --replay` at 30 Hz into a running camera session; returns the session's state once the last
+    frames' poses are in."""
+    camera = subprocess.run(
+        [sys.executable, "-m", "twohr_services.cli", "camera", "--replay", str(dev_sequence), "--rate", "30",
+         "--robot", robot, "--zenoh-config", str(live_stack["client_config"]), "--frames", str(frames)],
+        capture_output=True, text=True, timeout=300)
+    assert camera.returncode == 0, camera.stderr
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        info = client.get(f"/sessions/{session_id}").json()
+        if info["frames_sent"] == frames and info["frames"] + info["frames_dropped"] >= frames:
+            break
+        time.sleep(0.5)
+    return info
+
+
 def test_camera_session_over_ros2_end_to_end(live_stack, dev_sequence, tmp_path):
     typestore = get_typestore(Stores.ROS2_JAZZY)
     samples: list[tuple[str, bytes]] = []
@@ -52,17 +70,7 @@ def test_camera_session_over_ros2_end_to_end(live_stack, dev_sequence, tmp_path)
             session_id = response.json()["id"]
             assert client.post("/sessions", json={"source": "camera", "robot_id": "live1",
                                                   "sequence": "x"}).status_code == 422
-            camera = subprocess.run(
-                [sys.executable, "-m", "twohr_services.cli", "camera", "--replay", str(dev_sequence), "--rate", "30",
-                 "--robot", "live1", "--zenoh-config", str(live_stack["client_config"]), "--frames", str(FRAMES)],
-                capture_output=True, text=True, timeout=300)
-            assert camera.returncode == 0, camera.stderr
-            deadline = time.monotonic() + 60
-            while time.monotonic() < deadline:  # until the last frames' poses are in
-                info = client.get(f"/sessions/{session_id}").json()
-                if info["frames_sent"] == FRAMES and info["frames"] + info["frames_dropped"] >= FRAMES:
-                    break
-                time.sleep(0.5)
+            info = play_camera(client, live_stack, dev_sequence, "live1", session_id, FRAMES)
             assert info["state"] == "running" and info["source"] == "camera", info
             time.sleep(1.0)
             info = client.delete(f"/sessions/{session_id}").json()
@@ -100,17 +108,7 @@ def test_a_busy_process_beside_the_stack_does_not_break_the_map(live_stack, dev_
         with httpx.Client(base_url=live_stack["url"], timeout=60) as client:
             session_id = client.post("/sessions", json={"source": "camera", "robot_id": "busy1",
                                                         "record": False}).json()["id"]
-            camera = subprocess.run(
-                [sys.executable, "-m", "twohr_services.cli", "camera", "--replay", str(dev_sequence), "--rate", "30",
-                 "--robot", "busy1", "--zenoh-config", str(live_stack["client_config"]), "--frames", str(frames)],
-                capture_output=True, text=True, timeout=300)
-            assert camera.returncode == 0, camera.stderr
-            deadline = time.monotonic() + 60
-            while time.monotonic() < deadline:
-                info = client.get(f"/sessions/{session_id}").json()
-                if info["frames_sent"] == frames and info["frames"] + info["frames_dropped"] >= frames:
-                    break
-                time.sleep(0.5)
+            info = play_camera(client, live_stack, dev_sequence, "busy1", session_id, frames)
             client.delete(f"/sessions/{session_id}")
             served = client.get(f"/sessions/{session_id}/trajectory")
     finally:

@@ -144,7 +144,11 @@ function render(info) {
   // poses received; once the source is done, out of the frames it sent
   q("frames").textContent = info.frames_sent === null ? String(info.frames) : `${info.frames} / ${info.frames_sent}`;
   q("fps").textContent = info.fps.toFixed(1);
-  q("tracking").textContent = info.latest_pose ? info.latest_pose.status : "–";
+  // the tracker's health: "degraded" (frames dropped, keyframe jobs late) with its figures on hover
+  const degraded = info.health === "degraded";
+  q("tracking").textContent = (info.latest_pose ? info.latest_pose.status : "–") + (degraded ? " · degraded" : "");
+  q("tracking").title = info.health_detail || "";
+  q("tracking").classList.toggle("degraded", degraded);
   q("ate").textContent = info.ate_rmse === null ? "–" : `${info.ate_rmse.toFixed(3)} m`;
   const active = info.state === "starting" || info.state === "running";
   row.querySelector("button.stop").classList.toggle("hidden", !active);
