@@ -194,6 +194,10 @@ def test_recorder_service_over_the_bus(bus_config, dev_sequence, tmp_path):
                                   (keys.key("r1", keys.CONTROL), "twohr/r1/frames", "twohr/r1/pose"))
         start = ControlMsg(session_id="sess2", robot_id="r1", frame_index=-1, stamp=0, command="start")
         control.put(encode(start))
+        deadline = time.time() + 15
+        while "sess2" not in service.open:  # keys have no ordering between them: frames only once the file is open
+            assert time.time() < deadline, service.counters
+            time.sleep(0.05)
         for item in frame_payloads(RGBDSequence(dev_sequence), "sess2", "r1", max_frames=4):
             frames.put(item.payload)
             poses.put(pose(item.index, item.stamp, "sess2"))
