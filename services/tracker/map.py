@@ -51,10 +51,6 @@ class Landmarks:
     def num_good(self) -> int:
         return int((~self.bad).sum())
 
-    def good_positions(self) -> np.ndarray:
-        """(N, 3) world positions of the landmarks not retired as outliers."""
-        return self.positions[~self.bad]
-
     def add(self, positions: np.ndarray, descriptors: np.ndarray) -> np.ndarray:
         """Append landmarks; returns their ids."""
         start = len(self)
