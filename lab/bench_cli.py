@@ -26,10 +26,10 @@ def _bench(args: argparse.Namespace) -> int:
         from . import live
 
         if args.soak:
-            frames, busy, repeats = int(args.soak * 60 * 30), [args.soak_busy], 1
+            frames, busy, repeats = int(args.soak * 60 * 30) // args.camera_runs, [args.soak_busy], 1
         else:
             frames, busy, repeats = args.frames or 300, [int(b) for b in args.busy.split(",")], args.runs
-        rows = live.live_runs(sequence, frames, busy, repeats, progress=not args.quiet)
+        rows = live.live_runs(sequence, frames, busy, repeats, progress=not args.quiet, camera_runs=args.camera_runs)
         report["live"] = rows
         table = live.format_table(rows)
         if args.soak:
@@ -141,6 +141,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="one live camera session on the sequence looped at 30 Hz for MINUTES: every service's RSS "
                    "every 10 s and the FPS per minute")
     p.add_argument("--soak-busy", type=int, default=0, help="with --soak: busy processes beside the stack")
+    p.add_argument("--camera-runs", type=int, default=1, help="with --live or --soak: feed each session that many "
+                   "separate twohr camera runs of its frames (each a new client whose stamps start again, as a camera "
+                   "driver restarted), e.g. --live --frames 560 --camera-runs 6 --busy 0")
     p.add_argument("--rate", type=float, default=1.0,
                    help="with --bus: source speed, 1 = the camera's real rate (30 Hz for the dev sequence), "
                    "0 = as fast as the pipeline answers (at most two frames in flight)")

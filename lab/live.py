@@ -80,14 +80,17 @@ def _score(sequence, text: str) -> float | None:
 
 
 def camera_session(system, client_config: Path, url: str, sequence, robot: str, frames: int, busy: int,
-                   sample_every_s: float = 10.0, progress: bool = True) -> dict:
-    """One live camera session with ``busy`` busy processes beside the stack; see the module docstring."""
+                   sample_every_s: float = 10.0, progress: bool = True, camera_runs: int = 1) -> dict:
+    """One live camera session with ``busy`` busy processes beside the stack; see the module docstring.
+    ``camera_runs`` > 1 feeds the session ``frames`` frames that many times, each by a new ``twohr camera`` (a new
+    client on the bus whose stamps start again, as a robot's camera driver restarted); ``frames`` then counts all."""
     import httpx
 
     from twohr import keys
     from twohr.bus import BusConfig, open_session
 
-    looped = frames > len(sequence)
+    looped = frames > len(sequence) or camera_runs > 1
+    per_run = frames // camera_runs
     poses = PoseLog()
     observer = open_session(BusConfig(config_file=client_config))
     subscriber = observer.declare_subscriber(keys.key(robot, "pose"), poses)
@@ -98,23 +101,25 @@ def camera_session(system, client_config: Path, url: str, sequence, robot: str, 
             response = client.post("/sessions", json={"source": "camera", "robot_id": robot, "record": False})
             response.raise_for_status()
             session_id = response.json()["id"]
-            camera = subprocess.Popen(
-                [sys.executable, "-m", "twohr_services.cli", "camera", "--replay", str(sequence.root), "--rate", "30",
-                 "--robot", robot, "--zenoh-config", str(client_config), "--frames", str(frames),
-                 *(["--loop"] if looped else [])], stdout=subprocess.DEVNULL)
             t0 = time.monotonic()
             next_sample = t0
-            while camera.poll() is None:
-                if time.monotonic() >= next_sample:
-                    for child in system.group.children:
-                        value = rss_mib(child.proc.pid)
-                        if value is not None:
-                            rss.setdefault(child.name, []).append((round(time.monotonic() - t0, 1), round(value, 1)))
-                    next_sample += sample_every_s
-                    if progress:
-                        print(f"  {robot}: {len(poses.received)} poses after {time.monotonic() - t0:.0f} s",
-                              flush=True)
-                time.sleep(0.2)
+            for _ in range(camera_runs):
+                camera = subprocess.Popen(
+                    [sys.executable, "-m", "twohr_services.cli", "camera", "--replay", str(sequence.root), "--rate",
+                     "30", "--robot", robot, "--zenoh-config", str(client_config), "--frames", str(per_run),
+                     *(["--loop"] if per_run > len(sequence) else [])], stdout=subprocess.DEVNULL)
+                while camera.poll() is None:
+                    if time.monotonic() >= next_sample:
+                        for child in system.group.children:
+                            value = rss_mib(child.proc.pid)
+                            if value is not None:
+                                rss.setdefault(child.name, []).append((round(time.monotonic() - t0, 1),
+                                                                       round(value, 1)))
+                        next_sample += sample_every_s
+                        if progress:
+                            print(f"  {robot}: {len(poses.received)} poses after {time.monotonic() - t0:.0f} s",
+                                  flush=True)
+                    time.sleep(0.2)
             deadline = time.monotonic() + 30
             while time.monotonic() < deadline:  # until the last frames' poses are in
                 info = client.get(f"/sessions/{session_id}").json()
@@ -147,7 +152,8 @@ def camera_session(system, client_config: Path, url: str, sequence, robot: str, 
     return row
 
 
-def live_runs(sequence, frames: int, busy_counts: list[int], repeats: int, progress: bool = True) -> list[dict]:
+def live_runs(sequence, frames: int, busy_counts: list[int], repeats: int, progress: bool = True,
+              camera_runs: int = 1) -> list[dict]:
     """Start ``twohr up`` once and run :func:`camera_session` ``repeats`` times per busy count."""
     from twohr.access import write_client_config
     from twohr.bus import free_port
@@ -166,7 +172,8 @@ def live_runs(sequence, frames: int, busy_counts: list[int], repeats: int, progr
                         print(f"camera session: {frames} frames, {busy} busy process(es), run {repeat + 1}",
                               flush=True)
                     rows.append(camera_session(system, config, f"http://127.0.0.1:{port}", sequence,
-                                               f"live{busy}x{repeat}", frames, busy, progress=progress))
+                                               f"live{busy}x{repeat}", frames * camera_runs, busy,
+                                               progress=progress, camera_runs=camera_runs))
             return rows
         finally:
             system.stop()

@@ -67,7 +67,8 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
                           subscribe=_robots("control", "frames"),
                           ask=_robots("rpc/detect", "rpc/dynamics", "rpc/match")),
         "recorder": Grants(publish=_robots("status"), subscribe=[f"{PREFIX}/*/*"]),
-        "ros2": Grants(publish=_robots("camera") + ros2, subscribe=_robots("pose", "path", "landmarks") + ros2),
+        "ros2": Grants(publish=_robots("camera") + ros2,
+                       subscribe=_robots("pose", "path", "status", "landmarks") + ros2),
         "client": client,
         # a robot's own router linked to this one: it forwards what its clients may do, no more
         "router": client,

@@ -174,14 +174,23 @@ class TrackerConfig(Section):
                                         "its cost grows with the cube of this (137 keyframes: about 1.5 s)")
     keyframe_culling: float = Field(0.9, ge=0, le=1, description="after each keyframe, a keyframe of the local map "
                                     "(not the first, nor one in the BA window) whose landmarks are at least this "
-                                    "share seen by three other keyframes is culled: its observations, keypoints and "
-                                    "descriptors are dropped (its pose stays, for the frames kept relative to it), so "
-                                    "the map stops growing where the camera stays in a known place; 0 = off")
+                                    "share seen by three other keyframes is culled: its observations and keypoints "
+                                    "are dropped (its pose stays, for the frames kept relative to it); 0 = off")
+    keyframe_revisit_min_inliers: int = Field(100, ge=0, description="a frame in a place that older keyframes "
+                                              "already cover (within keyframe_max_translation and "
+                                              "keyframe_max_rotation_deg, outside the BA window) becomes a keyframe "
+                                              "only when it found fewer inliers than this against the map: a camera "
+                                              "that stays in a mapped place, or comes back to one, does not grow the "
+                                              "map; 0 = always a keyframe when asked")
     # relocalisation
     relocalisation: bool = Field(True, description="when local-map tracking fails, try RANSAC PnP against "
                                  "earlier keyframes")
     relocalisation_candidates: int = Field(8, ge=1, description="keyframes tried: this many nearest to the last "
-                                           "tracked pose and this many nearest to the coasted prediction")
+                                           "tracked pose and this many nearest to the coasted prediction; when none "
+                                           "of them fits, the whole map's landmarks are tried at once")
+    relocalisation_max_landmarks: int = Field(20_000, ge=0, description="the whole-map attempt matches at most "
+                                              "this many landmarks, the most often matched first; 0 = no "
+                                              "whole-map attempt")
     relocalisation_min_inliers: int = Field(30, ge=6, description="a relocalisation must find this many inliers "
                                             "against one keyframe and again against the local map")
     reinit_after_lost_frames: int = Field(60, ge=1, description="lost this long with enough depth: start a new "

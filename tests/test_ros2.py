@@ -1,5 +1,6 @@
 """ROS 2 interop core: CDR checked against rosbags (an independent implementation), official RIHS01 hashes,
-rmw_zenoh's documented key expressions, liveliness tokens and attachments, ROS 2 MCAP files, camera frames."""
+rmw_zenoh's documented key expressions, liveliness tokens and attachments, ROS 2 MCAP files, camera frames,
+REP 105 frames with the tracker's corrections as map -> odom, session statuses as diagnostics."""
 
 import struct
 from typing import ClassVar
@@ -11,13 +12,15 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from twohr.dataset import RGBDSequence
-from twohr.messages import PoseMsg
+from twohr.geometry import make_pose, quat_to_rot, rot_to_quat
+from twohr.messages import PathMsg, PoseMsg, StatusMsg
 from twohr.ros2 import msgs
 from twohr.ros2.bag import Ros2BagWriter
 from twohr.ros2.cdr import CdrError
 from twohr.ros2.config import Ros2CameraInput, Ros2Config
-from twohr.ros2.convert import CameraAssembler, PoseOutputs, frame_to_ros
+from twohr.ros2.convert import CameraAssembler, PoseOutputs, diagnostics, frame_to_ros
 from twohr.ros2.rmw import DEFAULT_QOS, Attachment, NodeInfo, qualified_name, topic_key
+from twohr.trajectory import Trajectory
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 DESIGN = "ros2/rmw_zenoh docs/design.md (commit 99a6a2bd10b949052f4f12c5854825dc005e95a5)"
@@ -29,6 +32,8 @@ DESIGN = "ros2/rmw_zenoh docs/design.md (commit 99a6a2bd10b949052f4f12c5854825dc
 #: - the others: rosidl-generated type hashes published in public ROS 2 client libraries and their tests
 #:   (e.g. roslibrust's `ros2_hash_checks` for sensor_msgs/msg/CameraInfo, an rmw_zenoh key
 #:   `0/robot1/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_3cc9…` for nav_msgs/msg/Odometry)
+#: - diagnostic_msgs/msg/DiagnosticArray: the value public rmw_zenoh clients (robot bridges in Python and Elixir)
+#:   hard-code for `/diagnostics`; rosbags' own RIHS01 computation gives it too (checked below)
 OFFICIAL_HASHES = {
     "std_msgs/msg/String": "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18",
     "builtin_interfaces/msg/Time": "RIHS01_b106235e25a4c5ed35098aa0a61a3ee9c9b18d197f398b0e4206cea9acf9c197",
@@ -40,6 +45,8 @@ OFFICIAL_HASHES = {
     "sensor_msgs/msg/Image": "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47",
     "sensor_msgs/msg/CompressedImage": "RIHS01_15640771531571185e2efc8a100baf923961a4d15d5569652e6cb6691e8e371a",
     "sensor_msgs/msg/CameraInfo": "RIHS01_b3dfd68ff46c9d56c80fd3bd4ed22c7a4ddce8c8348f2f59c299e73118e7e275",
+    "diagnostic_msgs/msg/DiagnosticArray":
+        "RIHS01_5a8a36efb05fb25070fa0fb3810290c0e6cd4862b54a8fb975a1ee8dc55a333e",
 }
 
 
@@ -80,13 +87,20 @@ def sample_messages():
                         d=[0.1, -0.2, 0.001, 0.002, 0.05], k=[525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1],
                         p=[525.0, 0, 319.5, 0, 0, 525.0, 239.5, 0, 0, 0, 1, 0], binning_x=1,
                         roi=msgs.RegionOfInterest(x_offset=2, width=600, do_rectify=True)),
+        msgs.DiagnosticArray(header=header(frame=""), status=[
+            msgs.DiagnosticStatus(level=msgs.DiagnosticStatus.WARN, name="twohr/r1/tracker", message="slow",
+                                  hardware_id="r1", values=[msgs.KeyValue(key="keyframe_lag", value="42"),
+                                                            msgs.KeyValue(key="", value="")]),
+            msgs.DiagnosticStatus(level=msgs.DiagnosticStatus.STALE, name="twohr/r1/source")]),
+        msgs.DiagnosticArray(),  # no status at all
     ]
 
 
 def plain(value):
     """A rosbags message (nested dataclasses, numpy arrays) as plain Python values."""
-    if hasattr(value, "__dataclass_fields__"):
-        return {k: plain(getattr(value, k)) for k in value.__dataclass_fields__ if k != "__msgtype__"}
+    if hasattr(value, "__dataclass_fields__"):  # constants (DiagnosticStatus.OK, ...) are upper case, fields never
+        return {k: plain(getattr(value, k)) for k in value.__dataclass_fields__ if k != "__msgtype__" and
+                not k.isupper()}
     if isinstance(value, np.ndarray):
         return value.tobytes() if value.dtype == np.uint8 else value.tolist()
     if isinstance(value, list):
@@ -190,8 +204,16 @@ def test_pose_outputs_publish_path_at_keyframes_or_every_n():
     assert [len(p.poses) for _, p in paths] == [1, 2, 3, 4] and paths[0][0] == "/r1/path"
     last = by_type[msgs.PoseStamped][-1][1]
     assert last.header.frame_id == "map" and last.pose.position.x == pytest.approx(1.9)
-    tf = by_type[msgs.TFMessage][-1][1].transforms[0]
-    assert tf.child_frame_id == "camera" and tf.transform.rotation == last.pose.orientation
+    map_odom, odom_camera = by_type[msgs.TFMessage][-1][1].transforms
+    assert (map_odom.header.frame_id, map_odom.child_frame_id) == ("map", "odom")
+    assert map_odom.transform == msgs.Transform()  # no correction yet: identity
+    assert (odom_camera.header.frame_id, odom_camera.child_frame_id) == ("odom", "camera")
+    assert odom_camera.transform.rotation == last.pose.orientation
+    assert map_odom.header.stamp == odom_camera.header.stamp == last.header.stamp
+    odometry = by_type[msgs.Odometry][-1][1]
+    assert (odometry.header.frame_id, odometry.child_frame_id) == ("odom", "camera")
+    assert odometry.pose.pose == last.pose
+    assert paths[-1][1].header.frame_id == "odom"  # the online trajectory, drawn through the latest map -> odom
     # no keyframe flags: every path_every-th pose
     outputs = PoseOutputs(Ros2Config(path_every=4))
     unflagged = [p.model_copy(update={"is_keyframe": False}) for p in poses(12, robot="r2")]
@@ -203,6 +225,159 @@ def test_pose_outputs_publish_path_at_keyframes_or_every_n():
     # a new session of the same robot starts a new path
     again = [m for p in poses(6, robot="r3") for _, m in outputs.messages(p.model_copy(update={"session_id": "s2"}))]
     assert [len(m.poses) for m in again if isinstance(m, msgs.Path)] == [1, 2, 3]
+
+
+def matrix(pose: msgs.Pose) -> np.ndarray:
+    q = pose.orientation
+    return make_pose(quat_to_rot([q.x, q.y, q.z, q.w]), [pose.position.x, pose.position.y, pose.position.z])
+
+
+def transform_matrix(transform: msgs.Transform) -> np.ndarray:
+    return matrix(msgs.Pose(position=msgs.Point(**transform.translation.model_dump()), orientation=transform.rotation))
+
+
+def online_matrix(pose: PoseMsg) -> np.ndarray:
+    return make_pose(quat_to_rot(pose.orientation), pose.position)
+
+
+def correction_of(keyframes: dict[int, np.ndarray], online: list[PoseMsg], session="s1", final=False, robot="r1",
+                  stamp_offset=0.0) -> tuple[PathMsg, Trajectory]:
+    """A tracker correction: ``keyframes`` maps a frame index to its corrected camera-to-world pose."""
+    indices = sorted(keyframes)
+    trajectory = Trajectory(np.array([online[i].stamp + stamp_offset for i in indices]),
+                            np.array([keyframes[i] for i in indices]))
+    message = PathMsg(session_id=session, robot_id=robot, frame_index=indices[-1], stamp=online[indices[-1]].stamp,
+                      final=final)
+    return message, trajectory
+
+
+def by_topic(published) -> dict[str, msgs.RosMessage]:
+    return {topic: message for topic, message in published}
+
+
+def test_a_correction_becomes_map_to_odom_and_moves_the_map_frame_pose():
+    outputs = PoseOutputs(Ros2Config(path_every=10))
+    online = list(poses(30))
+    # before any correction: the map-frame pose is the online pose, bit for bit, and map -> odom is the identity
+    for pose in online[:15]:
+        out = by_topic(outputs.messages(pose))
+        assert out["/r1/pose"].pose == out["/r1/odom"].pose.pose
+        assert out["/r1/pose"].pose.position.x == pose.position[0]
+        assert out["/r1/tf"].transforms[0].transform == msgs.Transform()
+    # bundle adjustment moved keyframe 10 by a known rigid transform (and keyframe 5 by another one)
+    fix = make_pose(quat_to_rot([0.0, 0.0, np.sin(0.05), np.cos(0.05)]), [0.3, -0.1, 0.05])
+    other = make_pose(np.eye(3), [9.0, 9.0, 9.0])
+    unseen = online[10].model_copy(update={"stamp": 5000.0})  # a keyframe stamp the robot never posed
+    path, trajectory = correction_of({5: other @ online_matrix(online[5]), 10: fix @ online_matrix(online[10])},
+                                     online)
+    trajectory = Trajectory(np.append(trajectory.stamps, unseen.stamp),
+                            np.concatenate([trajectory.poses, [other]]))
+    corrected = outputs.corrections(path, trajectory)
+    assert [topic for topic, _ in corrected] == ["/r1/path_corrected"]
+    assert corrected[0][1].header.frame_id == "map" and len(corrected[0][1].poses) == 3
+    state = outputs.robots["r1"]
+    np.testing.assert_allclose(state.map_odom, fix, atol=1e-12)  # T_corrected(kf10) · T_online(kf10)^-1
+    assert state.anchor_stamp == online[10].stamp and state.corrections == 1
+    # the next pose: odom -> camera and Odometry stay the online pose; map -> odom is the fix; the map pose moved
+    pose = online[15]
+    out = by_topic(outputs.messages(pose))
+    map_odom, odom_camera = out["/r1/tf"].transforms
+    assert (map_odom.header.frame_id, map_odom.child_frame_id, odom_camera.child_frame_id) == ("map", "odom", "camera")
+    np.testing.assert_allclose(transform_matrix(map_odom.transform), fix, atol=1e-12)
+    np.testing.assert_allclose(transform_matrix(odom_camera.transform), online_matrix(pose), atol=1e-12)
+    assert out["/r1/odom"].header.frame_id == "odom" and out["/r1/odom"].pose.pose.position.x == pose.position[0]
+    assert out["/r1/pose"].header.frame_id == "map"
+    np.testing.assert_allclose(matrix(out["/r1/pose"].pose), fix @ online_matrix(pose), atol=1e-12)
+    expected = fix[:3, :3] @ np.array(pose.position) + fix[:3, 3]  # by hand: R_fix · p + t_fix
+    position = out["/r1/pose"].pose.position
+    assert [position.x, position.y, position.z] == pytest.approx(expected.tolist(), abs=1e-12)
+    quaternion = out["/r1/pose"].pose.orientation
+    assert [quaternion.x, quaternion.y, quaternion.z, quaternion.w] == pytest.approx(
+        rot_to_quat(fix[:3, :3] @ quat_to_rot(pose.orientation)).reshape(4).tolist(), abs=1e-12)
+    # stamps match within 1 ms: 0.5 ms off still anchors, 2 ms off (or a final path, or another session) does not
+    second = make_pose(np.eye(3), [0.0, 0.2, 0.0])
+    for rejected in (correction_of({12: second @ online_matrix(online[12])}, online, stamp_offset=0.002),
+                     correction_of({12: second @ online_matrix(online[12])}, online, final=True),
+                     correction_of({12: second @ online_matrix(online[12])}, online, session="s0")):
+        outputs.corrections(*rejected)
+        np.testing.assert_allclose(outputs.robots["r1"].map_odom, fix, atol=1e-12)
+    outputs.corrections(*correction_of({12: second @ online_matrix(online[12])}, online, stamp_offset=0.0005))
+    np.testing.assert_allclose(outputs.robots["r1"].map_odom, second, atol=1e-12)
+    assert outputs.robots["r1"].corrections == 2
+    # a new session of the robot starts without a correction
+    fresh = online[16].model_copy(update={"session_id": "s2"})
+    out = by_topic(outputs.messages(fresh))
+    assert out["/r1/tf"].transforms[0].transform == msgs.Transform()
+    assert out["/r1/pose"].pose == out["/r1/odom"].pose.pose
+    assert outputs.robots["r1"].map_odom is None and len(outputs.robots["r1"].online) == 1
+    # another robot's correction leaves this one alone
+    outputs.corrections(*correction_of({10: fix @ online_matrix(online[10])}, online, robot="r9"))
+    assert outputs.robots["r1"].map_odom is None
+
+
+def test_robot_state_stays_bounded_and_old_keyframes_do_not_anchor():
+    outputs = PoseOutputs(Ros2Config(correction_window=50, path_max_poses=20, path_every=1))
+    online = list(poses(400, keyframe_every=1))
+    for pose in online:
+        outputs.messages(pose)
+    state = outputs.robots["r1"]
+    assert len(state.online) == 50 and len(state.poses) == 20
+    fix = make_pose(np.eye(3), [1.0, 0.0, 0.0])
+    # keyframe 300 has left the window of the latest 50 online poses: nothing to anchor on
+    outputs.corrections(*correction_of({300: fix @ online_matrix(online[300])}, online))
+    assert state.map_odom is None
+    outputs.corrections(*correction_of({300: np.eye(4), 380: fix @ online_matrix(online[380])}, online))
+    np.testing.assert_allclose(state.map_odom, fix, atol=1e-12)
+    assert len(state.online) == 50 and len(outputs.robots) == 1
+
+
+def test_new_tf_layout_and_frames_decode_in_rosbags():
+    outputs = PoseOutputs(Ros2Config(namespace="/fleet/{robot}", map_frame="{robot}/map", odom_frame="{robot}/odom",
+                                     camera_frame="{robot}/camera"))
+    online = list(poses(12, robot="r7"))
+    for pose in online[:11]:
+        outputs.messages(pose)
+    fix = make_pose(quat_to_rot([0.1, 0.0, 0.0, 0.995]), [0.5, 0.0, -0.25])
+    outputs.corrections(*correction_of({10: fix @ online_matrix(online[10])}, online, robot="r7"))
+    published = outputs.messages(online[11])
+    assert [topic for topic, _ in published] == ["/fleet/r7/pose", "/fleet/r7/odom", "/fleet/r7/tf"]
+    for topic, message in published:
+        theirs = TYPESTORE.deserialize_cdr(msgs.serialize(message), message.ros_type)
+        assert plain(theirs) == message.model_dump()
+        if topic.endswith("/tf"):
+            assert [(t.header.frame_id, t.child_frame_id) for t in theirs.transforms] == [
+                ("r7/map", "r7/odom"), ("r7/odom", "r7/camera")]
+            assert theirs.transforms[0].transform.translation.x == pytest.approx(0.5)
+        else:
+            assert theirs.header.frame_id == ("r7/map" if topic.endswith("/pose") else "r7/odom")
+
+
+def test_session_statuses_become_diagnostics_that_rosbags_decodes():
+    def status(service, state, detail="", **counters):
+        return StatusMsg(session_id="s1", robot_id="r1", frame_index=-1, stamp=1700000000.25, service=service,
+                         state=state, detail=detail, counters=counters)
+
+    config = Ros2Config()
+    detail = "14 % of the latest 90 frames dropped (CPU 41 ms per frame)"
+    topic, array = diagnostics(status("tracker", "degraded", detail, dropped_percent=14, keyframe_lag=3,
+                                      cpu_ms_per_frame=41), config)
+    assert topic == "/diagnostics"
+    theirs = TYPESTORE.deserialize_cdr(msgs.serialize(array), "diagnostic_msgs/msg/DiagnosticArray")
+    assert plain(theirs) == array.model_dump()
+    assert theirs.header.stamp.sec == 1700000000 and theirs.header.stamp.nanosec == 250_000_000
+    [entry] = theirs.status
+    assert entry.level == entry.WARN == 1 and entry.name == "twohr/r1/tracker" and entry.hardware_id == "r1"
+    assert entry.message == detail
+    assert {kv.key: kv.value for kv in entry.values} == {"state": "degraded", "session_id": "s1",
+                                                         "dropped_percent": "14", "keyframe_lag": "3",
+                                                         "cpu_ms_per_frame": "41"}
+    levels = {state: diagnostics(status("source", state), config)[1].status[0].level
+              for state in ("ok", "running", "started", "live", "relaying", "degraded", "capped", "error", "failed",
+                            "stopped", "finished")}
+    assert levels == {"ok": 0, "running": 0, "started": 0, "live": 0, "relaying": 0, "degraded": 1, "capped": 1,
+                      "error": 2, "failed": 2, "stopped": 3, "finished": 3}
+    ok = diagnostics(status("tracker", "ok"), Ros2Config(diagnostics_topic="/fleet/diagnostics"))
+    assert ok[0] == "/fleet/diagnostics" and ok[1].status[0].message == "ok"
 
 
 def test_ros2_mcap_opens_in_rosbags_with_the_right_counts(tmp_path):
@@ -262,7 +437,10 @@ def test_camera_input_conversions_reject_bad_images():
 def test_config_validates_names_and_frames():
     config = Ros2Config(namespace="/fleet/{robot}", domain_id=7)
     assert config.topic("r1", "pose") == "/fleet/r1/pose" and config.robot_namespace("r1") == "/fleet/r1"
-    for bad in ({"domain_id": 300}, {"namespace": "/bad name"}, {"map_frame": "a b"}, {"unknown": 1},
-                {"camera_input": {"robot_id": "bad id"}}):
+    assert config.odom_frame == "odom" and config.diagnostics_topic == "/diagnostics"
+    assert Ros2Config(odom_frame="{robot}/odom").frame("r1", "{robot}/odom") == "r1/odom"
+    for bad in ({"domain_id": 300}, {"namespace": "/bad name"}, {"map_frame": "a b"}, {"odom_frame": "a b"},
+                {"odom_frame": "map"}, {"diagnostics_topic": "diagnostics"}, {"diagnostics_topic": "/a b"},
+                {"correction_window": 0}, {"unknown": 1}, {"camera_input": {"robot_id": "bad id"}}):
         with pytest.raises(ValidationError):
             Ros2Config(**bad)

@@ -1,10 +1,13 @@
 """The ros2 service: twohr as a ROS 2 node on rmw_zenoh, with no ROS installed.
 
-Out: every pose on ``twohr/<robot>/pose`` is published as ``geometry_msgs/PoseStamped``,
-``nav_msgs/Odometry``, ``tf2_msgs/TFMessage`` (map -> camera) and, at keyframes, ``nav_msgs/Path``,
-in CDR on rmw_zenoh's key expressions with its attachments; each robot is a node (``twohr`` in
-namespace ``/<robot>`` by default) announced with rmw_zenoh's liveliness tokens, so ``ros2 topic
-list`` / ``ros2 topic echo`` on an rmw_zenoh host see it.
+Out: every pose on ``twohr/<robot>/pose`` is published as ``geometry_msgs/PoseStamped`` (map frame),
+``nav_msgs/Odometry`` (odom -> camera), ``tf2_msgs/TFMessage`` (map -> odom and odom -> camera, REP 105)
+and, at keyframes, ``nav_msgs/Path``; the tracker's corrections on ``twohr/<robot>/path`` as
+``nav_msgs/Path`` on ``path_corrected``, and as the map -> odom transform; every session status on
+``twohr/<robot>/status`` (the tracker's ``ok``/``degraded`` and why) as ``diagnostic_msgs/DiagnosticArray``
+on ``/diagnostics``. All in CDR on rmw_zenoh's key expressions with its attachments; each robot is a
+node (``twohr`` in namespace ``/<robot>`` by default) announced with rmw_zenoh's liveliness tokens, so
+``ros2 topic list`` / ``ros2 topic echo`` on an rmw_zenoh host see it.
 
 In (optional, ``--input-robot``): a ROS 2 camera's colour ``Image``/``CompressedImage``, aligned
 depth ``Image`` and ``CameraInfo`` are paired by stamp and republished as twohr frames on
@@ -26,10 +29,10 @@ from twohr import keys
 from twohr.bus import BusConfig
 from twohr.config import read_yaml_mapping
 from twohr.errors import ConfigError, validation_problems
-from twohr.messages import PathMsg, PoseMsg, decode, encode, path_trajectory
+from twohr.messages import PathMsg, PoseMsg, StatusMsg, decode, encode, path_trajectory
 from twohr.ros2 import msgs
 from twohr.ros2.config import Ros2Config
-from twohr.ros2.convert import CameraAssembler, PoseOutputs
+from twohr.ros2.convert import CameraAssembler, PoseOutputs, diagnostics
 from twohr.ros2.rmw import Attachment, NodeInfo, make_gid, topic_key, topic_key_any_hash
 from twohr.service import Service, declare_publisher
 
@@ -95,7 +98,8 @@ class Ros2Service(Service):
                 self.inputs[prefix] = (role, cls)
 
     def subscriptions(self) -> list[str]:
-        return [keys.all_robots("pose"), keys.all_robots("path")] + [prefix + "*" for prefix in self.inputs]
+        return ([keys.all_robots("pose"), keys.all_robots("path"), keys.all_robots("status")]
+                + [prefix + "*" for prefix in self.inputs])
 
     def _node(self, namespace: str) -> RosNode:
         if namespace not in self.nodes:
@@ -117,6 +121,9 @@ class Ros2Service(Service):
             if key.endswith("/path"):
                 path, arrays = decode(payload, PathMsg)
                 robot, outputs = path.robot_id, self.outputs.corrections(path, path_trajectory(arrays))
+            elif key.endswith("/status"):
+                status, _ = decode(payload, StatusMsg)
+                robot, outputs = status.robot_id, [diagnostics(status, self.config)]
             else:
                 pose, _ = decode(payload, PoseMsg)
                 robot, outputs = pose.robot_id, self.outputs.messages(pose)
@@ -142,7 +149,8 @@ class Ros2Service(Service):
                          encode(header, arrays, {"rgb": "jpeg", "depth": "png"}))
 
     def health(self) -> dict:
-        out = {**super().health(), "published": dict(self.published)}
+        out = {**super().health(), "published": dict(self.published),
+               "corrections": {robot: state.corrections for robot, state in self.outputs.robots.items()}}
         if self.camera is not None:
             out["camera"] = {"frames": self.camera.frames, "unpaired": self.camera.unpaired,
                              "without_camera_info": self.camera.without_info}
@@ -173,7 +181,7 @@ def load_config(args: argparse.Namespace) -> Ros2Config:
         except ConfigError as exc:
             raise ValueError(str(exc).splitlines()[0]) from None
         data = data.get("ros2", data)
-    for name in ("domain_id", "namespace", "node_name", "map_frame", "camera_frame"):
+    for name in ("domain_id", "namespace", "node_name", "map_frame", "odom_frame", "camera_frame"):
         if getattr(args, name) is not None:
             data[name] = getattr(args, name)
     if args.input_robot:
@@ -194,7 +202,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--domain", dest="domain_id", type=int, help="ROS_DOMAIN_ID (default 0)")
     parser.add_argument("--namespace", help="ROS namespace of each robot; {robot} is the robot id (default /{robot})")
     parser.add_argument("--node-name", help="ROS node name (default twohr)")
-    parser.add_argument("--map-frame", help="frame id of the poses (default map)")
+    parser.add_argument("--map-frame", help="frame id of the corrected poses (default map)")
+    parser.add_argument("--odom-frame", help="frame id of the online, drifting poses (default odom)")
     parser.add_argument("--camera-frame", help="child frame id of the camera (default camera)")
     parser.add_argument("--input-robot", help="relay a ROS 2 camera into twohr/<ROBOT>/camera")
     parser.add_argument("--input-namespace", help="ROS namespace of that camera's topics (default /)")

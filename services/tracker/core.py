@@ -89,21 +89,36 @@ class Relocaliser:
         for i in candidates[::-1]:  # the latest keyframes first
             kf = world.keyframes[i]
             ids = kf.landmark_ids[kf.landmark_ids >= 0]
-            ids = ids[~landmarks.bad[ids]]
-            if len(ids) < conf.relocalisation_min_inliers:
-                continue
-            matches = match(keypoints.descriptors, landmarks.descriptors[ids])
-            if len(matches) < conf.relocalisation_min_inliers:
-                continue
-            kp, lm = np.asarray(matches.idx_a, np.int64), ids[np.asarray(matches.idx_b, np.int64)]
-            T_cw, inliers = pnp_ransac(world.K, landmarks.positions[lm], xy[kp], conf.ransac_reprojection_px,
-                                       conf.ransac_iterations)
-            if T_cw is not None and (best is None or inliers.sum() > best.num_inliers):
-                best = _Estimate(True, f"keyframe {kf.id}", T_cw, len(kp), int(inliers.sum()))
+            estimate = self._attempt(keypoints, xy, ids[~landmarks.bad[ids]], f"keyframe {kf.id}", match)
+            if estimate is not None and (best is None or estimate.num_inliers > best.num_inliers):
+                best = estimate
+        if (best is None or best.num_inliers < conf.relocalisation_min_inliers) and conf.relocalisation_max_landmarks:
+            # the camera came back somewhere far from where it was lost (a robot carried, a replay played again):
+            # the whole map's landmarks at once
+            ids = np.flatnonzero(~landmarks.bad)
+            ids = ids[np.argsort(-landmarks.accepted[ids], kind="stable")[:conf.relocalisation_max_landmarks]]
+            whole_map = self._attempt(keypoints, xy, ids, "the whole map", match)
+            if whole_map is not None and (best is None or whole_map.num_inliers > best.num_inliers):
+                best = whole_map
         if best is None or best.num_inliers < conf.relocalisation_min_inliers:
             found = 0 if best is None else best.num_inliers
             return _Estimate(False, f"relocalisation failed (best {found} inliers < {conf.relocalisation_min_inliers})")
         return best
+
+
+    def _attempt(self, keypoints: Keypoints, xy: np.ndarray, ids: np.ndarray, what: str,
+                 match: MatchFn) -> _Estimate | None:
+        """RANSAC PnP of the frame's keypoints against landmarks ``ids``, or None when too few match."""
+        conf, world = self.conf, self.map
+        if len(ids) < conf.relocalisation_min_inliers:
+            return None
+        matches = match(keypoints.descriptors, world.landmarks.descriptors[ids])
+        if len(matches) < conf.relocalisation_min_inliers:
+            return None
+        kp, lm = np.asarray(matches.idx_a, np.int64), ids[np.asarray(matches.idx_b, np.int64)]
+        T_cw, inliers = pnp_ransac(world.K, world.landmarks.positions[lm], xy[kp], conf.ransac_reprojection_px,
+                                   conf.ransac_iterations)
+        return None if T_cw is None else _Estimate(True, what, T_cw, len(kp), int(inliers.sum()))
 
 
 class Tracker:
@@ -221,7 +236,8 @@ class Tracker:
         t0 = time.perf_counter()
         # a keyframe needs depth: its new landmarks come from back-projected keypoints
         is_keyframe = num_depth >= conf.init_min_points and (
-            force_keyframe or self._needs_keyframe(pose, estimate.num_inliers, status))
+            force_keyframe or self._needs_keyframe(pose, estimate.num_inliers, status)) and not self._covered(
+            pose, estimate.num_inliers)
         if is_keyframe:
             keyframe = self._insert_keyframe(stamp, pose, keypoints, xy, z, estimate.keypoint_landmarks,
                                              estimate.suspect)
@@ -379,6 +395,17 @@ class Tracker:
         return not near_any_keyframe(pose, self.map.keyframe_poses, conf.keyframe_max_translation,
                                      conf.keyframe_max_rotation_deg)
 
+    def _covered(self, pose: np.ndarray, num_inliers: int) -> bool:
+        """True when older keyframes (outside the BA window, not culled) already cover ``pose`` and the frame
+        tracked well against them: a keyframe here would only grow the map (``keyframe_revisit_min_inliers``)."""
+        conf, world = self.conf, self.map
+        if conf.keyframe_revisit_min_inliers == 0 or num_inliers < conf.keyframe_revisit_min_inliers:
+            return False
+        older = np.arange(max(0, len(world.keyframes) - conf.ba_window_keyframes))
+        older = older[[not world.keyframes[i].culled for i in older]]
+        return near_any_keyframe(pose, world.keyframe_poses[older], conf.keyframe_max_translation,
+                                 conf.keyframe_max_rotation_deg)
+
     def _insert_keyframe(self, stamp: float, pose: np.ndarray, keypoints: Keypoints, xy: np.ndarray, z: np.ndarray,
                          keypoint_landmarks: np.ndarray, suspect: np.ndarray):
         """Keep this frame; its unmatched, unsuspected keypoints with depth become new landmarks."""
@@ -387,7 +414,7 @@ class Tracker:
         if new.any():
             points_w = transform_points(pose, backproject(xy[new], z[new], self.K))
             landmark_ids[new] = self.map.landmarks.add(points_w, keypoints.descriptors[new])
-        keyframe = self.map.add_keyframe(stamp, pose, xy, z, keypoints.descriptors, landmark_ids)
+        keyframe = self.map.add_keyframe(stamp, pose, xy, z, landmark_ids)
         if self._inliers_at_keyframe == 0:
             self._inliers_at_keyframe = int(new.sum())
         return keyframe

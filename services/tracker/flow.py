@@ -230,7 +230,7 @@ class FrameTracker:
         new_map = update.keyframe_id >= 0 and update.result.status in ("init", "reinitialised")
         if new_map:
             self.track_xy, self.track_landmark = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
-        if update.keyframe_id >= 0:
+        if update.keyframe_id >= 0 or update.result.tracked:  # the job re-seeded the tracks, keyframe or not
             self.frames_since_keyframe = 0
         if update.result.tracked:
             self.motion.correct(update.result.pose, update.stamp, new_map)

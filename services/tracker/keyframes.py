@@ -103,15 +103,18 @@ class KeyframePipeline:
         self.worker_errors = 0
         self.mask: np.ndarray | None = None
         """the dynamic mask the latest frame was tracked with, for live views"""
-        self._dynamic: tuple[int, np.ndarray, int] | None = None  # the latest YOLO mask: frame, mask, objects
+        self._dynamic: tuple[int, np.ndarray, int] | None = None  # the latest YOLO mask: frame number, mask, objects
         self._yolo_requested = -(10**9)
-        self._last_index = 0
-        self._job_index = 0  # the frame of the latest keyframe job
+        # the schedule counts frames itself: a camera's frame indices may start again (a replay played once more,
+        # a driver restarted) and must not stall the mask and keyframe timing
+        self._number = -1  # of the latest frame
+        self._job_number = 0  # of the latest keyframe job
         self._anchor = -1  # the latest keyframe taken: new frames' poses are kept relative to it
 
-    def _dynamic_mask(self, frame: Frame) -> tuple[int, np.ndarray, int]:
+    def _dynamic_mask(self, numbered: tuple[int, Frame]) -> tuple[int, np.ndarray, int]:
         """YOLO worker: the dynamic mask of one frame (the frames after it reuse it, see :meth:`_mask`)."""
-        return (frame.index, *self.stages.dynamic_mask(frame))
+        number, frame = numbered
+        return (number, *self.stages.dynamic_mask(frame))
 
     def _collect(self, worker: Worker, wait: bool = False):
         """A worker's finished result; a failed job (say, a stage behind the bus timed out) is logged and
@@ -126,7 +129,7 @@ class KeyframePipeline:
             log.exception("the %s worker failed; going on without its result", worker.name)
         return None
 
-    def _take(self, update: MapUpdate | None, index: int) -> None:
+    def _take(self, update: MapUpdate | None) -> None:
         if update is None:
             return
         self.frames.apply(update)
@@ -137,22 +140,22 @@ class KeyframePipeline:
         t = update.timings
         self.keyframe_log.append(KeyframeLog(update.frame_index, update.result.status, update.keyframe_id >= 0,
                                              int(t["keypoints"]), int(t["kept"]), t["detector"], t["yolo"],
-                                             t["mapping"], index - update.frame_index))
+                                             t["mapping"], self._number - self._job_number))
 
     def _mask(self, frame: Frame) -> tuple[np.ndarray | None, int, int]:
         """The freshest dynamic mask for this frame, if it is recent enough: (mask, age, objects)."""
         if self.masking is None:
             return None, -1, 0
-        if frame.index - self._yolo_requested >= self.config.pipeline.yolo_every_n and not self.masking.busy:
-            self.masking.submit(frame)
-            self._yolo_requested = frame.index
+        if self._number - self._yolo_requested >= self.config.pipeline.yolo_every_n and not self.masking.busy:
+            self.masking.submit((self._number, frame))
+            self._yolo_requested = self._number
         fresh = self._collect(self.masking)
         if fresh is not None:
             self._dynamic = fresh
         if self._dynamic is None:
             return None, -1, 0
         detected_at, mask, objects = self._dynamic
-        age = frame.index - detected_at
+        age = self._number - detected_at
         if age > self.config.pipeline.mask_max_age:
             return None, -1, 0
         # the mask as detected, not grown with its age: grown boxes soon cover a crowded view and starve the
@@ -162,14 +165,14 @@ class KeyframePipeline:
     def process(self, frame: Frame) -> tuple[TrackResult, FrameStats]:
         """Track one frame; hand it to the mapping worker when the map should grow and the worker is free."""
         t0 = time.perf_counter()
-        self._last_index = frame.index
+        self._number += 1
         update = self._collect(self.mapping)
         ms_waited = 0.0
         if update is None and not self.live and self.mapping.busy and (
-                frame.index - self._job_index > self.config.pipeline.max_keyframe_lag):
+                self._number - self._job_number > self.config.pipeline.max_keyframe_lag):
             update = self._collect(self.mapping, wait=True)
             ms_waited = (time.perf_counter() - t0) * 1000
-        self._take(update, frame.index)
+        self._take(update)
         t_mask = time.perf_counter()
         mask, mask_age, objects = self._mask(frame)
         self.mask = mask
@@ -182,17 +185,18 @@ class KeyframePipeline:
         if not self.frames.initialised:
             # no map yet: this frame waits for its keyframe, there is nothing to track against
             t_wait = time.perf_counter()
-            self._take(self._collect(self.mapping, wait=True), frame.index)
+            self._take(self._collect(self.mapping, wait=True))
+            self._job_number = self._number
             if self.mapping.submit(job):
                 update = self._collect(self.mapping, wait=True)
-                self._take(update, frame.index)
+                self._take(update)
                 if update is not None and update.keyframe_id >= 0:
                     result = update.result
             ms_detector = (time.perf_counter() - t_wait) * 1000
             wants = False
         ms_detector += ms_waited
         if wants and not self.mapping.busy and self.mapping.submit(job):
-            self._job_index = frame.index
+            self._job_number = self._number
         if result.observed_xy is None:
             result.observed_xy = self.frames.track_xy  # the map points optical flow followed into this frame
         ms_total = (time.perf_counter() - t0) * 1000
@@ -213,7 +217,7 @@ class KeyframePipeline:
 
     def finish(self) -> None:
         """Let the mapping worker finish its job (its bundle adjustment refines the trajectory), then stop."""
-        self._take(self._collect(self.mapping, wait=True), self._last_index)
+        self._take(self._collect(self.mapping, wait=True))
         self.close()
 
     def refine(self) -> None:

@@ -15,6 +15,7 @@ from scipy.sparse.csgraph import connected_components
 from twohr.config import TrackerConfig
 from twohr.dataset import CameraIntrinsics
 from twohr.geometry import invert_pose, transform_points
+from twohr.mapfile import MapArrays
 
 from .optim import bundle_adjust
 
@@ -22,16 +23,16 @@ from .optim import bundle_adjust
 @dataclass
 class Keyframe:
     """A frame kept in the map: its keypoints with depth and the landmark each one observes (-1 = none). Its pose
-    is row ``id`` of :attr:`Map.keyframe_poses`."""
+    is row ``id`` of :attr:`Map.keyframe_poses`. Descriptors are the landmarks' (:class:`Landmarks`): a keyframe
+    holds none of its own, they would be most of the map's memory and nothing reads them."""
 
     id: int
     stamp: float
     xy: np.ndarray
     depth: np.ndarray
-    descriptors: np.ndarray
     landmark_ids: np.ndarray
     culled: bool = False
-    """redundant, so its observations, keypoints and descriptors were dropped (:meth:`Map.cull_redundant`)"""
+    """redundant, so its observations and keypoints were dropped (:meth:`Map.cull_redundant`)"""
 
 
 class Landmarks:
@@ -122,12 +123,52 @@ class Map:
                            self.keyframe_poses.copy(), np.array([kf.stamp for kf in self.keyframes]))
 
     def add_keyframe(self, stamp: float, pose: np.ndarray, xy: np.ndarray, depth: np.ndarray,
-                     descriptors: np.ndarray, landmark_ids: np.ndarray) -> Keyframe:
+                     landmark_ids: np.ndarray) -> Keyframe:
         """Keep a frame at camera-to-world ``pose``, observing ``landmark_ids`` (-1 = none) with its keypoints."""
-        keyframe = Keyframe(len(self.keyframes), stamp, xy, depth, descriptors, landmark_ids)
+        keyframe = Keyframe(len(self.keyframes), stamp, xy, depth, landmark_ids)
         self.keyframes.append(keyframe)
         self.keyframe_poses = np.concatenate([self.keyframe_poses, pose[None]])
         return keyframe
+
+    def arrays(self) -> MapArrays:
+        """The map as the arrays of a map file (:mod:`twohr.mapfile`)."""
+        keyframes, landmarks = self.keyframes, self.landmarks
+        first = np.cumsum([0] + [len(kf.landmark_ids) for kf in keyframes]).astype(np.int64)
+        descriptors = landmarks.descriptors if landmarks.descriptors is not None else np.zeros((0, 1), np.float32)
+
+        def joined(parts: list[np.ndarray], shape: tuple[int, ...], dtype) -> np.ndarray:
+            return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype)
+
+        return MapArrays(
+            keyframe_poses=self.keyframe_poses.copy(), keyframe_stamps=np.array([kf.stamp for kf in keyframes]),
+            keyframe_culled=np.array([kf.culled for kf in keyframes], bool), keyframe_first=first,
+            keypoint_xy=joined([kf.xy for kf in keyframes], (0, 2), np.float32),
+            keypoint_depth=joined([kf.depth for kf in keyframes], (0,), np.float32),
+            keypoint_landmark=joined([kf.landmark_ids for kf in keyframes], (0,), np.int64),
+            landmark_positions=landmarks.positions.copy(), landmark_descriptors=descriptors.copy(),
+            landmark_accepted=landmarks.accepted.copy(), landmark_rejected=landmarks.rejected.copy(),
+            landmark_bad=landmarks.bad.copy())
+
+    @classmethod
+    def from_arrays(cls, camera: CameraIntrinsics, conf: TrackerConfig, arrays: MapArrays) -> Map:
+        """A map from the arrays of a map file (checked by :func:`twohr.mapfile.read_map`)."""
+        world = cls(camera, conf)
+        landmarks = world.landmarks
+        landmarks.positions = arrays.landmark_positions.astype(np.float64)
+        landmarks.descriptors = arrays.landmark_descriptors
+        landmarks.accepted = arrays.landmark_accepted.astype(np.int64)
+        landmarks.rejected = arrays.landmark_rejected.astype(np.int64)
+        landmarks.bad = arrays.landmark_bad.astype(bool)
+        first = arrays.keyframe_first
+        for k in range(len(arrays.keyframe_stamps)):
+            part = slice(first[k], first[k + 1])
+            world.keyframes.append(Keyframe(k, float(arrays.keyframe_stamps[k]),
+                                            arrays.keypoint_xy[part].astype(np.float64),
+                                            arrays.keypoint_depth[part].astype(np.float64),
+                                            arrays.keypoint_landmark[part].astype(np.int64),
+                                            culled=bool(arrays.keyframe_culled[k])))
+        world.keyframe_poses = arrays.keyframe_poses.astype(np.float64).reshape(-1, 4, 4)
+        return world
 
     def local_keyframes(self, pose: np.ndarray, count: int) -> np.ndarray:
         """Indices of the latest keyframe and the keyframes nearest to ``pose`` (translation + weighted angle)."""
@@ -143,7 +184,7 @@ class Map:
         """Cull the keyframes among ``candidates`` (indices; never the first keyframe, nor one of the latest
         ``ba_window_keyframes``) whose usable landmarks are at least a ``keyframe_culling`` share observed by three
         other keyframes as well: they add nothing the others do not (ORB-SLAM3's local mapping culls such keyframes).
-        A culled keyframe's observations, keypoints and descriptors are dropped; its pose stays, frozen, as the
+        A culled keyframe's observations and keypoints are dropped; its pose stays, frozen, as the
         anchor of the frames recorded against it. Returns the culled indices."""
         share = self.conf.keyframe_culling
         if share <= 0 or len(self.keyframes) <= self.conf.ba_window_keyframes + 1:
@@ -162,7 +203,7 @@ class Map:
                 continue
             observers[keyframe.landmark_ids[keyframe.landmark_ids >= 0]] -= 1
             self.keyframes[i] = Keyframe(keyframe.id, keyframe.stamp, np.zeros((0, 2)), np.zeros(0),
-                                         keyframe.descriptors[:0].copy(), np.zeros(0, np.int64), culled=True)
+                                         np.zeros(0, np.int64), culled=True)
             culled.append(i)
         return culled
 

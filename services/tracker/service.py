@@ -15,6 +15,7 @@ key with ``final`` True; the gateway serves it as the session's trajectory.
 from __future__ import annotations
 
 import collections
+import logging
 import time
 from dataclasses import dataclass, field
 
@@ -53,6 +54,10 @@ from .trajectory import TrackResult
 HEALTH_WINDOW = 90
 DEGRADED_DROPPED_PERCENT = 10
 DEGRADED_KEYFRAME_LAG = 30
+#: seconds between the last frame before a camera's stamps went back in time and the first one after
+RESTARTED_CLOCK_GAP = 1 / 30
+
+log = logging.getLogger("twohr.tracker")
 
 
 class RemoteStage:
@@ -144,6 +149,21 @@ class SessionTrack:
     skipped: int = 0  # of them, in a row since the last tracked frame
     map_sent: int = -1  # the map version last published on ``landmarks``
     health: SessionHealth = field(default_factory=SessionHealth)
+    stamp_shift: float = 0.0  # added to the camera's stamps since they went back in time
+    last_stamp: float = float("-inf")
+
+    def session_stamp(self, stamp: float) -> float:
+        """The stamp the session uses for a camera stamp: the camera's own, shifted on when it went back in time (a
+        replay played again into the session, a camera driver restarted), so that the session's time always goes
+        on and its motion model, trajectory and paths stay ordered."""
+        shifted = stamp + self.stamp_shift
+        if shifted <= self.last_stamp:
+            self.stamp_shift += self.last_stamp + RESTARTED_CLOCK_GAP - shifted
+            shifted = stamp + self.stamp_shift
+            log.warning("session %s: the camera's stamps went back in time; its stamps are shifted by %+.3f s after "
+                        "frame %d", self.last_header.session_id, self.stamp_shift, self.last_header.frame_index)
+        self.last_stamp = shifted
+        return shifted
 
 
 class TrackerService(Service):
@@ -210,8 +230,10 @@ class TrackerService(Service):
             self._report_health(track, header)
             return
         track.skipped = 0
-        track.last_header = header
         _, frame = received_frame(payload)
+        frame.stamp = track.session_stamp(header.stamp)
+        header = header.model_copy(update={"stamp": frame.stamp})
+        track.last_header = header
         result, stats = track.schedule.process(frame)
         track.health.add(dropped=False)
         self._publish_pose(header, result, stats)

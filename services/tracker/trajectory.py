@@ -7,7 +7,8 @@ frame; both schedules keep their frames in one.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from array import array
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -64,7 +65,7 @@ def near_any_keyframe(pose: np.ndarray, keyframe_poses: np.ndarray, max_translat
     return bool(((moved < max_translation) & (turned < max_rotation_deg)).any())
 
 
-def reattach_to_keyframes(stamps: list[float], anchors: list[int], relative: list[np.ndarray],
+def reattach_to_keyframes(stamps: Sequence[float], anchors: Sequence[int], relative: np.ndarray,
                           keyframe_poses: np.ndarray) -> Trajectory:
     """Frames' poses from their pose relative to an anchor keyframe (-1 = none: the pose itself) and the
     keyframes' current poses, so that bundle adjustment's corrections reach every frame."""
@@ -105,26 +106,35 @@ def online_trajectory(results: Iterable[TrackResult]) -> Trajectory:
 class AnchoredTrajectory:
     """Every frame's pose, kept relative to an anchor keyframe so that the keyframes' refinements reach it.
 
+    Kept in flat arrays (about 113 bytes a frame), since a robot's session runs for hours.
     ``bridge_gaps``: in the refined trajectory, frames that only coasted are interpolated between the measured
     frames around them (the camera-rate schedule, whose keyframe jobs report a loss late)."""
 
     def __init__(self, conf: TrackerConfig, bridge_gaps: bool = False) -> None:
         self.conf = conf
         self.bridge_gaps = bridge_gaps
-        self.stamps: list[float] = []
-        self.anchors: list[int] = []
-        self.relative: list[np.ndarray] = []
-        self.measured: list[bool] = []  # False where the pose only coasted on the motion model
+        self.stamps = array("d")
+        self.anchors = array("q")
+        self._relative = array("d")  # the top 3x4 of each frame's pose relative to its anchor, row after row
+        self.measured = array("b")  # 0 where the pose only coasted on the motion model
 
     def __len__(self) -> int:
         return len(self.stamps)
+
+    def relative(self, start: int = 0) -> np.ndarray:
+        """(N, 4, 4) the poses relative to their anchors, of frame ``start`` on."""
+        top = np.frombuffer(self._relative, np.float64)[12 * start:].reshape(-1, 3, 4)
+        poses = np.tile(np.eye(4), (len(top), 1, 1))
+        poses[:, :3] = top
+        return poses
 
     def add(self, stamp: float, pose: np.ndarray, measured: bool, anchor: int, keyframe_poses: np.ndarray) -> None:
         """Record one frame's camera-to-world ``pose``, relative to keyframe ``anchor`` (-1: none yet) as
         ``keyframe_poses`` has it now."""
         self.stamps.append(stamp)
         self.anchors.append(anchor)
-        self.relative.append(pose if anchor < 0 else invert_pose(keyframe_poses[anchor]) @ pose)
+        relative = pose if anchor < 0 else invert_pose(keyframe_poses[anchor]) @ pose
+        self._relative.extend(relative[:3].ravel().tolist())
         self.measured.append(measured)
 
     def attach_to_keyframe(self, stamp: float, keyframe_id: int, measured: bool, keyframe_poses: np.ndarray) -> None:
@@ -134,15 +144,16 @@ class AnchoredTrajectory:
         motion relative to that frame, so the keyframe's correction does not come and go as a spike."""
         for i in range(len(self.stamps) - 1, -1, -1):
             if self.stamps[i] == stamp:
+                relative = np.frombuffer(self._relative, np.float64).reshape(-1, 3, 4)  # a view: writes go through
                 if self.conf.reanchor_lagging_frames and i + 1 < len(self.stamps):
-                    later = slice(i, len(self.stamps))
-                    absolute = reattach_to_keyframes(self.stamps[later], self.anchors[later],
-                                                     self.relative[later], keyframe_poses).poses
-                    self.relative[i + 1:] = list(invert_pose(absolute[0]) @ absolute[1:])
-                    self.anchors[i + 1:] = [keyframe_id] * (len(self.stamps) - i - 1)
+                    absolute = reattach_to_keyframes(self.stamps[i:], self.anchors[i:], self.relative(i),
+                                                     keyframe_poses).poses
+                    relative[i + 1:] = (invert_pose(absolute[0]) @ absolute[1:])[:, :3]
+                    self.anchors[i + 1:] = array("q", [keyframe_id] * (len(self.stamps) - i - 1))
                 self.anchors[i] = keyframe_id
-                self.relative[i] = np.eye(4)
+                relative[i] = np.eye(4)[:3]
                 self.measured[i] = measured
+                del relative  # the arrays cannot grow while a view of them is alive
                 return
             if self.stamps[i] < stamp:
                 return
@@ -150,7 +161,7 @@ class AnchoredTrajectory:
     def trajectory(self, keyframe_poses: np.ndarray) -> Trajectory:
         """Every frame's pose re-attached to its keyframe in ``keyframe_poses`` (as bundle adjustment left them),
         coasted gaps bridged where asked, then smoothed (:func:`smoothed`)."""
-        trajectory = reattach_to_keyframes(self.stamps, self.anchors, self.relative, keyframe_poses)
+        trajectory = reattach_to_keyframes(self.stamps, self.anchors, self.relative(), keyframe_poses)
         if self.bridge_gaps:
             trajectory = bridge_coasted(trajectory, np.asarray(self.measured, bool))
         return smoothed(trajectory, self.conf)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from ..messages import ID_PATTERN
 from .rmw import qualified_name
@@ -42,7 +42,12 @@ class Ros2Config(BaseModel):
     domain_id: int = Field(0, ge=0, le=232, description="ROS_DOMAIN_ID")
     namespace: str = Field("/{robot}", description="ROS namespace of each robot's topics and node")
     node_name: str = Field("twohr", pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
-    map_frame: str = Field("map", description="frame of the poses (twohr's world: the first camera's optical frame)")
+    map_frame: str = Field("map", description="REP 105 map frame: twohr's world (the first camera's optical frame) "
+                           "as the tracker's corrections (bundle adjustment) place it; PoseStamped and the corrected "
+                           "paths are in it, and tf has map -> odom")
+    odom_frame: str = Field("odom", description="REP 105 odom frame: the world of the online per-frame poses, which "
+                            "drift; Odometry, the Path and tf odom -> camera are in it. map -> odom is the latest "
+                            "correction (identity until the first one, reset at each new session)")
     camera_frame: str = Field("camera", description="child frame: the camera's optical frame (x right, y down)")
     pose_topic: str = "pose"
     odom_topic: str = "odom"
@@ -53,9 +58,15 @@ class Ros2Config(BaseModel):
                                  "trajectory of every frame when it ends")
     path_every: int = Field(10, ge=1, description="publish the Path at keyframes and at least every N poses")
     path_max_poses: int = Field(10_000, ge=1, description="oldest Path poses are dropped beyond this")
+    correction_window: int = Field(300, ge=1, description="online poses kept per robot to find the keyframe a "
+                                   "correction is anchored on (by stamp); a correction none of whose keyframes is "
+                                   "among them leaves map -> odom as it was")
+    diagnostics_topic: str = Field("/diagnostics", description="absolute topic of the diagnostic_msgs/DiagnosticArray "
+                                   "made from each session status (the tracker's ok/degraded and why, the services' "
+                                   "lifecycle)")
     camera_input: Ros2CameraInput | None = Field(None, description="a live ROS 2 camera to relay into twohr")
 
-    @field_validator("map_frame", "camera_frame")
+    @field_validator("map_frame", "odom_frame", "camera_frame")
     @classmethod
     def _frame(cls, value: str) -> str:
         if not _FRAME.match(value):
@@ -67,6 +78,20 @@ class Ros2Config(BaseModel):
     def _name(cls, value: str) -> str:
         qualified_name(value.replace("{robot}", "robot"), "x")
         return value
+
+    @field_validator("diagnostics_topic")
+    @classmethod
+    def _absolute(cls, value: str) -> str:
+        if not value.startswith("/"):
+            raise ValueError(f"{value!r} is not absolute: /diagnostics is one topic for every robot")
+        return qualified_name("/", value)
+
+    @model_validator(mode="after")
+    def _distinct_frames(self) -> Ros2Config:
+        if len({self.map_frame, self.odom_frame, self.camera_frame}) < 3:
+            raise ValueError(f"map_frame, odom_frame and camera_frame must differ, got {self.map_frame!r}, "
+                             f"{self.odom_frame!r} and {self.camera_frame!r}")
+        return self
 
     def robot_namespace(self, robot_id: str) -> str:
         """The robot's namespace, e.g. ``/robot1`` (``/`` for none)."""

@@ -1,4 +1,5 @@
-"""twohr messages to and from ROS 2 messages: poses out (PoseStamped, Odometry, TF, Path), camera frames in.
+"""twohr messages to and from ROS 2 messages: poses out (PoseStamped, Odometry, TF, Path), session statuses out
+(DiagnosticArray), camera frames in.
 
 Pure functions and small stateful builders; no bus inside. The service adapter and the ROS 2 MCAP
 writer both call :class:`PoseOutputs`, so a live ROS 2 graph and a recording carry the same messages.
@@ -13,7 +14,8 @@ import cv2
 import numpy as np
 
 from ..dataset import CameraIntrinsics
-from ..messages import FrameMsg, MessageError, PathMsg, PoseMsg
+from ..geometry import invert_pose, make_pose, quat_to_rot, rot_to_quat
+from ..messages import FrameMsg, MessageError, PathMsg, PoseMsg, StatusMsg
 from ..trajectory import Trajectory
 from . import msgs
 from .config import Ros2CameraInput, Ros2Config
@@ -22,6 +24,16 @@ from .config import Ros2CameraInput, Ros2Config
 LIVE_SESSION = "live"
 #: depth units per metre of the frames made from ROS images (16UC1 is millimetres by REP 118)
 ROS_DEPTH_FACTOR = 1000.0
+#: a corrected keyframe and an online pose are the same frame when their stamps are this close (s)
+MATCH_STAMP_TOLERANCE = 1e-3
+#: diagnostic level of each state a twohr service reports on ``twohr/<robot>/status``; any other state is OK
+DIAGNOSTIC_LEVELS: dict[str, int] = {
+    "ok": msgs.DiagnosticStatus.OK, "running": msgs.DiagnosticStatus.OK, "started": msgs.DiagnosticStatus.OK,
+    "live": msgs.DiagnosticStatus.OK, "relaying": msgs.DiagnosticStatus.OK,
+    "degraded": msgs.DiagnosticStatus.WARN, "capped": msgs.DiagnosticStatus.WARN,
+    "error": msgs.DiagnosticStatus.ERROR, "failed": msgs.DiagnosticStatus.ERROR,
+    "stopped": msgs.DiagnosticStatus.STALE, "finished": msgs.DiagnosticStatus.STALE,
+}
 
 
 def _header(stamp: float, frame_id: str) -> msgs.Header:
@@ -33,61 +45,110 @@ def _pose(pose: PoseMsg) -> msgs.Pose:
     return msgs.Pose(position=msgs.Point(x=x, y=y, z=z), orientation=msgs.Quaternion(x=qx, y=qy, z=qz, w=qw))
 
 
+def _matrix(position, orientation) -> np.ndarray:
+    return make_pose(quat_to_rot(np.asarray(orientation, np.float64)), position)
+
+
+def _pose_of(matrix: np.ndarray) -> msgs.Pose:
+    (x, y, z), (qx, qy, qz, qw) = matrix[:3, 3].tolist(), rot_to_quat(matrix[:3, :3]).reshape(4).tolist()
+    return msgs.Pose(position=msgs.Point(x=x, y=y, z=z), orientation=msgs.Quaternion(x=qx, y=qy, z=qz, w=qw))
+
+
+def _transform(header: msgs.Header, child: str, pose: msgs.Pose) -> msgs.TransformStamped:
+    return msgs.TransformStamped(header=header, child_frame_id=child, transform=msgs.Transform(
+        translation=msgs.Vector3(**pose.position.model_dump()), rotation=pose.orientation))
+
+
 @dataclass
-class RobotPath:
+class RobotState:
+    """What :class:`PoseOutputs` keeps of one robot's session, all of it bounded: the Path so far
+    (``path_max_poses``), the latest online poses by stamp (``correction_window``) and the correction."""
+
     session_id: str
     poses: deque = field(default_factory=deque)
     since_last: int = 0
+    #: (stamp, position, orientation) of the latest online poses, the drifting estimate in the odom frame
+    online: deque = field(default_factory=deque)
+    #: T_map_odom of the latest correction; None until the first one (identity)
+    map_odom: np.ndarray | None = None
+    #: the stamp of the keyframe the correction was anchored on, and how many corrections were applied
+    anchor_stamp: float | None = None
+    corrections: int = 0
 
 
 class PoseOutputs:
     """Turns each twohr pose of a robot into the ROS 2 messages to publish, by fully qualified topic.
 
-    Every pose gives a PoseStamped, an Odometry and a TFMessage (map -> camera). A Path is added at every
-    keyframe and, since the camera-rate schedule flags only the keyframes it waits for, also whenever
-    ``path_every`` poses went by without one; each such pose is appended to it. A pose with non-finite
-    values is skipped."""
+    Frames follow REP 105. The online per-frame poses are the drifting estimate, in ``odom``: every pose gives an
+    Odometry (odom -> camera) and a TFMessage with both map -> odom (the latest correction) and odom -> camera,
+    so a tf listener gets them together, and a PoseStamped in ``map`` (correction · online pose, what a navigation
+    stack wants). The tracker's live corrections (:meth:`corrections`) set map -> odom so that the latest corrected
+    keyframe the robot's recent poses hold lands where bundle adjustment put it; until the first one, and again at
+    each new session of the robot, map -> odom is the identity.
+
+    A Path (in ``odom``) is added at every keyframe and, since the camera-rate schedule flags only the keyframes it
+    waits for, also whenever ``path_every`` poses went by without one; each such pose is appended to it. A pose with
+    non-finite values or a zero quaternion is skipped."""
 
     def __init__(self, config: Ros2Config) -> None:
         self.config = config
-        self.paths: dict[str, RobotPath] = {}
+        self.robots: dict[str, RobotState] = {}
 
     def topics(self, robot_id: str) -> dict[type[msgs.RosMessage], str]:
         c = self.config
         return {msgs.PoseStamped: c.topic(robot_id, c.pose_topic), msgs.Odometry: c.topic(robot_id, c.odom_topic),
                 msgs.TFMessage: c.topic(robot_id, c.tf_topic), msgs.Path: c.topic(robot_id, c.path_topic)}
 
+    def frames(self, robot_id: str) -> tuple[str, str, str]:
+        """The robot's (map, odom, camera) frame ids."""
+        c = self.config
+        return c.frame(robot_id, c.map_frame), c.frame(robot_id, c.odom_frame), c.frame(robot_id, c.camera_frame)
+
+    def state(self, robot_id: str, session_id: str) -> RobotState:
+        """The robot's state for this session: a new session of the robot starts afresh (path, correction)."""
+        state = self.robots.get(robot_id)
+        if state is None or state.session_id != session_id:
+            state = self.robots[robot_id] = RobotState(session_id, deque(maxlen=self.config.path_max_poses),
+                                                       online=deque(maxlen=self.config.correction_window))
+        return state
+
     def messages(self, pose: PoseMsg) -> list[tuple[str, msgs.RosMessage]]:
         """``(topic, message)`` pairs for one pose, in publishing order."""
-        if not np.all(np.isfinite(pose.position + pose.orientation)):
+        if not np.all(np.isfinite(pose.position + pose.orientation)) or not any(pose.orientation):
             return []
         robot = pose.robot_id
+        state = self.state(robot, pose.session_id)
+        state.online.append((pose.stamp, tuple(pose.position), tuple(pose.orientation)))
         topics = self.topics(robot)
-        map_frame = self.config.frame(robot, self.config.map_frame)
-        camera_frame = self.config.frame(robot, self.config.camera_frame)
-        header = _header(pose.stamp, map_frame)
-        body = _pose(pose)
-        stamped = msgs.PoseStamped(header=header, pose=body)
-        odometry = msgs.Odometry(header=header, child_frame_id=camera_frame,
-                                 pose=msgs.PoseWithCovariance(pose=body))
-        transform = msgs.TransformStamped(
-            header=header, child_frame_id=camera_frame,
-            transform=msgs.Transform(translation=msgs.Vector3(**body.position.model_dump()),
-                                     rotation=body.orientation))
+        map_frame, odom_frame, camera_frame = self.frames(robot)
+        online = _pose(pose)
+        odom_header = _header(pose.stamp, odom_frame)
+        if state.map_odom is None:
+            map_odom, in_map = msgs.Pose(), online
+        else:
+            map_odom = _pose_of(state.map_odom)
+            in_map = _pose_of(state.map_odom @ _matrix(pose.position, pose.orientation))
+        stamped = msgs.PoseStamped(header=_header(pose.stamp, map_frame), pose=in_map)
+        odometry = msgs.Odometry(header=odom_header, child_frame_id=camera_frame,
+                                 pose=msgs.PoseWithCovariance(pose=online))
+        tf = msgs.TFMessage(transforms=[_transform(stamped.header, odom_frame, map_odom),
+                                        _transform(odom_header, camera_frame, online)])
         out: list[tuple[str, msgs.RosMessage]] = [
-            (topics[msgs.PoseStamped], stamped), (topics[msgs.Odometry], odometry),
-            (topics[msgs.TFMessage], msgs.TFMessage(transforms=[transform])),
-        ]
-        path = self._path(robot, pose, stamped)
+            (topics[msgs.PoseStamped], stamped), (topics[msgs.Odometry], odometry), (topics[msgs.TFMessage], tf)]
+        path = self._path(state, pose, msgs.PoseStamped(header=odom_header, pose=online))
         if path is not None:
             out.append((topics[msgs.Path], path))
         return out
 
     def corrections(self, path: PathMsg, trajectory: Trajectory) -> list[tuple[str, msgs.Path]]:
         """A corrected path from the tracker (keyframes after bundle adjustment, or the refined trajectory at the
-        session's end) as one nav_msgs/Path on ``corrected_topic``."""
+        session's end) as one nav_msgs/Path on ``corrected_topic``, in the map frame. A live one (not ``final``)
+        of the robot's current session also moves map -> odom: see :meth:`correct`."""
         robot = path.robot_id
         map_frame = self.config.frame(robot, self.config.map_frame)
+        state = self.robots.get(robot)
+        if not path.final and state is not None and state.session_id == path.session_id:
+            self.correct(state, trajectory)
         rows = trajectory.to_tum_array() if len(trajectory) else np.zeros((0, 8))
         poses = [msgs.PoseStamped(header=_header(float(r[0]), map_frame), pose=msgs.Pose(
             position=msgs.Point(x=r[1], y=r[2], z=r[3]), orientation=msgs.Quaternion(x=r[4], y=r[5], z=r[6], w=r[7])))
@@ -95,16 +156,52 @@ class PoseOutputs:
         topic = self.config.topic(robot, self.config.corrected_topic)
         return [(topic, msgs.Path(header=_header(path.stamp, map_frame), poses=poses))]
 
-    def _path(self, robot: str, pose: PoseMsg, stamped: msgs.PoseStamped) -> msgs.Path | None:
-        state = self.paths.get(robot)
-        if state is None or state.session_id != pose.session_id:  # a new session starts a new path
-            state = self.paths[robot] = RobotPath(pose.session_id, deque(maxlen=self.config.path_max_poses))
+    @staticmethod
+    def correct(state: RobotState, keyframes: Trajectory) -> bool:
+        """Set ``T_map_odom = T_corrected(kf) · T_online(kf)^-1`` for the latest keyframe of ``keyframes`` whose
+        stamp is within :data:`MATCH_STAMP_TOLERANCE` of an online pose the robot still holds. False, and the
+        previous correction kept, when none is."""
+        if not len(keyframes) or not state.online:
+            return False
+        online_stamps = np.array([stamp for stamp, _, _ in state.online])
+        order = np.argsort(online_stamps, kind="stable")
+        ordered = online_stamps[order]
+        at = np.searchsorted(ordered, keyframes.stamps)
+        below, above = np.clip(at - 1, 0, len(ordered) - 1), np.clip(at, 0, len(ordered) - 1)
+        nearest = np.where(np.abs(ordered[below] - keyframes.stamps) <= np.abs(ordered[above] - keyframes.stamps),
+                           below, above)
+        gap = np.abs(ordered[nearest] - keyframes.stamps)
+        finite = np.isfinite(keyframes.poses).all(axis=(1, 2))
+        matched = np.flatnonzero((gap <= MATCH_STAMP_TOLERANCE) & finite)
+        if not len(matched):
+            return False
+        latest = matched[np.argmax(keyframes.stamps[matched])]
+        stamp, position, orientation = state.online[int(order[nearest[latest]])]
+        correction = keyframes.poses[latest] @ invert_pose(_matrix(position, orientation))
+        state.map_odom, state.anchor_stamp = correction, float(stamp)
+        state.corrections += 1
+        return True
+
+    def _path(self, state: RobotState, pose: PoseMsg, stamped: msgs.PoseStamped) -> msgs.Path | None:
         state.since_last += 1
         if not pose.is_keyframe and state.since_last < self.config.path_every:
             return None
         state.since_last = 0
         state.poses.append(stamped)
         return msgs.Path(header=stamped.header, poses=list(state.poses))
+
+
+def diagnostics(status: StatusMsg, config: Ros2Config) -> tuple[str, msgs.DiagnosticArray]:
+    """A session status (the tracker's ``ok``/``degraded`` and why with its figures, or a service's lifecycle) as a
+    ``diagnostic_msgs/DiagnosticArray`` for ``diagnostics_topic``: one DiagnosticStatus named
+    ``twohr/<robot>/<service>``, its level from :data:`DIAGNOSTIC_LEVELS`, the detail as its message, the robot as
+    its hardware id, and the state, the session and the figures as key/value pairs."""
+    values = [msgs.KeyValue(key="state", value=status.state), msgs.KeyValue(key="session_id", value=status.session_id)]
+    values += [msgs.KeyValue(key=key, value=str(value)) for key, value in status.counters.items()]
+    entry = msgs.DiagnosticStatus(level=DIAGNOSTIC_LEVELS.get(status.state, msgs.DiagnosticStatus.OK),
+                                  name=f"twohr/{status.robot_id}/{status.service or 'tracker'}",
+                                  message=status.detail or status.state, hardware_id=status.robot_id, values=values)
+    return config.diagnostics_topic, msgs.DiagnosticArray(header=_header(status.stamp, ""), status=[entry])
 
 
 # -- camera frames ---------------------------------------------------------------------------------------------

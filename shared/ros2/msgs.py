@@ -7,6 +7,7 @@ the CDR encoder, the decoder and the ``ros2msg`` schema text written into ROS 2 
 
 from __future__ import annotations
 
+import math
 import re
 import struct
 from functools import cache
@@ -40,7 +41,9 @@ class Time(RosMessage):
 
     @classmethod
     def from_seconds(cls, seconds: float) -> Time:
-        nanoseconds = round(seconds * 1e9)
+        # whole seconds apart: ``seconds * 1e9`` of an epoch stamp is off by up to 128 ns in float64
+        whole = math.floor(seconds)
+        nanoseconds = whole * 1_000_000_000 + round((seconds - whole) * 1e9)
         return cls(sec=nanoseconds // 1_000_000_000, nanosec=nanoseconds % 1_000_000_000)
 
     def seconds(self) -> float:
@@ -215,12 +218,44 @@ class CameraInfo(RosMessage):
     roi: RegionOfInterest = Field(default_factory=RegionOfInterest)
 
 
+class KeyValue(RosMessage):
+    ros_type: ClassVar[str] = "diagnostic_msgs/msg/KeyValue"
+    definition: ClassVar[str] = "string key\nstring value"
+    key: str = ""
+    value: str = ""
+
+
+class DiagnosticStatus(RosMessage):
+    """One component's state; ``level`` is one of the constants below (``byte`` on the wire)."""
+
+    ros_type: ClassVar[str] = "diagnostic_msgs/msg/DiagnosticStatus"
+    definition: ClassVar[str] = ("byte level\nstring name\nstring message\nstring hardware_id\n"
+                                 "diagnostic_msgs/msg/KeyValue[] values")
+    OK: ClassVar[int] = 0
+    WARN: ClassVar[int] = 1
+    ERROR: ClassVar[int] = 2
+    STALE: ClassVar[int] = 3
+    level: int = Field(0, ge=0, le=255)
+    name: str = ""
+    message: str = ""
+    hardware_id: str = ""
+    values: list[KeyValue] = Field(default_factory=list)
+
+
+class DiagnosticArray(RosMessage):
+    ros_type: ClassVar[str] = "diagnostic_msgs/msg/DiagnosticArray"
+    type_hash: ClassVar[str] = "RIHS01_5a8a36efb05fb25070fa0fb3810290c0e6cd4862b54a8fb975a1ee8dc55a333e"
+    definition: ClassVar[str] = "std_msgs/msg/Header header\ndiagnostic_msgs/msg/DiagnosticStatus[] status"
+    header: Header = Field(default_factory=Header)
+    status: list[DiagnosticStatus] = Field(default_factory=list)
+
+
 #: every model, by ROS type name
 TYPES: dict[str, type[RosMessage]] = {
     cls.ros_type: cls
     for cls in (Time, Header, Point, Vector3, Quaternion, Pose, PoseStamped, PoseWithCovariance, Twist,
                 TwistWithCovariance, Odometry, Transform, TransformStamped, TFMessage, Path, Image,
-                CompressedImage, RegionOfInterest, CameraInfo)
+                CompressedImage, RegionOfInterest, CameraInfo, KeyValue, DiagnosticStatus, DiagnosticArray)
 }
 
 _FIELD = re.compile(r"^(?P<type>[A-Za-z0-9_/]+)(?:\[(?P<size>\d*)\])?\s+(?P<name>[a-z][a-z0-9_]*)$")

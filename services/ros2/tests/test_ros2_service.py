@@ -1,5 +1,6 @@
 """The ros2 service on a real Zenoh router: poses out as rmw_zenoh samples (checked with rosbags), liveliness
-tokens, attachments, and a ROS 2 camera in as twohr frames."""
+tokens, attachments, the tracker's corrections as map -> odom, session statuses on /diagnostics, and a ROS 2
+camera in as twohr frames."""
 
 import threading
 import time
@@ -11,7 +12,7 @@ from rosbags.typesys import Stores, get_typestore
 from twohr import keys
 from twohr.bus import open_session, wait_for_services
 from twohr.dataset import RGBDSequence
-from twohr.messages import FrameMsg, PoseMsg, decode, encode
+from twohr.messages import FrameMsg, PoseMsg, StatusMsg, decode, encode
 from twohr.ros2 import msgs
 from twohr.ros2.config import Ros2CameraInput, Ros2Config
 from twohr.ros2.convert import frame_to_ros
@@ -77,6 +78,15 @@ def test_poses_become_ros2_samples_that_rosbags_decodes(ros2_service):
         if ros_type == "geometry_msgs/msg/PoseStamped":
             assert [m.pose.position.x for m in decoded] == pytest.approx([0.01 * i for i in range(n)])
             assert decoded[0].header.frame_id == "map" and decoded[5].header.stamp.sec == 50
+        if ros_type == "nav_msgs/msg/Odometry":
+            assert {(m.header.frame_id, m.child_frame_id) for m in decoded} == {("odom", "camera")}
+        if ros_type == "tf2_msgs/msg/TFMessage":  # REP 105: map -> odom (no correction yet) with odom -> camera
+            assert {tuple((t.header.frame_id, t.child_frame_id) for t in m.transforms) for m in decoded} == {
+                (("map", "odom"), ("odom", "camera"))}
+            assert all(m.transforms[0].transform.translation.x == 0 and m.transforms[0].transform.rotation.w == 1
+                       for m in decoded)
+            assert [m.transforms[1].transform.translation.x for m in decoded] == pytest.approx(
+                [0.01 * i for i in range(n)])
         if ros_type == "nav_msgs/msg/Path":
             assert [len(m.poses) for m in decoded] == [1, 2, 3]
     assert service.health()["published"]["geometry_msgs/msg/PoseStamped"] == n
@@ -96,26 +106,79 @@ def test_poses_become_ros2_samples_that_rosbags_decodes(ros2_service):
 
 def test_corrected_paths_become_a_nav_msgs_path(ros2_service):
     """The tracker's corrections (keyframes after bundle adjustment, then the refined trajectory) reach ROS 2 as
-    nav_msgs/Path on <namespace>/path_corrected, decodable by rosbags, in the map frame."""
+    nav_msgs/Path on <namespace>/path_corrected, decodable by rosbags, in the map frame; a live one moves
+    map -> odom on tf and the map-frame PoseStamped of the poses that follow."""
     from twohr.messages import PathMsg, path_arrays
     from twohr.trajectory import Trajectory
 
     _, client = ros2_service
-    samples = []
+    samples, tfs, stamped = [], [], []
     key = topic_key(0, "/live2/path_corrected", msgs.Path)
     subscriber = client.declare_subscriber(key, lambda s: samples.append(s.payload.to_bytes()))
+    tf_subscriber = client.declare_subscriber(topic_key(0, "/live2/tf", msgs.TFMessage),
+                                              lambda s: tfs.append(s.payload.to_bytes()))
+    pose_subscriber = client.declare_subscriber(topic_key(0, "/live2/pose", msgs.PoseStamped),
+                                                lambda s: stamped.append(s.payload.to_bytes()))
+    pose_publisher = declare_publisher(client, keys.key("live2", "pose"))
     publisher = declare_publisher(client, keys.key("live2", "path"))
+
+    def pose(i: int, stamp: float, x: float) -> bytes:
+        return encode(PoseMsg(session_id="s2", robot_id="live2", frame_index=i, stamp=stamp, position=[x, 0.0, 0.0],
+                              orientation=[0.0, 0.0, 0.0, 1.0], status="tracking", is_keyframe=True))
+
+    for i, (stamp, x) in enumerate(((10.0, 0.0), (10.5, 0.1), (11.0, 0.2))):  # online: keyframe 11.0 drifted 5 cm
+        pose_publisher.put(pose(i, stamp, x))
+    assert wait_until(lambda: len(tfs) >= 3)
     poses = np.tile(np.eye(4), (3, 1, 1))
     poses[:, 0, 3] = [0.0, 0.1, 0.25]
     corrected = Trajectory(np.array([10.0, 10.5, 11.0]), poses)
-    for final in (False, True):
-        message = PathMsg(session_id="s2", robot_id="live2", frame_index=30, stamp=11.0, final=final)
-        publisher.put(encode(message, path_arrays(corrected)))
+    live = PathMsg(session_id="s2", robot_id="live2", frame_index=30, stamp=11.0, final=False)
+    publisher.put(encode(live, path_arrays(corrected)))
+    assert wait_until(lambda: len(samples) >= 1)  # handled: map -> odom is now the keyframe's correction
+    pose_publisher.put(pose(3, 11.5, 0.3))
+    assert wait_until(lambda: len(tfs) >= 4 and len(stamped) >= 4)
+    publisher.put(encode(live.model_copy(update={"final": True}), path_arrays(corrected)))
     assert wait_until(lambda: len(samples) >= 2)
-    subscriber.undeclare()
+    for sub in (subscriber, tf_subscriber, pose_subscriber):
+        sub.undeclare()
     decoded = [TYPESTORE.deserialize_cdr(payload, "nav_msgs/msg/Path") for payload in samples]
     assert [[p.pose.position.x for p in m.poses] for m in decoded] == [pytest.approx([0.0, 0.1, 0.25])] * 2
     assert decoded[0].header.frame_id == "map" and decoded[0].poses[1].header.stamp.nanosec == 500_000_000
+    transforms = [TYPESTORE.deserialize_cdr(payload, "tf2_msgs/msg/TFMessage").transforms for payload in tfs]
+    assert [t[0].transform.translation.x for t in transforms] == pytest.approx([0.0, 0.0, 0.0, 0.05])
+    assert [(t[0].header.frame_id, t[0].child_frame_id) for t in transforms] == [("map", "odom")] * 4
+    assert [t[1].transform.translation.x for t in transforms] == pytest.approx([0.0, 0.1, 0.2, 0.3])  # online
+    in_map = [TYPESTORE.deserialize_cdr(payload, "geometry_msgs/msg/PoseStamped") for payload in stamped]
+    assert [m.pose.position.x for m in in_map] == pytest.approx([0.0, 0.1, 0.2, 0.35])
+    assert {m.header.frame_id for m in in_map} == {"map"}
+
+
+def test_a_degraded_session_status_reaches_diagnostics(ros2_service):
+    """The tracker's ``degraded`` (and why, with its figures) on twohr/<robot>/status is a WARN on /diagnostics."""
+    service, client = ros2_service
+    samples = []
+    subscriber = client.declare_subscriber(topic_key(0, "/diagnostics", msgs.DiagnosticArray),
+                                           lambda s: samples.append(s.payload.to_bytes()))
+    publisher = declare_publisher(client, keys.key("live3", "status"))
+    detail = "keyframe job 42 frames late (CPU 35 ms per frame)"
+    for state, why in (("degraded", detail), ("ok", "keeping up (CPU 20 ms per frame)")):
+        publisher.put(encode(StatusMsg(session_id="s3", robot_id="live3", frame_index=-1, stamp=time.time(),
+                                       service="tracker", state=state, detail=why,
+                                       counters={"dropped_percent": 0, "keyframe_lag": 42, "cpu_ms_per_frame": 35})))
+    assert wait_until(lambda: len(samples) >= 2)
+    subscriber.undeclare()
+    decoded = [TYPESTORE.deserialize_cdr(payload, "diagnostic_msgs/msg/DiagnosticArray") for payload in samples]
+    assert [[s.level for s in m.status] for m in decoded] == [[1], [0]]
+    degraded = decoded[0].status[0]
+    assert (degraded.name, degraded.message, degraded.hardware_id) == ("twohr/live3/tracker", detail, "live3")
+    assert {kv.key: kv.value for kv in degraded.values} == {"state": "degraded", "session_id": "s3",
+                                                            "dropped_percent": "0", "keyframe_lag": "42",
+                                                            "cpu_ms_per_frame": "35"}
+    assert service.health()["published"]["diagnostic_msgs/msg/DiagnosticArray"] == 2
+    tokens = [str(reply.ok.key_expr) for reply in client.liveliness().get("@ros2_lv/0/**", timeout=2)
+              if reply.ok is not None]
+    assert any("/MP/%/%live3/twohr/%diagnostics/diagnostic_msgs::msg::dds_::DiagnosticArray_/RIHS01_5a8a" in t
+               for t in tokens), tokens
 
 
 def test_ros2_camera_images_become_twohr_frames(ros2_service, dev_sequence):
@@ -171,3 +234,6 @@ def test_bad_settings_exit_2_with_one_line(tmp_path):
     config.write_text("ros2:\n  map_frame: 'a b'\n")
     proc = run("--config", str(config))
     assert proc.returncode == 2 and "map_frame" in proc.stderr.strip().splitlines()[-1]
+    proc = run("--odom-frame", "map")
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1].endswith(
+        "error: map_frame, odom_frame and camera_frame must differ, got 'map', 'map' and 'camera'")

@@ -64,6 +64,14 @@ def orb_synthetic(synthetic_sequence) -> DetectedSequence:
 
 
 @pytest.fixture(scope="session")
+def orb_synthetic_other_room(tmp_path_factory) -> DetectedSequence:
+    """20 synthetic frames of another room (another texture), as ORB keypoints and depth."""
+    from twohr.synthetic import SyntheticSpec, generate
+
+    return detect_sequence(generate(tmp_path_factory.mktemp("synth") / "other_room", SyntheticSpec(frames=20, seed=7)))
+
+
+@pytest.fixture(scope="session")
 def orb_real_frames(dev_sequence) -> DetectedSequence:
     """Every 3rd of the first 90 real Bonn frames (few people in view yet), as ORB keypoints and depth."""
     from twohr_services.detector.core import ORBDetector

@@ -49,7 +49,7 @@ def test_both_schedules_answer_the_same_interface(static_synthetic_sequence, mod
 def test_a_snapshot_is_a_copy_and_keyframes_hold_no_pose(synthetic_sequence):
     sequence = RGBDSequence(synthetic_sequence)
     world = Map(sequence.camera, load_config().tracker)
-    keyframe = world.add_keyframe(0.0, np.eye(4), np.zeros((3, 2)), np.ones(3), np.zeros((3, 8)), np.arange(3))
+    keyframe = world.add_keyframe(0.0, np.eye(4), np.zeros((3, 2)), np.ones(3), np.arange(3))
     world.landmarks.add(np.ones((3, 3)), np.zeros((3, 8)))
     snapshot = world.snapshot()
     world.keyframe_poses[0, 0, 3] = 1.0

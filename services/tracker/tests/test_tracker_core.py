@@ -110,6 +110,29 @@ def test_relocalises_against_earlier_keyframes_after_a_loss(orb_synthetic):
         assert moved < 0.01 and turned < 0.5, f"frame {index}: {moved:.4f} m, {turned:.2f} deg"
 
 
+def test_relocalises_against_the_whole_map_where_no_nearby_keyframe_fits(orb_synthetic, orb_synthetic_other_room):
+    """The camera leaves room A for room B (lost, then a new map part there), then comes back to A: the keyframes
+    near its last pose are B's, so only the whole map's landmarks find it in A again (a replay played once more, a
+    robot carried back). Without that, it is lost and starts yet another map part."""
+    room_b = orb_synthetic_other_room
+    conf = SYNTHETIC.model_copy(update={"match_radius_px": 10.0, "lost_radius_growth_px": 0.0,
+                                        "relocalisation_candidates": 1, "reinit_after_lost_frames": 3})
+    visits = [(orb_synthetic, i) for i in range(30)] + [(room_b, i) for i in range(20)] + [
+        (orb_synthetic, i) for i in range(10)]
+
+    def run(tracker: Tracker) -> list[TrackResult]:
+        return [tracker.track(1000 + n / 30, data.keypoints[i], data.depths[i]) for n, (data, i) in enumerate(visits)]
+
+    nearby_only = run(Tracker(orb_synthetic.camera, conf.model_copy(update={"relocalisation_max_landmarks": 0}),
+                              match=orb_synthetic.match))
+    assert nearby_only[50].status == "lost" and "reinitialised" in [r.status for r in nearby_only[50:]]
+    back = run(Tracker(orb_synthetic.camera, conf, match=orb_synthetic.match))[50:]
+    assert back[0].status == "relocalised" and "the whole map" in back[0].reason
+    for index, result in enumerate(back):
+        moved, turned = pose_difference(truth_in_first_camera(orb_synthetic, index), result.pose)
+        assert result.tracked and moved < 0.01 and turned < 0.5, f"frame {index}: {moved:.4f} m, {turned:.2f} deg"
+
+
 def test_starts_a_new_map_after_a_long_loss_without_relocalisation(orb_synthetic):
     conf = SYNTHETIC.model_copy(update={"match_radius_px": 10.0, "lost_radius_growth_px": 0.0,
                                         "relocalisation": False, "reinit_after_lost_frames": 4})
@@ -237,21 +260,42 @@ def _back_and_forth(tracker: Tracker, data, passes: int = 3, every: int = 2) -> 
     return results, order
 
 
+def test_a_place_the_map_covers_gets_no_more_keyframes(orb_synthetic):
+    """Sweeping the same place six times, a keyframe asked for every other frame: the first sweeps map it, then
+    the map stops growing (older keyframes cover every pose) and the poses stay as good. Asked the same, a tracker
+    that takes every keyframe grows by ten each sweep."""
+    tracker = Tracker(orb_synthetic.camera, SYNTHETIC, match=orb_synthetic.match)
+    every_time = Tracker(orb_synthetic.camera, SYNTHETIC.model_copy(update={"keyframe_revisit_min_inliers": 0}),
+                         match=orb_synthetic.match)
+    counts, every_time_counts = [], []
+    for _ in range(6):
+        results, order = _back_and_forth(tracker, orb_synthetic, passes=1)
+        counts.append(len(tracker.keyframes))
+        _back_and_forth(every_time, orb_synthetic, passes=1)
+        every_time_counts.append(len(every_time.keyframes))
+        for index, result in zip(order, results, strict=True):
+            moved, _ = pose_difference(truth_in_first_camera(orb_synthetic, index), result.pose)
+            assert result.tracked and moved < 0.01, (index, moved)
+    assert counts[0] >= 8 and counts[-1] == counts[2], counts  # 10, 13, 14, 14, 14, 14 here
+    assert every_time_counts[-1] - every_time_counts[2] >= 25, every_time_counts
+
+
 def test_redundant_keyframes_are_culled_where_the_camera_stays(orb_synthetic):
-    """Sweeping the same place again and again: without culling, every forced keyframe stays with its keypoints
-    and descriptors; with it, the keyframes whose landmarks three others see give them up, the poses stay as
-    good, and culled keyframes are left out of the local map."""
-    kept = Tracker(orb_synthetic.camera, SYNTHETIC.model_copy(update={"keyframe_culling": 0.0}),
+    """Sweeping the same place again and again, a keyframe each time it is asked for: without culling, every
+    keyframe stays with its keypoints; with it, the keyframes whose landmarks three others see give them up, the
+    poses stay as good, and culled keyframes are left out of the local map."""
+    every_time = {"keyframe_revisit_min_inliers": 0}
+    kept = Tracker(orb_synthetic.camera, SYNTHETIC.model_copy(update={"keyframe_culling": 0.0, **every_time}),
                    match=orb_synthetic.match)
     _back_and_forth(kept, orb_synthetic)
     assert not any(kf.culled for kf in kept.keyframes)
-    tracker = Tracker(orb_synthetic.camera, SYNTHETIC, match=orb_synthetic.match)
+    tracker = Tracker(orb_synthetic.camera, SYNTHETIC.model_copy(update=every_time), match=orb_synthetic.match)
     results, order = _back_and_forth(tracker, orb_synthetic)
     assert len(tracker.keyframes) == len(kept.keyframes) >= 25
     culled = [kf for kf in tracker.keyframes if kf.culled]
     assert len(culled) >= len(tracker.keyframes) // 5, (len(culled), len(tracker.keyframes))  # 8 of 30 here
     assert not tracker.keyframes[0].culled and not any(kf.culled for kf in tracker.keyframes[-5:])
-    assert all(len(kf.descriptors) == 0 and len(kf.landmark_ids) == 0 for kf in culled)
+    assert all(len(kf.xy) == 0 and len(kf.landmark_ids) == 0 for kf in culled)
     assert not set(tracker.map.local_keyframes(tracker.keyframe_poses[-1], 6)) & {kf.id for kf in culled}
     for index, result in zip(order, results, strict=True):
         moved, _ = pose_difference(truth_in_first_camera(orb_synthetic, index), result.pose)

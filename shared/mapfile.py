@@ -1,0 +1,225 @@
+"""The map file: one self-describing file per map, that a robot can come back to and another robot can load.
+
+A map file is a zip archive (``.map``) of ``header.json`` (:class:`MapHeader`: format and version, the map's name
+and frame, the camera, the detector model and config it was built with, counts, provenance) and one ``.npy`` array
+per field of :class:`MapArrays`, read with ``allow_pickle=False``. Keyframes keep their pose, stamp and keypoints
+(pixels, depth, the landmark each one observes); a keypoint that observes a landmark has that landmark's
+descriptor, the only descriptors a map keeps (those of unmatched keypoints are dropped, as in memory).
+
+Written atomically (a temporary file beside the target, fsync, rename). :func:`read_map` checks everything and
+answers a wrong, corrupt or inconsistent file, or one built with another detector model, with one
+:class:`MapFileError` line. Plain arrays and pydantic only: the tracker, the gateway and the CLI all use it.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import tempfile
+import time
+import zipfile
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from .dataset import CameraIntrinsics
+from .errors import TwohrError, validation_problems
+
+FORMAT = "twohr-map"
+VERSION = 1
+SUFFIX = ".map"
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+
+
+class MapFileError(TwohrError):
+    """A map file that cannot be used: missing, corrupt, of another format or version, inconsistent, or built with
+    another detector model than the one asked for."""
+
+
+class MapHeader(BaseModel):
+    """What a map is and how it was built (``header.json``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    format: str = FORMAT
+    version: int = VERSION
+    name: str = Field(pattern=NAME_PATTERN, description="the map's name, also the frame id of poses in it")
+    created: float = Field(default_factory=time.time, description="Unix time it was written")
+    built_by: str = Field("", description="the run or session that built it")
+    parent: str | None = Field(None, description="the map it extends (name@created), if any")
+    camera: CameraIntrinsics
+    detector_model: str = Field(description="the 2HR detector model its descriptors come from")
+    detector_sha256: str = Field("", description="that model's file checksum")
+    detector_config: dict = Field(default_factory=dict, description="the detector config it was built with")
+    descriptor_dim: int = Field(gt=0)
+    descriptor_dtype: str
+    keyframes: int = Field(ge=0)
+    landmarks: int = Field(ge=0)
+
+    @property
+    def frame_id(self) -> str:
+        """The frame of poses in this map: its name."""
+        return self.name
+
+
+@dataclass
+class MapArrays:
+    """Every array of a map, by its file name in the archive. Keypoints of all keyframes are stored back to back;
+    ``keyframe_first[k]`` is where keyframe ``k``'s begin (and ``keyframe_first[K]`` the total)."""
+
+    keyframe_poses: np.ndarray  # (K, 4, 4) float64 camera-to-world
+    keyframe_stamps: np.ndarray  # (K,) float64
+    keyframe_culled: np.ndarray  # (K,) bool
+    keyframe_first: np.ndarray  # (K + 1,) int64
+    keypoint_xy: np.ndarray  # (P, 2) float32 pixels
+    keypoint_depth: np.ndarray  # (P,) float32 metres
+    keypoint_landmark: np.ndarray  # (P,) int64, -1 = none
+    landmark_positions: np.ndarray  # (L, 3) float64 world
+    landmark_descriptors: np.ndarray  # (L, D)
+    landmark_accepted: np.ndarray  # (L,) int64
+    landmark_rejected: np.ndarray  # (L,) int64
+    landmark_bad: np.ndarray  # (L,) bool
+
+    def check(self, header: MapHeader) -> None:
+        """Raise :class:`MapFileError` where the arrays do not fit each other or the header."""
+        k, lm = header.keyframes, header.landmarks
+        shapes = {"keyframe_poses": (k, 4, 4), "keyframe_stamps": (k,), "keyframe_culled": (k,),
+                  "keyframe_first": (k + 1,), "landmark_positions": (lm, 3),
+                  "landmark_descriptors": (lm, header.descriptor_dim), "landmark_accepted": (lm,),
+                  "landmark_rejected": (lm,), "landmark_bad": (lm,)}
+        for name, shape in shapes.items():
+            if getattr(self, name).shape != shape:
+                raise MapFileError(f"{name} has shape {getattr(self, name).shape}, the header says {shape}")
+        points = len(self.keypoint_landmark)
+        if self.keypoint_xy.shape != (points, 2) or self.keypoint_depth.shape != (points,):
+            raise MapFileError(f"keypoint arrays disagree: xy {self.keypoint_xy.shape}, depth "
+                               f"{self.keypoint_depth.shape}, landmark {self.keypoint_landmark.shape}")
+        first = self.keyframe_first
+        if len(first) and (first[0] != 0 or first[-1] != points or np.any(np.diff(first) < 0)):
+            raise MapFileError("keyframe_first does not split the keypoints in order")
+        if str(self.landmark_descriptors.dtype) != header.descriptor_dtype:
+            raise MapFileError(f"descriptors are {self.landmark_descriptors.dtype}, the header says "
+                               f"{header.descriptor_dtype}")
+        if np.any((self.keypoint_landmark < -1) | (self.keypoint_landmark >= lm)):
+            raise MapFileError("a keypoint observes a landmark the map does not have")
+        for name in ("keyframe_poses", "keyframe_stamps", "landmark_positions", "keypoint_xy", "keypoint_depth"):
+            if not np.all(np.isfinite(getattr(self, name))):
+                raise MapFileError(f"{name} holds values that are not finite")
+        if k and not np.allclose(self.keyframe_poses[:, 3], [0, 0, 0, 1]):
+            raise MapFileError("a keyframe pose is not a rigid transform")
+
+
+@dataclass
+class MapFile:
+    """A map as stored: its header and its arrays."""
+
+    header: MapHeader
+    arrays: MapArrays
+
+
+def write_map(path: str | Path, map_file: MapFile) -> int:
+    """Write ``map_file`` to ``path`` atomically (temporary file, fsync, rename); returns its size in bytes."""
+    path = Path(path)
+    map_file.arrays.check(map_file.header)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(handle, "wb") as out:
+            with zipfile.ZipFile(out, "w", zipfile.ZIP_STORED) as archive:
+                archive.writestr("header.json", map_file.header.model_dump_json(indent=1))
+                for field in fields(MapArrays):
+                    buffer = io.BytesIO()
+                    np.save(buffer, np.ascontiguousarray(getattr(map_file.arrays, field.name)), allow_pickle=False)
+                    archive.writestr(f"{field.name}.npy", buffer.getvalue())
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+    directory = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(directory)  # the rename itself survives a power cut
+    finally:
+        os.close(directory)
+    return path.stat().st_size
+
+
+def read_header(path: str | Path) -> MapHeader:
+    """The header of a map file alone (cheap: for listings); :class:`MapFileError` when it cannot be read."""
+    with _archive(path) as archive:
+        return _header(archive, path)
+
+
+def read_map(path: str | Path, detector_model: str | None = None) -> MapFile:
+    """A map file, checked through; with ``detector_model``, also that it was built with that detector."""
+    with _archive(path) as archive:
+        header = _header(archive, path)
+        if detector_model is not None and header.detector_model != detector_model:
+            raise MapFileError(f"{path}: built with detector model {header.detector_model!r}, this run uses "
+                               f"{detector_model!r}; its descriptors would not match")
+        names = set(archive.namelist())
+        values = {}
+        for field in fields(MapArrays):
+            member = f"{field.name}.npy"
+            if member not in names:
+                raise MapFileError(f"{path}: {member} is missing")
+            try:
+                values[field.name] = np.load(io.BytesIO(archive.read(member)), allow_pickle=False)
+            except (ValueError, OSError, zipfile.BadZipFile) as exc:
+                raise MapFileError(f"{path}: {member} cannot be read ({exc})") from None
+    arrays = MapArrays(**values)
+    try:
+        arrays.check(header)
+    except MapFileError as exc:
+        raise MapFileError(f"{path}: {exc}") from None
+    return MapFile(header, arrays)
+
+
+def verify_bytes(data: bytes, name: str = "upload") -> MapHeader:
+    """Check a map file's bytes (say, an upload) through; returns its header."""
+    with tempfile.NamedTemporaryFile(suffix=SUFFIX) as handle:
+        handle.write(data)
+        handle.flush()
+        header = read_map(handle.name).header
+    return header
+
+
+class _archive:
+    """The map file as an open zip archive; :class:`MapFileError` when it is missing or not a zip."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+
+    def __enter__(self) -> zipfile.ZipFile:
+        if not self.path.is_file():
+            raise MapFileError(f"{self.path}: no such map file")
+        try:
+            self.zip = zipfile.ZipFile(self.path)
+        except (zipfile.BadZipFile, OSError) as exc:
+            raise MapFileError(f"{self.path}: not a twohr map file ({exc})") from None
+        return self.zip
+
+    def __exit__(self, *exc) -> None:
+        self.zip.close()
+
+
+def _header(archive: zipfile.ZipFile, path) -> MapHeader:
+    try:
+        raw = json.loads(archive.read("header.json"))
+    except KeyError:
+        raise MapFileError(f"{path}: not a twohr map file (no header.json)") from None
+    except (ValueError, zipfile.BadZipFile, OSError) as exc:
+        raise MapFileError(f"{path}: header.json cannot be read ({exc})") from None
+    if not isinstance(raw, dict) or raw.get("format") != FORMAT:
+        found = raw.get("format") if isinstance(raw, dict) else raw
+        raise MapFileError(f"{path}: not a twohr map file (format {found!r})")
+    if raw.get("version") != VERSION:
+        raise MapFileError(f"{path}: map format version {raw.get('version')}, this twohr reads version {VERSION}")
+    try:
+        return MapHeader.model_validate(raw)
+    except ValidationError as exc:
+        raise MapFileError(f"{path}: header.json: {validation_problems(exc)}") from None
