@@ -23,6 +23,7 @@ from twohr.workers import prefetch
 
 from .detector.core import build_detector
 from .matcher.core import build_matcher
+from .tracker.map import Map
 from .tracker.schedule import Schedule, build_schedule
 from .tracker.stages import FrameStats, KeyframeLog, Stages
 from .tracker.trajectory import TRACKED_STATUSES, TrackResult, online_trajectory
@@ -110,6 +111,8 @@ class RunResult:
     keyframe_log: list[KeyframeLog] = field(default_factory=list)
     refine_s: float = 0.0
     """seconds of the final bundle adjustment, after the frames (not in ``wall_s``)"""
+    map: Map | None = None
+    """the schedule's map after the run (the one given, grown, or a new one)"""
 
     @property
     def tracked_percent(self) -> float:
@@ -119,18 +122,20 @@ class RunResult:
 
 def run_sequence(sequence, config: PipelineConfig, start: int = 0, stop: int | None = None, step: int = 1,
                  progress: bool = True, front_cache: dict[int, StageOutput] | None = None,
-                 on_frame: Callable[[Frame, TrackResult, FrameStats, Schedule], None] | None = None) -> RunResult:
+                 on_frame: Callable[[Frame, TrackResult, FrameStats, Schedule], None] | None = None,
+                 world: Map | None = None) -> RunResult:
     """Run the pipeline over a sequence (``twohr.dataset.RGBDSequence``). Corrupt frames are skipped
     and counted. ``front_cache`` (frame index -> StageOutput) reuses or collects front-end outputs
     (see :func:`cached_stages`). ``on_frame(frame, result, stats, schedule)`` is called after each frame
-    (e.g. a live view)."""
+    (e.g. a live view). ``world``: a map to track in (loaded from a file); the poses are in its frame, and frames
+    before the camera is found in it have none."""
     from tqdm import tqdm
 
     if front_cache is None:
         stages = local_stages(config, sequence.camera)
     else:
         stages = cached_stages(config, front_cache)
-    schedule = build_schedule(config, sequence.camera, stages)
+    schedule = build_schedule(config, sequence.camera, stages, world=world)
     results, stats = [], []
     stop = len(sequence) if stop is None else min(stop, len(sequence))
     t0 = time.perf_counter()
@@ -152,4 +157,5 @@ def run_sequence(sequence, config: PipelineConfig, start: int = 0, stop: int | N
     refine_s = time.perf_counter() - t0 - wall
     online = online_trajectory(results)
     refined = schedule.trajectory() if results else online
-    return RunResult(refined, online, stats, list(sequence.skipped), wall, schedule.keyframe_log, refine_s)
+    return RunResult(refined, online, stats, list(sequence.skipped), wall, schedule.keyframe_log, refine_s,
+                     schedule.map)

@@ -103,12 +103,40 @@ def print_summary(summary: dict, out: Path) -> None:
           "stats.csv, summary.json, config.yaml")
 
 
+def _check_map_options(args: argparse.Namespace) -> None:
+    from twohr.errors import TwohrError
+
+    if args.map_mode and not args.map:
+        raise TwohrError("--map-mode needs --map FILE (the map to localize in or extend)")
+    if args.map and args.map_mode == "localize" and args.save_map:
+        raise TwohrError("--map-mode localize leaves the map as it was: there is nothing to --save-map "
+                         "(--map-mode extend saves the map with this run's keyframes as a new file)")
+    if args.map and args.save_map and Path(args.map).resolve() == Path(args.save_map).resolve():
+        raise TwohrError("--save-map must name a new file: a map is never overwritten in place")
+
+
+def _load_map(args: argparse.Namespace, config, sequence) -> tuple:
+    """The map given by ``--map`` and what to report of it: (Map or None, its header or None, summary dict)."""
+    if not args.map:
+        return None, None, {}
+    from .tracker.mapfiles import load_map
+
+    world, header, seconds = load_map(args.map, config, sequence.camera)
+    print(f"map {header.name}: {header.keyframes} keyframes, {header.landmarks} landmarks, loaded in "
+          f"{seconds * 1000:.0f} ms ({args.map_mode or 'localize'})", flush=True)
+    return world, header, {"file": str(args.map), "name": header.name, "mode": args.map_mode or "localize",
+                           "keyframes": header.keyframes, "landmarks": header.landmarks,
+                           "load_s": round(seconds, 3)}
+
+
 def _run(args: argparse.Namespace) -> int:
     from .pipeline import run_sequence
 
+    _check_map_options(args)
     config, sequence = load_config_and_sequence(args)
     frames = sequence.frame_range(args.start, args.frames, args.step)
     out = Path(args.out or f"runs/{sequence.name}")
+    world, loaded, map_summary = _load_map(args, config, sequence)
     view = None
     if getattr(args, "view", False):
         from twohr.foxglove_live import view_url
@@ -119,13 +147,37 @@ def _run(args: argparse.Namespace) -> int:
         print(f"live view: {view_url(args.view_host, view.view.port)}", flush=True)
     try:
         result = run_sequence(sequence, config, start=frames.start, stop=frames.stop, step=frames.step,
-                              progress=not args.quiet, on_frame=view)
+                              progress=not args.quiet, on_frame=view, world=world)
     finally:
         if view is not None:
             view.close()
     summary = write_run(out, sequence, config, result)
+    if map_summary:
+        summary["map"] = {**map_summary, **_found_in_map(result)}
+    if args.save_map:
+        from .tracker.mapfiles import save_map
+
+        built_by = f"twohr run {sequence.name} frames {frames.start}-{frames.stop - 1}"
+        header, size, seconds = save_map(args.save_map, result.map, config, built_by, parent=loaded)
+        summary["saved_map"] = {"file": str(args.save_map), "name": header.name, "keyframes": header.keyframes,
+                                "landmarks": header.landmarks, "size_bytes": size,
+                                "bytes_per_keyframe": round(size / max(1, header.keyframes)),
+                                "save_s": round(seconds, 3)}
+    if map_summary or args.save_map:
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print_summary(summary, out)
     return 0
+
+
+def _found_in_map(result) -> dict:
+    """How long a run took to find the camera in a given map: frames and milliseconds to the first posed frame."""
+    posed = [i for i, s in enumerate(result.stats) if s.status != "relocalising"]
+    if not posed:
+        return {"relocalised_after_frames": None, "relocalised_after_ms": None, "posed_percent": 0.0}
+    first = posed[0]
+    return {"relocalised_after_frames": first,
+            "relocalised_after_ms": round(sum(s.ms_total for s in result.stats[:first + 1]), 1),
+            "posed_percent": round(100 * len(posed) / len(result.stats), 2)}
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -172,6 +224,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "report and plot.")
     add_run_options(p)
     _add_view_options(p)
+    p.add_argument("--save-map", default=None, metavar="FILE", help="save the map at the end as FILE (a .map file; "
+                   "its name without .map is the map's name and frame); with --map-mode extend, the extended map")
+    p.add_argument("--map", default=None, metavar="FILE", help="track in this saved map: no pose until the camera "
+                   "is found in it (relocalisation, no prior pose), then poses in the map's frame")
+    p.add_argument("--map-mode", choices=("localize", "extend"), default=None,
+                   help="with --map: localize (default; new keyframes help tracking but the file is left as it was) "
+                   "or extend (save the grown map with --save-map as a new file)")
     p.set_defaults(func=_run)
 
     p = sub.add_parser("demo", help="the main job end to end on the dev sequence, with a printed result")

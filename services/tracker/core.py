@@ -77,13 +77,14 @@ class Relocaliser:
         self.map = world
         self.conf = conf
 
-    def candidate(self, keypoints: Keypoints, xy: np.ndarray, anchor: np.ndarray, predicted: np.ndarray,
-                  match: MatchFn) -> _Estimate:
+    def candidate(self, keypoints: Keypoints, xy: np.ndarray, around: list[np.ndarray], match: MatchFn) -> _Estimate:
         """The keyframe whose landmarks give the most PnP inliers (world-to-camera pose in ``T_cw``), or a failed
-        estimate saying why; the caller verifies it on the local map."""
+        estimate saying why; the caller verifies it on the local map. The keyframes nearest to each pose in
+        ``around`` (the last good pose, the coasted prediction; none in a map the camera has yet to find itself in)
+        are tried first, then the whole map."""
         conf, world = self.conf, self.map
-        candidates = np.unique(np.concatenate([world.local_keyframes(anchor, conf.relocalisation_candidates),
-                                               world.local_keyframes(predicted, conf.relocalisation_candidates)]))
+        candidates = np.unique(np.concatenate([np.zeros(0, np.int64)] + [
+            world.local_keyframes(pose, conf.relocalisation_candidates) for pose in around]))
         landmarks = world.landmarks
         best: _Estimate | None = None
         for i in candidates[::-1]:  # the latest keyframes first
@@ -138,12 +139,21 @@ class Tracker:
         self.motion = MotionModel(self.conf.velocity_frames, self.conf.coast_velocity_decay)
         self._inliers_at_keyframe = 0
         self._descriptor_kind: tuple[int, np.dtype] | None = None
+        self.given_map = bool(self.map)
+        """the map came with the tracker (loaded from a file): its frame is the world, never a new map part"""
+        self.relocalising = self.given_map
+        """not yet found (or lost for long) in a given map: no pose until a verified relocalisation"""
 
     # ------------------------------------------------------------------ public
 
     @property
     def initialised(self) -> bool:
         return bool(self.map)
+
+    @property
+    def localised(self) -> bool:
+        """True when the camera has a pose in the map (a map exists and the camera is not looking for itself)."""
+        return self.initialised and not self.relocalising
 
     @property
     def keyframes(self):
@@ -177,6 +187,8 @@ class Tracker:
 
         if not self.initialised:
             result = self._initialise(stamp, keypoints, xy, z, num_depth, "init", np.eye(4))
+        elif self.relocalising:
+            result = self._find_in_map(stamp, keypoints, xy, z, num_depth, timings, match)
         else:
             predicted = self.motion.predict(stamp) if prediction is None else prediction
             result = self._track_initialised(stamp, keypoints, xy, z, num_depth, timings, predicted, force_keyframe,
@@ -226,7 +238,9 @@ class Tracker:
             if relocalised.ok:
                 estimate, status = relocalised, "relocalised"
         if not estimate.ok:
-            if self.motion.lost_frames + 1 >= conf.reinit_after_lost_frames and num_depth >= conf.init_min_points:
+            if self.motion.lost_frames + 1 >= conf.reinit_after_lost_frames and self.given_map:
+                self.relocalising = True  # a given map's frame is the world: look for it again, no pose till then
+            elif self.motion.lost_frames + 1 >= conf.reinit_after_lost_frames and num_depth >= conf.init_min_points:
                 return self._initialise(stamp, keypoints, xy, z, num_depth, "reinitialised", predicted)
             return self._coast(stamp, predicted, estimate.reason, {**counts, "num_matches": estimate.num_matches,
                                                         "num_inliers": estimate.num_inliers})
@@ -255,6 +269,25 @@ class Tracker:
         return TrackResult(stamp, pose, status, num_matches=estimate.num_matches, num_inliers=estimate.num_inliers,
                            is_keyframe=is_keyframe, reason=reason, observed_xy=xy[observed >= 0],
                            observed_landmarks=observed[observed >= 0], **counts)
+
+    def _find_in_map(self, stamp: float, keypoints: Keypoints, xy: np.ndarray, z: np.ndarray, num_depth: int,
+                     timings: dict[str, float], match: MatchFn) -> TrackResult:
+        """A given map, the camera not yet found in it: relocalisation against the whole map, verified on the local
+        map around the pose found; ``relocalising`` (no pose) until then."""
+        counts = dict(num_keypoints=len(keypoints), num_with_depth=num_depth)
+        t0 = time.perf_counter()
+        estimate = self._relocalise(keypoints, xy, z, None, match)
+        timings["relocalise"] = _ms(t0)
+        if not estimate.ok:
+            return TrackResult(stamp, np.eye(4), "relocalising",
+                               reason=f"looking for the camera in the map: {estimate.reason}", **counts)
+        pose = invert_pose(estimate.T_cw)
+        self.relocalising = False
+        self.motion.restart(pose, stamp)
+        observed = estimate.keypoint_landmarks
+        return TrackResult(stamp, pose, "relocalised", num_matches=estimate.num_matches,
+                           num_inliers=estimate.num_inliers, reason=f"found in the map: {estimate.reason}",
+                           observed_xy=xy[observed >= 0], observed_landmarks=observed[observed >= 0], **counts)
 
     def _coast(self, stamp: float, predicted: np.ndarray, reason: str, counts: dict) -> TrackResult:
         """An untrackable frame: the pose follows the (decaying) motion model and the frame is reported lost."""
@@ -369,12 +402,16 @@ class Tracker:
         return _Estimate(True, f"{num_inliers} inliers of {num_matches} matches", T_cw, num_matches, num_inliers,
                          keypoint_landmarks, suspect, prior)
 
-    def _relocalise(self, keypoints: Keypoints, xy: np.ndarray, z: np.ndarray, predicted: np.ndarray,
+    def _relocalise(self, keypoints: Keypoints, xy: np.ndarray, z: np.ndarray, predicted: np.ndarray | None,
                     match: MatchFn) -> _Estimate:
-        """The relocaliser's best candidate, verified on the local map around its pose."""
+        """The relocaliser's best candidate, verified on the local map around its pose (``predicted`` None: no
+        prior pose, the whole map)."""
         conf = self.conf
-        anchor = self.motion.good_pose if self.motion.good_pose is not None else self.map.keyframe_poses[-1]
-        best = self.relocaliser.candidate(keypoints, xy, anchor, predicted, match)
+        around = []
+        if predicted is not None:
+            anchor = self.motion.good_pose if self.motion.good_pose is not None else self.map.keyframe_poses[-1]
+            around = [anchor, predicted]
+        best = self.relocaliser.candidate(keypoints, xy, around, match)
         if not best.ok:
             return best
         verified = self._track_local_map(invert_pose(best.T_cw), keypoints, xy, z, conf.match_radius_px, False, match)

@@ -22,9 +22,10 @@ from .trajectory import AnchoredTrajectory, TrackResult
 class EveryFrameSchedule:
     """Every frame through every stage, in the calling thread. ``process(frame)`` returns the pose and stats."""
 
-    def __init__(self, config: PipelineConfig, camera: CameraIntrinsics, stages: Stages) -> None:
+    def __init__(self, config: PipelineConfig, camera: CameraIntrinsics, stages: Stages,
+                 world: Map | None = None) -> None:
         self.stages = stages
-        self.map = Map(camera, config.tracker)
+        self.map = world if world is not None else Map(camera, config.tracker)
         self.tracker = Tracker(camera, config.tracker, world=self.map)
         self.record = AnchoredTrajectory(config.tracker)
         self.keyframe_log: list[KeyframeLog] = []  # no keyframe jobs apart from the frames
@@ -41,8 +42,9 @@ class EveryFrameSchedule:
         t2 = time.perf_counter()
         kept = keypoints if mask is None else drop_masked(keypoints, mask)
         result = self.tracker.track(frame.stamp, kept, frame.depth, match=lambda a, b: self.stages.match(frame, a, b))
-        self.record.add(frame.stamp, result.pose, result.tracked, len(self.map.keyframes) - 1,
-                        self.map.keyframe_poses)
+        if result.posed:
+            self.record.add(frame.stamp, result.pose, result.tracked, len(self.map.keyframes) - 1,
+                            self.map.keyframe_poses)
         t3 = time.perf_counter()
         stats = FrameStats(
             index=frame.index, stamp=frame.stamp, status=result.status, keypoints=len(keypoints),

@@ -224,10 +224,15 @@ class FrameTracker:
     def apply(self, update: MapUpdate) -> None:
         """Take a finished keyframe job: refreshed landmarks and keyframe poses, and new tracks seeded from the
         keyframe's observations (carried by optical flow from the keyframe's image to the latest frame)."""
+        found = not self.initialised  # the first map, or the camera found (again) in a given map
         self.snapshot = update.snapshot
+        if not self.initialised:  # no map yet, or the camera looks for itself in a given map (again): no tracks
+            self.track_xy, self.track_landmark = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
+            self._recent_keyframes = []
+            return
         keep = self.usable[self.track_landmark]
         self.track_xy, self.track_landmark = self.track_xy[keep], self.track_landmark[keep]
-        new_map = update.keyframe_id >= 0 and update.result.status in ("init", "reinitialised")
+        new_map = found or (update.keyframe_id >= 0 and update.result.status in ("init", "reinitialised"))
         if new_map:
             self.track_xy, self.track_landmark = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
         if update.keyframe_id >= 0 or update.result.tracked:  # the job re-seeded the tracks, keyframe or not

@@ -77,21 +77,24 @@ class Mapper:
         t3 = time.perf_counter()
         timings = {"detector": (t1 - t0) * 1000, "yolo": (t2 - t1) * 1000, "mapping": (t3 - t2) * 1000,
                    "keypoints": len(keypoints), "kept": len(kept)}
-        return MapUpdate(frame.index, frame.stamp, result, keyframe_id, seeds_xy, seeds_landmark,
-                         self.map.snapshot(), frame.gray, timings)
+        # until the camera is found in a given map, the per-frame path gets none of it
+        snapshot = self.map.snapshot() if tracker.localised else MapSnapshot.empty()
+        return MapUpdate(frame.index, frame.stamp, result, keyframe_id, seeds_xy, seeds_landmark, snapshot,
+                         frame.gray, timings)
 
 
 class KeyframePipeline:
     """The camera-rate schedule (see the module docstring). ``process(frame)`` returns the pose and stats."""
 
-    def __init__(self, config: PipelineConfig, camera: CameraIntrinsics, stages: Stages, live: bool = False) -> None:
+    def __init__(self, config: PipelineConfig, camera: CameraIntrinsics, stages: Stages, live: bool = False,
+                 world: Map | None = None) -> None:
         self.config = config
         self.live = live
         runtime = config.pipeline
         if runtime.opencv_threads:
             cv2.setNumThreads(runtime.opencv_threads)  # process-wide: the LK pool otherwise fights the workers
         self.stages = stages
-        self.map = Map(camera, config.tracker)
+        self.map = world if world is not None else Map(camera, config.tracker)
         self.mapper = Mapper(config, self.map, stages)
         self.frames = FrameTracker(camera, config.tracker)
         self.record = AnchoredTrajectory(config.tracker, bridge_gaps=True)
@@ -178,7 +181,11 @@ class KeyframePipeline:
         self.mask = mask
         ms_yolo = (time.perf_counter() - t_mask) * 1000
         result = self.frames.track(frame.stamp, frame.gray, frame.depth, mask)
-        self.record.add(frame.stamp, result.pose, result.tracked, self._anchor, self.frames.keyframe_poses)
+        in_given_map = not self.frames.initialised and self.mapper.tracker.given_map
+        if in_given_map:  # no pose before the camera is found in a given map
+            result = TrackResult(frame.stamp, np.eye(4), "relocalising", reason="looking for the camera in the map")
+        else:
+            self.record.add(frame.stamp, result.pose, result.tracked, self._anchor, self.frames.keyframe_poses)
         ms_detector = 0.0
         wants = self.frames.wants_keyframe(result)
         job = KeyframeJob(frame, result.pose)
@@ -190,8 +197,10 @@ class KeyframePipeline:
             if self.mapping.submit(job):
                 update = self._collect(self.mapping, wait=True)
                 self._take(update)
-                if update is not None and update.keyframe_id >= 0:
+                if update is not None and (update.keyframe_id >= 0 or in_given_map):
                     result = update.result
+            if in_given_map and result.tracked:
+                self.record.add(frame.stamp, result.pose, True, self._anchor, self.frames.keyframe_poses)
             ms_detector = (time.perf_counter() - t_wait) * 1000
             wants = False
         ms_detector += ms_waited

@@ -13,7 +13,7 @@ from twohr.trajectory import Trajectory
 
 from .every_frame import EveryFrameSchedule
 from .keyframes import KeyframePipeline
-from .map import MapSnapshot
+from .map import Map, MapSnapshot
 from .stages import FrameStats, KeyframeLog, Stages
 from .trajectory import TrackResult
 
@@ -21,6 +21,8 @@ from .trajectory import TrackResult
 class Schedule(Protocol):
     """How the stages and the tracker are run over one camera's frames (``pipeline.mode``)."""
 
+    map: Map
+    """the camera's map (given, or built by the schedule); read it after :meth:`finish`, not while frames flow"""
     keyframe_log: list[KeyframeLog]
     """what each keyframe job cost (empty where keyframes are not built apart from the frames)"""
     mask: np.ndarray | None
@@ -46,9 +48,11 @@ class Schedule(Protocol):
         """Stop any worker threads."""
 
 
-def build_schedule(config: PipelineConfig, camera: CameraIntrinsics, stages: Stages, live: bool = False) -> Schedule:
+def build_schedule(config: PipelineConfig, camera: CameraIntrinsics, stages: Stages, live: bool = False,
+                   world: Map | None = None) -> Schedule:
     """The schedule that ``config.pipeline.mode`` names, over ``stages``. ``live``: frames come from a camera, so
-    the per-frame path never waits for a keyframe job (a replay from disk may, see ``max_keyframe_lag``)."""
+    the per-frame path never waits for a keyframe job (a replay from disk may, see ``max_keyframe_lag``). ``world``:
+    a map to track in (loaded from a file), whose frame the poses are in once the camera is found in it."""
     if config.pipeline.mode == "keyframes":
-        return KeyframePipeline(config, camera, stages, live=live)
-    return EveryFrameSchedule(config, camera, stages)
+        return KeyframePipeline(config, camera, stages, live=live, world=world)
+    return EveryFrameSchedule(config, camera, stages, world=world)

@@ -19,17 +19,20 @@ from twohr.trajectory import Trajectory, interpolate_poses, smooth_trajectory
 
 #: Statuses whose pose was measured (the others coast on the motion model or wait for a first frame).
 TRACKED_STATUSES = ("init", "tracking", "relocalised", "reinitialised")
+#: Statuses with no pose at all: the camera has yet to be found in a map it was given (nothing is published).
+UNPOSED_STATUSES = ("relocalising",)
 
 
 @dataclass
 class TrackResult:
     """The tracker's answer for one frame.
 
-    ``pose`` is the 4x4 camera-to-world pose (world = the first keyframe's camera). ``status`` is one of
-    ``uninitialised`` (no map yet; identity pose), ``init`` (this frame started the map), ``tracking``,
-    ``relocalised`` (found again against an earlier keyframe), ``reinitialised`` (a new map started at the
-    coasted pose after a long loss) or ``lost`` (not trackable: the pose is the motion model's
-    prediction). ``reason`` says why in words; ``timings`` are milliseconds per stage.
+    ``pose`` is the 4x4 camera-to-world pose (world = the first keyframe's camera, or a loaded map's frame).
+    ``status`` is one of ``uninitialised`` (no map yet; identity pose), ``init`` (this frame started the map),
+    ``tracking``, ``relocalised`` (found again against an earlier keyframe), ``reinitialised`` (a new map started
+    at the coasted pose after a long loss), ``lost`` (not trackable: the pose is the motion model's prediction) or
+    ``relocalising`` (not yet found in a map loaded from a file: no pose at all). ``reason`` says why in words;
+    ``timings`` are milliseconds per stage.
     """
 
     stamp: float
@@ -52,6 +55,11 @@ class TrackResult:
     def tracked(self) -> bool:
         """True when the pose was measured from this frame, False when it coasted or there is no map yet."""
         return self.status in TRACKED_STATUSES
+
+    @property
+    def posed(self) -> bool:
+        """False when the frame has no pose in the map's frame at all (see :data:`UNPOSED_STATUSES`)."""
+        return self.status not in UNPOSED_STATUSES
 
 
 def near_any_keyframe(pose: np.ndarray, keyframe_poses: np.ndarray, max_translation: float,
@@ -99,7 +107,7 @@ def smoothed(trajectory: Trajectory, conf: TrackerConfig) -> Trajectory:
 
 def online_trajectory(results: Iterable[TrackResult]) -> Trajectory:
     """The poses as they were estimated, frame by frame (what the tracker publishes live)."""
-    results = list(results)
+    results = [r for r in results if r.posed]
     return Trajectory(np.array([r.stamp for r in results]), np.array([r.pose for r in results]).reshape(-1, 4, 4))
 
 
