@@ -236,7 +236,8 @@ class TrackerService(Service):
         track.last_header = header
         result, stats = track.schedule.process(frame)
         track.health.add(dropped=False)
-        self._publish_pose(header, result, stats)
+        if result.posed:  # no pose at all before the camera is found in a given map
+            self._publish_pose(header, result, stats)
         self._publish_map(track, header)
         self._report_health(track, header)
 
