@@ -29,7 +29,8 @@ def open_bus(zenoh_config: str | None, router: str | None):
         if not Path(zenoh_config).is_file():
             raise TwohrError(f"Zenoh config not found: {zenoh_config}")
         return open_session(BusConfig(config_file=zenoh_config))
-    return open_session(BusConfig(connect=[router]) if router else BusConfig())
+    bus = BusConfig(connect=[router]) if router else BusConfig()
+    return open_session(bus.model_copy(update={"shared_memory": False}))  # a client that comes and goes
 
 
 class RatePacer:

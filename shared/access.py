@@ -178,7 +178,9 @@ def client_config(endpoint: str, user: str, password: str, tls_root_ca: str | No
         "mode": "client",
         "connect": {"endpoints": [endpoint]},
         "scouting": {"multicast": {"enabled": False}},
-        "transport": {"auth": {"usrpwd": {"user": user, "password": password}}},
+        # no shared memory with the stack: an outside client's memory is not ours to map, and every client process
+        # that sent through shared memory left its pool (about 19 MB) mapped in each receiver for good
+        "transport": {"auth": {"usrpwd": {"user": user, "password": password}}, "shared_memory": {"enabled": False}},
     }
     if tls_root_ca:
         conf["transport"]["link"] = {"tls": {"root_ca_certificate": tls_root_ca}}

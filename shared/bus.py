@@ -54,6 +54,9 @@ class BusConfig(BaseModel):
     config_file: Path | None = Field(default_factory=lambda: os.environ.get("TWOHR_ZENOH_CONFIG") or None,
                                      description="a whole Zenoh config file; replaces every other field")
     security: RouterSecurity | None = Field(None, description="routers only")
+    shared_memory: bool = Field(True, description="Zenoh's shared-memory transport to processes on this host; off "
+                                "for clients that come and go (a camera driver): each one that used it left its pool "
+                                "mapped in every receiver")
 
     def zenoh_config(self) -> zenoh.Config:
         if self.config_file is not None and self.mode == "client":
@@ -82,6 +85,8 @@ class BusConfig(BaseModel):
             if self.security.tls_certificate:
                 transport["link"] = {"tls": {"listen_certificate": str(self.security.tls_certificate),
                                              "listen_private_key": str(self.security.tls_private_key)}}
+        if not self.shared_memory:
+            transport["shared_memory"] = {"enabled": False}
         if transport:
             conf["transport"] = transport
         return zenoh.Config.from_json5(json.dumps(conf))
