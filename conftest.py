@@ -24,6 +24,30 @@ def dev_sequence() -> Path:
 
 
 @pytest.fixture(scope="session")
+def tiny_map():
+    """``tiny_map(name, camera)``: a valid map file of one keyframe observing three landmarks, built with the default
+    detector model (for the map store and its routes; real maps come from the tracker tests)."""
+    import numpy as np
+
+    from twohr.config import load_config
+    from twohr.mapfile import MapArrays, MapFile, MapHeader
+
+    def make(name: str, camera) -> MapFile:
+        arrays = MapArrays(
+            keyframe_poses=np.eye(4)[None], keyframe_stamps=np.zeros(1), keyframe_culled=np.zeros(1, bool),
+            keyframe_first=np.array([0, 3]), keypoint_xy=np.ones((3, 2), np.float32),
+            keypoint_depth=np.ones(3, np.float32), keypoint_landmark=np.arange(3),
+            landmark_positions=np.ones((3, 3)), landmark_descriptors=np.ones((3, 128), np.float32),
+            landmark_accepted=np.zeros(3, np.int64), landmark_rejected=np.zeros(3, np.int64),
+            landmark_bad=np.zeros(3, bool))
+        header = MapHeader(name=name, camera=camera, detector_model=load_config(None).detector.model,
+                           descriptor_dim=128, descriptor_dtype="float32", keyframes=1, landmarks=3, built_by="test")
+        return MapFile(header, arrays)
+
+    return make
+
+
+@pytest.fixture(scope="session")
 def model_mirror() -> Path:
     if not MODEL_MIRROR.is_dir():
         pytest.fail(f"the model mirror is required at {MODEL_MIRROR}")

@@ -24,6 +24,7 @@ from twohr.paths import DEV_SEQUENCE
 #: The command line's own modules that add subcommands, each under the order key that places it in ``--help``.
 COMMAND_MODULES = {
     "10-run": "twohr_services.pipeline_cli",
+    "15-maps": "twohr_services.maps_cli",
     "60-up": "twohr_services.launcher_cli",
     "70-camera": "twohr_services.camera_cli",
 }

@@ -170,12 +170,12 @@ class System:
 def start_system(router: str, data_roots: list[str], recordings: str, host: str, port: int,
                  api_token: str | None = None, timeout: float = 120.0, log_level: str = "INFO",
                  secure: bool = True, ros2_domain: int | None = None, foxglove_port: int | None = None,
-                 record_descriptors: bool = False) -> System:
+                 record_descriptors: bool = False, maps: str | None = None) -> System:
     """Start the router, the services and the gateway; returns the :class:`System` once every part is healthy.
     With ``secure`` (the default) the router admits only generated per-role credentials and enforces the
     access-control list; ``api_token`` (None: no token) guards the HTTP API. ``foxglove_port`` turns on the
     gateway's Foxglove live view on ``host``; ``ros2_domain`` starts the ros2 service, which speaks ROS 2 over
-    rmw_zenoh in that domain."""
+    rmw_zenoh in that domain. ``maps``: the map store's folder (the gateway serves it)."""
     from twohr.access import Credentials, access_control
     from twohr.bus import RouterSecurity, start_router, wait_for_services
 
@@ -202,7 +202,7 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
                 ["--record-descriptors"] if record_descriptors else [])}.get(name, [])
             system.group.start(name, [f"twohr_services.{name}", *extra], env(name))
         gateway_args = ["twohr_services.gateway", "--host", host, "--port", str(port), "--recordings", recordings,
-                        *roots, "--foxglove-port", str(foxglove_port or 0)]
+                        *roots, "--foxglove-port", str(foxglove_port or 0), *(["--maps", maps] if maps else [])]
         gateway_env = env("gateway") | ({"TWOHR_API_TOKEN": api_token} if api_token else {})
         system.group.start("gateway", gateway_args, gateway_env)
         if ros2_domain is not None:
@@ -242,7 +242,7 @@ def _up(args: argparse.Namespace) -> int:
         system = start_system(args.router, args.data_root or [str(Path.cwd())], args.recordings, args.host,
                               args.port, token, args.timeout, secure=not args.insecure,
                               ros2_domain=args.ros2_domain, foxglove_port=args.foxglove_port or None,
-                              record_descriptors=args.record_descriptors)
+                              record_descriptors=args.record_descriptors, maps=args.maps)
     except (TimeoutError, RuntimeError) as exc:
         raise TwohrError(str(exc)) from None
     print(f"all healthy in {time.monotonic() - t0:.1f} s — gateway http://{args.host}:{args.port} "
@@ -344,6 +344,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--router", default="tcp/127.0.0.1:7447", help="endpoint the Zenoh router listens on")
     p.add_argument("--data-root", action="append", help="folder sequences may come from (repeatable; default .)")
     p.add_argument("--recordings", default="recordings", help="folder for MCAP recordings")
+    p.add_argument("--maps", default=None, metavar="DIR", help="the map store: sessions build, localize in and "
+                   "extend the maps in this folder (POST /sessions with \"map\", GET /maps; served on "
+                   "twohr/maps/<name>); kept across restarts")
     p.add_argument("--host", default="127.0.0.1", help="gateway host")
     p.add_argument("--port", type=int, default=8080, help="gateway port")
     p.add_argument("--api-token", default=None, help="bearer token the HTTP API requires (default: none on a "

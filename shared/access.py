@@ -21,7 +21,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, Field
 
-from .keys import ALIVE_PREFIX, HEALTH_PREFIX, PREFIX
+from .keys import ALIVE_PREFIX, HEALTH_PREFIX, MAPS_PREFIX, PREFIX
 
 
 def _robots(*streams: str) -> list[str]:
@@ -51,10 +51,11 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
     ros2 = ros2_keys(ros2_domain)
     # what twohr hands to the outside: camera drivers, other robots, viewers, ROS 2 nodes, `twohr health`
     client = Grants(publish=_robots("camera") + ros2, subscribe=_robots("pose", "path", "status", "landmarks") + ros2,
-                    watch_liveliness=True)
+                    ask=[f"{MAPS_PREFIX}/*"], watch_liveliness=True)
     return {
         # every stream: the session table follows poses and statuses, the live view shows the rest
-        "gateway": Grants(publish=_robots("control"), subscribe=[f"{PREFIX}/*/*"], watch_liveliness=True),
+        "gateway": Grants(publish=_robots("control"), subscribe=[f"{PREFIX}/*/*"],
+                          serve=[f"{MAPS_PREFIX}/*", f"{MAPS_PREFIX}/*/save"], watch_liveliness=True),
         "source": Grants(publish=_robots("frames", "status"), subscribe=_robots("control", "pose", "camera")),
         # the networks answer the tracker's queries only (each answer is published for recordings and views)
         "detector": Grants(publish=_robots("keypoints", "status"), subscribe=_robots("control"),
@@ -65,7 +66,8 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
                           serve=_robots("rpc/match")),
         "tracker": Grants(publish=_robots("pose", "path", "status", "landmarks"),
                           subscribe=_robots("control", "frames"),
-                          ask=_robots("rpc/detect", "rpc/dynamics", "rpc/match")),
+                          ask=_robots("rpc/detect", "rpc/dynamics", "rpc/match") + [f"{MAPS_PREFIX}/*",
+                                                                                   f"{MAPS_PREFIX}/*/save"]),
         "recorder": Grants(publish=_robots("status"), subscribe=[f"{PREFIX}/*/*"]),
         "ros2": Grants(publish=_robots("camera") + ros2,
                        subscribe=_robots("pose", "path", "status", "landmarks") + ros2),

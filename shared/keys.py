@@ -18,14 +18,23 @@ HEALTH_PREFIX = f"{PREFIX}/_health"
 #: every service holds a liveliness token ``twohr/_alive/<name>`` while it is connected
 ALIVE_PREFIX = f"{PREFIX}/_alive"
 
+#: the map store answers ``twohr/maps/<name>`` with a map file's bytes, and keeps the bytes a query on
+#: ``twohr/maps/<name>/save`` carries as the map's next version
+MAPS_PREFIX = f"{PREFIX}/maps"
+
 _ROBOT = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
+
+
+def map_key(name: str, save: bool = False) -> str:
+    """The key to read map ``name`` from the map store, or (``save``) to save it there."""
+    return f"{MAPS_PREFIX}/{name}" + ("/save" if save else "")
 
 
 def key(robot_id: str, stream: str) -> str:
     """The key of one robot's stream, e.g. ``twohr/robot1/pose``."""
-    if not _ROBOT.match(robot_id):
+    if not _ROBOT.match(robot_id) or robot_id == "maps":
         raise ValueError(f"invalid robot id {robot_id!r}: use letters, digits, '_' or '-' (at most 64), "
-                         "starting with a letter or digit")
+                         "starting with a letter or digit; 'maps' is the map store's")
     return f"{PREFIX}/{robot_id}/{stream}"
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import tempfile
 import time
 import zipfile
@@ -120,20 +121,28 @@ class MapFile:
     arrays: MapArrays
 
 
-def write_map(path: str | Path, map_file: MapFile) -> int:
-    """Write ``map_file`` to ``path`` atomically (temporary file, fsync, rename); returns its size in bytes."""
-    path = Path(path)
+def encode_map(map_file: MapFile) -> bytes:
+    """A map file's bytes (what :func:`write_map` writes, and what goes over the bus)."""
     map_file.arrays.check(map_file.header)
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_STORED) as archive:
+        archive.writestr("header.json", map_file.header.model_dump_json(indent=1))
+        for field in fields(MapArrays):
+            array = io.BytesIO()
+            np.save(array, np.ascontiguousarray(getattr(map_file.arrays, field.name)), allow_pickle=False)
+            archive.writestr(f"{field.name}.npy", array.getvalue())
+    return buffer.getvalue()
+
+
+def write_bytes_atomically(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that a reader finds the old file or the whole new one, never a part (temporary
+    file beside it, fsync, rename, fsync of the folder)."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(handle, "wb") as out:
-            with zipfile.ZipFile(out, "w", zipfile.ZIP_STORED) as archive:
-                archive.writestr("header.json", map_file.header.model_dump_json(indent=1))
-                for field in fields(MapArrays):
-                    buffer = io.BytesIO()
-                    np.save(buffer, np.ascontiguousarray(getattr(map_file.arrays, field.name)), allow_pickle=False)
-                    archive.writestr(f"{field.name}.npy", buffer.getvalue())
+            out.write(data)
             out.flush()
             os.fsync(out.fileno())
         os.replace(temporary, path)
@@ -145,7 +154,13 @@ def write_map(path: str | Path, map_file: MapFile) -> int:
         os.fsync(directory)  # the rename itself survives a power cut
     finally:
         os.close(directory)
-    return path.stat().st_size
+
+
+def write_map(path: str | Path, map_file: MapFile) -> int:
+    """Write ``map_file`` to ``path`` atomically; returns its size in bytes."""
+    data = encode_map(map_file)
+    write_bytes_atomically(path, data)
+    return len(data)
 
 
 def read_header(path: str | Path) -> MapHeader:
@@ -154,9 +169,11 @@ def read_header(path: str | Path) -> MapHeader:
         return _header(archive, path)
 
 
-def read_map(path: str | Path, detector_model: str | None = None) -> MapFile:
-    """A map file, checked through; with ``detector_model``, also that it was built with that detector."""
-    with _archive(path) as archive:
+def read_map(source: str | Path | bytes, detector_model: str | None = None) -> MapFile:
+    """A map file (a path, or its bytes), checked through; with ``detector_model``, also that it was built with
+    that detector."""
+    path = "map" if isinstance(source, bytes) else source
+    with _archive(source) as archive:
         header = _header(archive, path)
         if detector_model is not None and header.detector_model != detector_model:
             raise MapFileError(f"{path}: built with detector model {header.detector_model!r}, this run uses "
@@ -179,28 +196,111 @@ def read_map(path: str | Path, detector_model: str | None = None) -> MapFile:
     return MapFile(header, arrays)
 
 
-def verify_bytes(data: bytes, name: str = "upload") -> MapHeader:
+def verify_bytes(data: bytes) -> MapHeader:
     """Check a map file's bytes (say, an upload) through; returns its header."""
-    with tempfile.NamedTemporaryFile(suffix=SUFFIX) as handle:
-        handle.write(data)
-        handle.flush()
-        header = read_map(handle.name).header
-    return header
+    return read_map(data).header
+
+
+class MapEntry(BaseModel):
+    """One map of a :class:`MapStore`, as ``GET /maps`` and ``twohr maps list`` show it."""
+
+    name: str
+    version: int = Field(description="1 for the first map saved under this name, then one more per save")
+    keyframes: int
+    landmarks: int
+    size_bytes: int
+    built_by: str
+    created: float
+    detector_model: str
+
+
+class MapStore:
+    """A folder of maps: ``<name>.map`` is a map's latest version; saving a map under a name that exists keeps the
+    previous file as ``<name>.v<N>.map`` (never overwritten in place)."""
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+
+    def path(self, name: str) -> Path:
+        """The latest version's file of map ``name`` (:class:`MapFileError` for a name that is not one)."""
+        if not re.match(NAME_PATTERN, name) or _is_version(name):
+            raise MapFileError(f"{name!r} is not a map name ({NAME_PATTERN}, not ending in .v<number>)")
+        return self.root / f"{name}{SUFFIX}"
+
+    def names(self) -> list[str]:
+        """The names of the maps in the folder (their latest versions' files)."""
+        stems = (p.name.removesuffix(SUFFIX) for p in self.root.glob(f"*{SUFFIX}"))
+        return sorted(stem for stem in stems if re.match(NAME_PATTERN, stem) and not _is_version(stem))
+
+    def versions(self, name: str) -> list[Path]:
+        """The kept earlier versions of map ``name``, oldest first."""
+        found = [(int(p.name[len(name) + 2:-len(SUFFIX)]), p) for p in self.root.glob(f"{name}.v*{SUFFIX}")
+                 if p.name[len(name) + 2:-len(SUFFIX)].isdigit()]
+        return [p for _, p in sorted(found)]
+
+    def entry(self, name: str) -> MapEntry:
+        """What the latest version of map ``name`` is; :class:`MapFileError` when it is missing or unreadable."""
+        path = self.path(name)
+        header = read_header(path)
+        return MapEntry(name=name, version=len(self.versions(name)) + 1, keyframes=header.keyframes,
+                        landmarks=header.landmarks, size_bytes=path.stat().st_size, built_by=header.built_by,
+                        created=header.created, detector_model=header.detector_model)
+
+    def entries(self) -> tuple[list[MapEntry], dict[str, str]]:
+        """Every readable map, and why each unreadable one is not (by name)."""
+        good, bad = [], {}
+        for name in self.names():
+            try:
+                good.append(self.entry(name))
+            except MapFileError as exc:
+                bad[name] = str(exc)
+        return good, bad
+
+    def save(self, data: bytes, name: str | None = None) -> MapEntry:
+        """Keep a map file's bytes (checked through first) as the latest version of ``name`` (default: the name in
+        its header); the version it replaces is kept."""
+        header = verify_bytes(data)
+        name = name or header.name
+        path = self.path(name)
+        self.root.mkdir(parents=True, exist_ok=True)
+        if path.exists():
+            os.replace(path, self.root / f"{name}.v{len(self.versions(name)) + 1}{SUFFIX}")
+        write_bytes_atomically(path, data)
+        return self.entry(name)
+
+    def delete(self, name: str) -> bool:
+        """Remove map ``name`` and its kept versions; False when there was none."""
+        path = self.path(name)
+        if not path.exists():
+            return False
+        for old in self.versions(name):
+            old.unlink(missing_ok=True)
+        path.unlink()
+        return True
+
+
+def _is_version(stem: str) -> bool:
+    """True for a kept earlier version's file stem, ``<name>.v<N>``."""
+    head, _, tail = stem.rpartition(".v")
+    return bool(head) and tail.isdigit()
 
 
 class _archive:
-    """The map file as an open zip archive; :class:`MapFileError` when it is missing or not a zip."""
+    """The map file (a path or its bytes) as an open zip archive; :class:`MapFileError` when it is missing or not a
+    zip."""
 
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
+    def __init__(self, source: str | Path | bytes) -> None:
+        self.source = source
 
     def __enter__(self) -> zipfile.ZipFile:
-        if not self.path.is_file():
-            raise MapFileError(f"{self.path}: no such map file")
+        source = self.source
+        if not isinstance(source, bytes) and not Path(source).is_file():
+            raise MapFileError(f"{source}: no such map file")
         try:
-            self.zip = zipfile.ZipFile(self.path)
+            self.zip = zipfile.ZipFile(io.BytesIO(source) if isinstance(source, bytes) else Path(source))
         except (zipfile.BadZipFile, OSError) as exc:
-            raise MapFileError(f"{self.path}: not a twohr map file ({exc})") from None
+            raise MapFileError(f"{'map' if isinstance(source, bytes) else source}: not a twohr map file "
+                               f"({exc})") from None
         return self.zip
 
     def __exit__(self, *exc) -> None:

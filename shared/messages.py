@@ -124,6 +124,8 @@ class PoseMsg(Message):
     is_keyframe: bool = False
     frame_sent_at: float = Field(0.0, description="when the source published the frame, for latency")
     elapsed_ms: dict[str, float] = Field(default_factory=dict)
+    frame_id: str = Field("", description="the frame of the pose: the map's name in a session with a map, '' for the "
+                          "robot's own frame (its first camera)")
 
 
 class LandmarksMsg(Message):
@@ -165,6 +167,9 @@ class ControlMsg(Message):
     record: bool = Field(True, description="write the session to MCAP")
     record_descriptors: bool = Field(False, description="also record the raw keypoint descriptors (large)")
     record_frames: bool = Field(False, description="also record the raw RGB-D frames verbatim, for exact replay")
+    start: int = Field(0, ge=0, description="a replay's first frame")
+    map_name: str = Field("", description="the map the session builds, localizes in or extends ('' = none)")
+    map_mode: Literal["", "build", "localize", "extend"] = ""
     config: PipelineConfig = Field(default_factory=PipelineConfig)
 
 

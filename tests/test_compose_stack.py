@@ -52,14 +52,15 @@ def health(container: str) -> str:
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory, dev_sequence, model_mirror):
-    recordings = tmp_path_factory.mktemp("compose_recordings")
-    if os.geteuid() == 0:
-        os.chown(recordings, 10001, 10001)  # the image's non-root user writes the recordings
-    else:
-        recordings.chmod(0o777)
+    recordings, maps = tmp_path_factory.mktemp("compose_recordings"), tmp_path_factory.mktemp("compose_maps")
+    for folder in (recordings, maps):
+        if os.geteuid() == 0:
+            os.chown(folder, 10001, 10001)  # the image's non-root user writes the recordings and maps
+        else:
+            folder.chmod(0o777)
     router_port, gateway_port = free_port(), free_port()
     env = {**os.environ, "TWOHR_DATA": str(dev_sequence.parent), "TWOHR_MODELS": str(model_mirror),
-           "TWOHR_RECORDINGS": str(recordings), "TWOHR_ROUTER_PORT": str(router_port),
+           "TWOHR_RECORDINGS": str(recordings), "TWOHR_MAPS": str(maps), "TWOHR_ROUTER_PORT": str(router_port),
            "TWOHR_GATEWAY_PORT": str(gateway_port), "TWOHR_API_TOKEN": TOKEN}
     t0 = time.time()
     healthy = False

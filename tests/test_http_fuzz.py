@@ -29,6 +29,8 @@ from schemathesis.core.failures import Failure, FailureGroup
 
 from twohr import keys
 from twohr.bus import free_port, open_session
+from twohr.dataset import RGBDSequence
+from twohr.mapfile import write_map
 from twohr.mcapfile import MCAP_MAGIC
 from twohr_services.gateway.app import SERVICES, GatewaySettings, create_app
 
@@ -38,14 +40,17 @@ CASES_PER_OPERATION = 40
 
 
 @pytest.fixture(scope="module")
-def gateway(zenoh_router, dev_sequence, tmp_path_factory):
+def gateway(zenoh_router, dev_sequence, tmp_path_factory, tiny_map):
     from twohr.bus import BusConfig
 
     bus = BusConfig(connect=[zenoh_router])
     stand_in = open_session(bus)
     tokens = [stand_in.liveliness().declare_token(f"{keys.ALIVE_PREFIX}/{name}") for name in SERVICES]
     recordings = tmp_path_factory.mktemp("recordings")
-    settings_ = GatewaySettings(data_roots=[dev_sequence.parent], recordings=recordings, api_token=TOKEN, bus=bus)
+    maps = tmp_path_factory.mktemp("maps")  # a map store with one map, for the /maps routes and session maps
+    write_map(maps / "lab.map", tiny_map("lab", RGBDSequence(dev_sequence).camera))
+    settings_ = GatewaySettings(data_roots=[dev_sequence.parent], recordings=recordings, api_token=TOKEN, bus=bus,
+                                maps=maps)
     port = free_port()
     server = uvicorn.Server(uvicorn.Config(create_app(settings_), host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)

@@ -18,6 +18,8 @@ parser.add_argument("--recordings", default="recordings", help="folder the recor
 parser.add_argument("--api-token", default=None, help="require 'Authorization: Bearer TOKEN' on /sessions "
                     "(default $TWOHR_API_TOKEN)")
 parser.add_argument("--api-token-file", default=None, help="read the token from this file (as compose does)")
+parser.add_argument("--maps", default=None, help="the map store's folder (served on twohr/maps/<name> and /maps); "
+                    "default none")
 parser.add_argument("--foxglove-port", type=int, default=8765,
                     help="port of the Foxglove WebSocket live view on --host (default 8765; 0 turns it off)")
 args = parser.parse_args()
@@ -29,5 +31,6 @@ settings = GatewaySettings(
     bus=BusConfig(connect=[args.router]) if args.router else BusConfig(),
     foxglove_host=args.host,
     foxglove_port=args.foxglove_port or None,
+    maps=Path(args.maps) if args.maps else None,
 )
 uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")

@@ -10,6 +10,7 @@ state, trajectory, ATE and recording, and the session page (``page.py``).
 from __future__ import annotations
 
 import asyncio
+import logging
 import os
 import secrets
 import time
@@ -26,6 +27,7 @@ from twohr.bus import BusConfig, query_health
 from twohr.config import PipelineConfig, load_config
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError, validation_problems
+from twohr.mapfile import MapEntry, MapFileError, MapStore, read_map
 from twohr.mcapfile import is_finalised, partial_marker
 from twohr.models import get_spec
 from twohr.paths import resolve_under_roots
@@ -33,7 +35,9 @@ from twohr.trajectory import tum_text
 
 from .bus import SERVICES, GatewayBus
 from .page import mount_page
-from .sessions import ACTIVE, PoseOut, Session, SessionInfo, SessionRequest, SessionTable
+from .sessions import ACTIVE, MapRequest, PoseOut, Session, SessionInfo, SessionRequest, SessionTable
+
+log = logging.getLogger("twohr.gateway")
 
 
 class Problem(BaseModel):
@@ -74,6 +78,9 @@ class GatewaySettings(BaseModel):
     max_request_bytes: int = Field(256 * 1024, ge=1024, description="larger request bodies get 413")
     foxglove_host: str = Field("127.0.0.1", description="interface of the Foxglove live view")
     foxglove_port: int | None = Field(None, ge=0, le=65535, description="Foxglove live view port; None = off")
+    maps: Path | None = Field(None, description="the map store's folder (served on twohr/maps/<name> and /maps); "
+                              "None = no map store")
+    max_map_bytes: int = Field(512 * 1024 * 1024, ge=1024, description="larger map uploads get 413")
 
 
 def validate_models(config: PipelineConfig) -> None:
@@ -116,10 +123,11 @@ def create_app(settings: GatewaySettings) -> FastAPI:
     @app.middleware("http")
     async def limit_body(request: Request, call_next):
         size = request.headers.get("content-length")
-        if size is not None and (not size.isdigit() or int(size) > settings.max_request_bytes):
-            return JSONResponse({"detail": f"request body over {settings.max_request_bytes} bytes"}, status_code=413)
+        limit = settings.max_map_bytes if request.url.path == "/maps" else settings.max_request_bytes
+        if size is not None and (not size.isdigit() or int(size) > limit):
+            return JSONResponse({"detail": f"request body over {limit} bytes"}, status_code=413)
         content_type = request.headers.get("content-type", "")
-        if request.method == "POST" and (not content_type or content_type.startswith(
+        if request.method == "POST" and request.url.path != "/maps" and (not content_type or content_type.startswith(
                 ("application/x-www-form-urlencoded", "text/plain"))):
             # every body here is JSON: `curl -d '{...}'` (form-encoded by default) works as it reads
             request.scope["headers"] = [(k, v) for k, v in request.scope["headers"] if k != b"content-type"] + [
@@ -150,6 +158,7 @@ def create_app(settings: GatewaySettings) -> FastAPI:
             health=session.health, health_detail=session.health_detail,
             record=session.request.record,
             recording=f"/sessions/{session.id}/recording" if recording.is_file() else None,
+            map=session.request.map, start=session.request.start,
         )
 
     def lookup(session_id: str) -> Session:
@@ -176,7 +185,10 @@ def create_app(settings: GatewaySettings) -> FastAPI:
             folder = None
             if request.source == "sequence":
                 folder = resolve_under_roots(request.sequence, settings.data_roots)
-                RGBDSequence(folder, camera=config.camera)
+                if request.start >= len(RGBDSequence(folder, camera=config.camera)):
+                    raise TwohrError(f"start: frame {request.start} is past the sequence's end")
+            if request.map is not None:
+                check_map(request.map, config)
         except TwohrError as exc:
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)[:2000]) from None
         except OSError as exc:  # e.g. a name too long for the file system
@@ -190,6 +202,68 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         table.add(session)
         bus.send_control(session, "start", config)
         return info(session)
+
+    def store() -> MapStore:
+        if settings.maps is None:
+            raise HTTPException(status.HTTP_404_NOT_FOUND, "this gateway has no map store (twohr up --maps DIR)")
+        return MapStore(settings.maps)
+
+    def check_map(wanted: MapRequest, config: PipelineConfig) -> None:
+        """A session's map must be usable before the session starts: a store for it, and for localize and extend
+        a readable map built with the session's detector model (422 otherwise, one line)."""
+        if settings.maps is None:
+            raise TwohrError("map: this gateway has no map store (start it with twohr up --maps DIR)")
+        if wanted.mode == "build":
+            return
+        path = MapStore(settings.maps).path(wanted.name)
+        if not path.is_file():
+            raise TwohrError(f"map: no map named {wanted.name!r} in the map store (GET /maps lists them)")
+        read_map(path, detector_model=config.detector.model)
+
+    @app.get("/maps", response_model=list[MapEntry], dependencies=[Depends(require_token)], responses=errors(401, 404))
+    def list_maps() -> list[MapEntry]:
+        """The maps in the store (the latest version of each); an unreadable file is left out and logged."""
+        good, bad = store().entries()
+        for name, why in bad.items():
+            log.warning("map %s is not readable: %s", name, why)
+        return good
+
+    @app.get("/maps/{name}", dependencies=[Depends(require_token)],
+             responses={200: {"content": {"application/octet-stream": {}}, "description": "the map file"},
+                        **errors(401, 404)})
+    def download_map(name: str) -> FileResponse:
+        """A map's file (its latest version)."""
+        try:
+            path = store().path(name)
+        except MapFileError as exc:
+            raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
+        if not path.is_file():
+            raise HTTPException(status.HTTP_404_NOT_FOUND, f"no map named {name!r}")
+        return FileResponse(path, media_type="application/octet-stream", filename=path.name)
+
+    @app.post("/maps", status_code=201, response_model=MapEntry, dependencies=[Depends(require_token)],
+              responses=errors(401, 404, 413, 422),
+              openapi_extra={"requestBody": {"required": True, "content": {"application/octet-stream": {
+                  "schema": {"type": "string", "format": "binary"}}}}})
+    async def upload_map(request: Request, name: str | None = None) -> MapEntry:
+        """Keep an uploaded map file (the body) under ``name`` (default: the name in its header), checked through
+        first; a map already under that name is kept as an earlier version."""
+        data = await request.body()
+        maps = store()
+        try:
+            return maps.save(data, name)
+        except MapFileError as exc:
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)[:2000]) from None
+
+    @app.delete("/maps/{name}", status_code=204, dependencies=[Depends(require_token)], responses=errors(401, 404))
+    def delete_map(name: str) -> None:
+        """Remove a map and its earlier versions."""
+        try:
+            removed = store().delete(name)
+        except MapFileError as exc:
+            raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
+        if not removed:
+            raise HTTPException(status.HTTP_404_NOT_FOUND, f"no map named {name!r}")
 
     @app.get("/sessions", response_model=list[SessionInfo], dependencies=[Depends(require_token)],
              responses=errors(401))

@@ -16,6 +16,7 @@ from twohr.config import PipelineConfig
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
 from twohr.evaluation import evaluate
+from twohr.mapfile import MapFileError, MapStore
 from twohr.messages import ControlMsg, MessageError, PathMsg, PoseMsg, StatusMsg, decode, encode, path_trajectory
 from twohr.service import declare_publisher
 
@@ -51,6 +52,9 @@ class GatewayBus:
             self.session.declare_subscriber(keys.all_robots("path"), self._on_path),
             self.session.liveliness().declare_subscriber(f"{keys.ALIVE_PREFIX}/*", self._on_liveliness,
                                                          history=True)]
+        if self.settings.maps is not None:  # the map store: read by trackers and clients, written by trackers
+            self._subscribers += [self.session.declare_queryable(f"{keys.MAPS_PREFIX}/*", self._on_map_read),
+                                  self.session.declare_queryable(f"{keys.MAPS_PREFIX}/*/save", self._on_map_save)]
         if self.settings.foxglove_port:
             self._live = BusLiveView(self.session, self.settings.foxglove_host, self.settings.foxglove_port)
         self._monitor = threading.Thread(target=self._watch, name="session-monitor", daemon=True)
@@ -67,6 +71,30 @@ class GatewayBus:
         if self.session is not None:
             self.session.close()
 
+    def _on_map_read(self, query: zenoh.Query) -> None:
+        """``twohr/maps/<name>``: the latest version's bytes of a map in the store."""
+        name = str(query.key_expr).rsplit("/", 1)[-1]
+        try:
+            query.reply(query.key_expr, MapStore(self.settings.maps).path(name).read_bytes())
+        except FileNotFoundError:
+            query.reply_err(f"no map named {name!r} in the map store".encode())
+        except (MapFileError, OSError) as exc:
+            query.reply_err(str(exc).encode())
+
+    def _on_map_save(self, query: zenoh.Query) -> None:
+        """``twohr/maps/<name>/save`` with a map file's bytes: checked, kept as the map's next version."""
+        name = str(query.key_expr).split("/")[-2]
+        try:
+            if query.payload is None:
+                raise MapFileError("a save carries the map file's bytes")
+            entry = MapStore(self.settings.maps).save(query.payload.to_bytes(), name)
+            log.info("map %s version %d saved (%d keyframes, %d bytes)", name, entry.version, entry.keyframes,
+                     entry.size_bytes)
+            query.reply(query.key_expr, entry.model_dump_json())
+        except (MapFileError, OSError) as exc:
+            log.warning("map %s not saved: %s", name, exc)
+            query.reply_err(str(exc).encode())
+
     def missing_services(self) -> list[str]:
         """The pipeline services whose liveliness token is not up."""
         return [name for name in SERVICES if name not in self.alive]
@@ -80,7 +108,9 @@ class GatewayBus:
         control = ControlMsg(session_id=session.id, robot_id=req.robot_id, frame_index=-1, stamp=time.time(),
                              command=command, sequence=str(session.folder or ""), rate=req.rate,
                              max_frames=req.max_frames, record=req.record, record_descriptors=req.record_descriptors,
-                             record_frames=req.record_frames, config=config or PipelineConfig())
+                             record_frames=req.record_frames, start=req.start,
+                             map_name=req.map.name if req.map else "", map_mode=req.map.mode if req.map else "",
+                             config=config or PipelineConfig())
         key = keys.key(req.robot_id, keys.CONTROL)
         if key not in self._publishers:
             self._publishers[key] = declare_publisher(self.session, key)

@@ -12,12 +12,24 @@ import numpy as np
 from pydantic import BaseModel, Field, model_validator
 
 from twohr.geometry import make_pose, quat_to_rot
+from twohr.mapfile import NAME_PATTERN
 from twohr.messages import ID_PATTERN, PathMsg, PoseMsg, StatusMsg
 from twohr.trajectory import Trajectory
 
 SessionState = Literal["starting", "running", "finished", "stopped", "failed"]
 ACTIVE = ("starting", "running")
 MAX_FRAMES = 10_000_000
+
+
+class MapRequest(BaseModel):
+    """The map a session builds, localizes in or extends (by name, in the gateway's map store)."""
+
+    name: str = Field(pattern=NAME_PATTERN, description="the map's name, also the frame id of the session's poses")
+    mode: Literal["build", "localize", "extend"] = Field(
+        "localize", description="build: a new map, saved under the name when the session ends; localize: track in "
+        "the map (not saved); extend: track in it, add keyframes, save as its next version")
+
+    model_config = {"extra": "forbid"}
 
 
 class SessionRequest(BaseModel):
@@ -35,6 +47,8 @@ class SessionRequest(BaseModel):
     record_descriptors: bool = Field(False, description="keep the raw keypoint descriptors in the recording (large)")
     record_frames: bool = Field(False, description="keep the raw RGB-D frames in the recording, for exact replay")
     max_frames: int | None = Field(None, ge=1, le=MAX_FRAMES, description="stop after this many frames")
+    start: int = Field(0, ge=0, le=MAX_FRAMES, description="a replay's first frame (source 'sequence' only)")
+    map: MapRequest | None = Field(None, description="a map from the map store (twohr up --maps DIR)")
     config: dict[str, Any] = Field(
         default_factory=dict, description="pipeline config overrides, nested or dotted: {'detector.max_keypoints': 800}"
     )
@@ -47,6 +61,8 @@ class SessionRequest(BaseModel):
             raise ValueError("give a sequence, or \"source\": \"camera\" for a live camera session")
         if self.source == "camera" and self.sequence is not None:
             raise ValueError("a camera session takes no sequence")
+        if self.source == "camera" and self.start:
+            raise ValueError("a camera session takes no start frame")
         return self
 
 
@@ -89,6 +105,8 @@ class SessionInfo(BaseModel):
     health_detail: str = Field("", description="why, with the figures: frames dropped, keyframe lag, CPU per frame")
     record: bool
     recording: str | None = None
+    map: MapRequest | None = None
+    start: int = 0
 
 
 class PoseRecord:

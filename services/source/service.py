@@ -100,7 +100,8 @@ class SourceService(Service):
             return
         pacer = Pacer(control.rate)
         frames_key = keys.key(control.robot_id, "frames")
-        self.report(control, "started", sequence.name, frames=len(sequence))
+        stop = len(sequence) if control.max_frames is None else min(len(sequence), control.start + control.max_frames)
+        self.report(control, "started", sequence.name, frames=max(0, stop - control.start))
 
         def pace(stamp: float) -> None:
             if control.rate > 0:
@@ -110,7 +111,7 @@ class SourceService(Service):
                 while playback.sent - playback.answered >= self.window and not playback.stop.is_set():
                     playback.progress.wait(0.5)
 
-        for item in frame_payloads(sequence, control.session_id, control.robot_id,
+        for item in frame_payloads(sequence, control.session_id, control.robot_id, start=control.start,
                                    max_frames=control.max_frames, pace=pace):
             if playback.stop.is_set():
                 break

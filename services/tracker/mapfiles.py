@@ -26,24 +26,49 @@ def map_name(path: str | Path) -> str:
     return name
 
 
-def save_map(path: str | Path, world: Map, config: PipelineConfig, built_by: str = "",
-             parent: MapHeader | None = None) -> tuple[MapHeader, int, float]:
-    """Write ``world`` to ``path`` (atomically); returns its header, size in bytes and seconds taken."""
-    start = time.perf_counter()
+def map_file(world: Map, config: PipelineConfig, name: str, built_by: str = "",
+             parent: MapHeader | None = None) -> MapFile:
+    """``world`` as a map file named ``name``, with what it was built with."""
     arrays = world.arrays()
     try:
         sha256 = models.get_spec(config.detector.model).sha256
     except ModelError:
         sha256 = ""
-    header = MapHeader(name=map_name(path), built_by=built_by,
+    header = MapHeader(name=name, built_by=built_by,
                        parent=None if parent is None else f"{parent.name}@{parent.created:.3f}",
                        camera=world.camera, detector_model=config.detector.model, detector_sha256=sha256,
                        detector_config=config.detector.model_dump(mode="json"),
                        descriptor_dim=arrays.landmark_descriptors.shape[1],
                        descriptor_dtype=str(arrays.landmark_descriptors.dtype),
                        keyframes=len(arrays.keyframe_stamps), landmarks=len(arrays.landmark_positions))
-    size = write_map(path, MapFile(header, arrays))
-    return header, size, time.perf_counter() - start
+    return MapFile(header, arrays)
+
+
+def save_map(path: str | Path, world: Map, config: PipelineConfig, built_by: str = "",
+             parent: MapHeader | None = None) -> tuple[MapHeader, int, float]:
+    """Write ``world`` to ``path`` (atomically); returns its header, size in bytes and seconds taken."""
+    start = time.perf_counter()
+    stored = map_file(world, config, map_name(path), built_by, parent)
+    size = write_map(path, stored)
+    return stored.header, size, time.perf_counter() - start
+
+
+def usable_map(stored: MapFile, config: PipelineConfig, camera: CameraIntrinsics, where: str = "map") -> Map:
+    """A stored map as a :class:`Map` for this camera and config; :class:`MapFileError` (one line) when it was
+    built with another detector model or camera, or is empty."""
+    header = stored.header
+    if header.detector_model != config.detector.model:
+        raise MapFileError(f"{where}: built with detector model {header.detector_model!r}, this run uses "
+                           f"{config.detector.model!r}; its descriptors would not match")
+    built_with = header.camera
+    same = [built_with.width, built_with.height] == [camera.width, camera.height] and np.allclose(
+        built_with.matrix, camera.matrix, atol=1e-6)
+    if not same:
+        raise MapFileError(f"{where}: built with another camera ({built_with.width}x{built_with.height}, fx "
+                           f"{built_with.fx:g}); this one is {camera.width}x{camera.height}, fx {camera.fx:g}")
+    if header.keyframes == 0:
+        raise MapFileError(f"{where}: the map is empty (no keyframes)")
+    return Map.from_arrays(camera, config.tracker, stored.arrays)
 
 
 def load_map(path: str | Path, config: PipelineConfig, camera: CameraIntrinsics) -> tuple[Map, MapHeader, float]:
@@ -51,13 +76,4 @@ def load_map(path: str | Path, config: PipelineConfig, camera: CameraIntrinsics)
     :class:`MapFileError` (one line) when the file is unusable, or was built with another detector model or camera."""
     start = time.perf_counter()
     stored = read_map(path, detector_model=config.detector.model)
-    built_with = stored.header.camera
-    same = [getattr(built_with, k) for k in ("width", "height")] == [camera.width, camera.height] and np.allclose(
-        built_with.matrix, camera.matrix, atol=1e-6)
-    if not same:
-        raise MapFileError(f"{path}: built with another camera ({built_with.width}x{built_with.height}, fx "
-                           f"{built_with.fx:g}); this sequence's is {camera.width}x{camera.height}, fx {camera.fx:g}")
-    if stored.header.keyframes == 0:
-        raise MapFileError(f"{path}: the map is empty (no keyframes)")
-    return Map.from_arrays(camera, config.tracker, stored.arrays), stored.header, time.perf_counter() - start
-
+    return usable_map(stored, config, camera, str(path)), stored.header, time.perf_counter() - start

@@ -24,8 +24,10 @@ import zenoh
 
 from twohr import keys
 from twohr.dataset import Frame
+from twohr.errors import TwohrError
 from twohr.features import Keypoints, Matches
 from twohr.geometry import rot_to_quat
+from twohr.mapfile import MapFile, encode_map, read_map
 from twohr.messages import (
     ControlMsg,
     DynamicsMsg,
@@ -45,6 +47,7 @@ from twohr.messages import (
 from twohr.service import Service, serve
 from twohr.trajectory import Trajectory
 
+from .mapfiles import map_file, usable_map
 from .schedule import Schedule, build_schedule
 from .stages import FrameStats, Stages
 from .trajectory import TrackResult
@@ -54,6 +57,8 @@ from .trajectory import TrackResult
 HEALTH_WINDOW = 90
 DEGRADED_DROPPED_PERCENT = 10
 DEGRADED_KEYFRAME_LAG = 30
+#: how long the map store may take to hand over or keep a map (seconds)
+MAP_TIMEOUT_S = 30.0
 #: seconds between the last frame before a camera's stamps went back in time and the first one after
 RESTARTED_CLOCK_GAP = 1 / 30
 
@@ -149,6 +154,9 @@ class SessionTrack:
     skipped: int = 0  # of them, in a row since the last tracked frame
     map_sent: int = -1  # the map version last published on ``landmarks``
     health: SessionHealth = field(default_factory=SessionHealth)
+    map_name: str = ""  # the session's map: its poses are in this frame ("" = the robot's own)
+    map_mode: str = ""
+    loaded: MapFile | None = None  # the map to localize in or extend, as fetched from the map store
     stamp_shift: float = 0.0  # added to the camera's stamps since they went back in time
     last_stamp: float = float("-inf")
 
@@ -177,6 +185,8 @@ class TrackerService(Service):
         super().__init__(bus, queue_size=64, policy="backpressure")
         self.tracks: dict[str, SessionTrack] = {}
         self.paced: dict[str, bool] = {}
+        self.maps: dict[str, ControlMsg] = {}  # sessions with a map, by id: their start (name, mode)
+        self.loaded: dict[str, MapFile] = {}  # the maps fetched for them
 
     def subscriptions(self) -> list[str]:
         return [keys.all_robots("frames")]
@@ -185,6 +195,8 @@ class TrackerService(Service):
         """The session ended: its refined trajectory (after the keyframe work left, the final bundle adjustment,
         re-anchoring and smoothing, as ``twohr run`` makes it) goes out on ``path`` as the final path."""
         self.paced.pop(session_id, None)
+        self.loaded.pop(session_id, None)
+        control = self.maps.pop(session_id, None)
         track = self.tracks.pop(session_id, None)
         if track is None:
             return
@@ -192,6 +204,8 @@ class TrackerService(Service):
             track.schedule.finish()
             track.schedule.refine()
             refined = track.schedule.trajectory()
+            if control is not None and control.map_mode in ("build", "extend"):
+                self._save_map(control, track)
         finally:
             track.schedule.close()
         header = track.last_header
@@ -200,7 +214,8 @@ class TrackerService(Service):
         self.publish(keys.key(header.robot_id, "path"), encode(message, path_arrays(refined)))
 
     def _track_for(self, header: FrameMsg) -> SessionTrack:
-        """The session's schedule, built on its first frame (the camera intrinsics come with the frames)."""
+        """The session's schedule, built on its first frame (the camera intrinsics come with the frames), in the
+        session's map where it names one to localize in or extend."""
         if header.session_id not in self.tracks:
             config = self.config_for(header.session_id)
             robot_id = header.robot_id
@@ -208,9 +223,40 @@ class TrackerService(Service):
                             RemoteStage(self.session, robot_id, keys.DYNAMICS_QUERY, _dynamics_reply)
                             if config.yolo.enabled else None,
                             RemoteMatcher(self.session, robot_id, header.session_id))
-            self.tracks[header.session_id] = SessionTrack(build_schedule(config, header.camera, stages, live=True),
-                                                          header)
+            stored = self.loaded.get(header.session_id)
+            world = None if stored is None else usable_map(stored, config, header.camera, f"map {stored.header.name}")
+            control = self.maps.get(header.session_id)
+            self.tracks[header.session_id] = SessionTrack(
+                build_schedule(config, header.camera, stages, live=True, world=world), header,
+                map_name=control.map_name if control else "", map_mode=control.map_mode if control else "",
+                loaded=stored)
         return self.tracks[header.session_id]
+
+    def _fetch_map(self, control: ControlMsg) -> MapFile:
+        """The map a session localizes in or extends, from the map store over the bus."""
+        key = keys.map_key(control.map_name)
+        for reply in self.session.get(key, timeout=MAP_TIMEOUT_S):
+            if reply.ok is None:
+                raise TwohrError(f"map {control.map_name}: {reply.err.payload.to_bytes().decode(errors='replace')}")
+            return read_map(reply.ok.payload.to_bytes(), detector_model=control.config.detector.model)
+        raise TwohrError(f"map {control.map_name}: the map store did not answer on {key} (twohr up --maps DIR)")
+
+    def _save_map(self, control: ControlMsg, track: SessionTrack) -> None:
+        """A build or extend session's map, saved in the map store as the map's next version."""
+        stored = map_file(track.schedule.map, control.config, control.map_name,
+                          built_by=f"session {control.session_id} (robot {control.robot_id})",
+                          parent=track.loaded.header if track.loaded else None)
+        key = keys.map_key(control.map_name, save=True)
+        for reply in self.session.get(key, payload=encode_map(stored), timeout=MAP_TIMEOUT_S):
+            if reply.ok is not None:
+                self.report(control, "map saved", f"map {control.map_name}: {stored.header.keyframes} keyframes, "
+                            f"{stored.header.landmarks} landmarks", keyframes=stored.header.keyframes,
+                            landmarks=stored.header.landmarks)
+            else:
+                self.report(control, "error", f"map {control.map_name} not saved: "
+                            f"{reply.err.payload.to_bytes().decode(errors='replace')}")
+            return
+        self.report(control, "error", f"map {control.map_name} not saved: the map store did not answer on {key}")
 
     def handle(self, key: str, payload: bytes) -> None:
         """Track one frame now; keyframe and mask work goes to the schedule's workers. In a session paced by the
@@ -237,7 +283,7 @@ class TrackerService(Service):
         result, stats = track.schedule.process(frame)
         track.health.add(dropped=False)
         if result.posed:  # no pose at all before the camera is found in a given map
-            self._publish_pose(header, result, stats)
+            self._publish_pose(header, result, stats, track.map_name)
         self._publish_map(track, header)
         self._report_health(track, header)
 
@@ -267,9 +313,9 @@ class TrackerService(Service):
         keyframes = Trajectory(snapshot.keyframe_stamps, snapshot.keyframe_poses)
         self.publish(keys.key(header.robot_id, "path"), encode(PathMsg(**ids, final=False), path_arrays(keyframes)))
 
-    def _publish_pose(self, header: FrameMsg, result: TrackResult, stats: FrameStats) -> None:
+    def _publish_pose(self, header: FrameMsg, result: TrackResult, stats: FrameStats, frame_id: str = "") -> None:
         pose = PoseMsg(session_id=header.session_id, robot_id=header.robot_id, frame_index=header.frame_index,
-                       stamp=header.stamp, position=result.pose[:3, 3].tolist(),
+                       stamp=header.stamp, frame_id=frame_id, position=result.pose[:3, 3].tolist(),
                        orientation=rot_to_quat(result.pose[:3, :3]).tolist(), status=result.status,
                        num_keypoints=stats.keypoints, num_matches=result.num_matches, num_inliers=result.num_inliers,
                        is_keyframe=result.is_keyframe, frame_sent_at=header.sent_at,
@@ -280,6 +326,10 @@ class TrackerService(Service):
         stale = self.tracks.pop(control.session_id, None)  # a start repeated: begin again
         if stale is not None:
             stale.schedule.close()
+        if control.map_mode:
+            self.maps[control.session_id] = control
+            if control.map_mode in ("localize", "extend"):
+                self.loaded[control.session_id] = self._fetch_map(control)
         # paced by the camera (a real-rate replay or a live camera): the source never waits for poses
         self.paced[control.session_id] = control.rate > 0 or not control.sequence
 

@@ -121,6 +121,7 @@ class PoseOutputs:
         state.online.append((pose.stamp, tuple(pose.position), tuple(pose.orientation)))
         topics = self.topics(robot)
         map_frame, odom_frame, camera_frame = self.frames(robot)
+        map_frame = pose.frame_id or map_frame  # a session in a named map: its poses are in that map's frame
         online = _pose(pose)
         odom_header = _header(pose.stamp, odom_frame)
         if state.map_odom is None:

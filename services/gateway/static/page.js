@@ -33,6 +33,9 @@ async function startSession(event) {
   const body = { sequence: $("sequence").value.trim(), robot_id: $("robot").value.trim() || "robot1",
                  rate: Number($("rate").value || 0), record: $("record").checked };
   if ($("max-frames").value) body.max_frames = Number($("max-frames").value);
+  if ($("start-frame").value) body.start = Number($("start-frame").value);
+  const map = $("map-name").value === "__new__" ? $("new-map").value.trim() : $("map-name").value;
+  if (map) body.map = { name: map, mode: $("map-name").value === "__new__" ? "build" : $("map-mode").value };
   try {
     const info = await (await api("POST", "/sessions", body)).json();
     say(`started session ${info.id}`);
@@ -164,6 +167,30 @@ async function refresh() {
   } catch (e) { say(`cannot list sessions: ${e.message}`, true); }
 }
 
+// the map store's maps: listed, and offered to new sessions
+async function refreshMaps() {
+  let maps = [];
+  try { maps = await (await api("GET", "/maps")).json(); } catch (e) { /* no map store */ }
+  const body = $("maps").tBodies[0];
+  body.innerHTML = "";
+  for (const m of maps) {
+    const row = body.insertRow();
+    row.dataset.map = m.name;
+    for (const value of [m.name, m.version, m.keyframes, m.landmarks, `${(m.size_bytes / 1e6).toFixed(2)} MB`,
+                         m.built_by]) row.insertCell().textContent = value;
+  }
+  $("no-maps").classList.toggle("hidden", maps.length > 0);
+  const select = $("map-name");
+  const chosen = select.value;
+  for (const option of [...select.options]) if (option.value && option.value !== "__new__") option.remove();
+  for (const m of maps) select.add(new Option(`${m.name} (v${m.version})`, m.name));
+  select.value = [...select.options].some((o) => o.value === chosen) ? chosen : "";
+}
+
+function showMapName() {
+  $("new-map-label").classList.toggle("hidden", $("map-name").value !== "__new__");
+}
+
 async function showLiveLink() {
   try {
     const live = await (await fetch("/live")).json();
@@ -178,6 +205,9 @@ async function showLiveLink() {
 }
 
 $("start-form").addEventListener("submit", startSession);
+$("map-name").addEventListener("change", showMapName);
 showLiveLink();
 refresh();
+refreshMaps();
 setInterval(refresh, 1000);
+setInterval(refreshMaps, 5000);

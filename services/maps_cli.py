@@ -1,0 +1,79 @@
+"""``twohr maps``: the maps in a map store folder (``twohr up --maps DIR``) or in files: list, show, verify."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+
+def _list(args: argparse.Namespace) -> int:
+    from twohr.errors import TwohrError
+    from twohr.mapfile import MapStore
+
+    if not Path(args.maps).is_dir():
+        raise TwohrError(f"no map store folder {args.maps} (twohr up --maps DIR makes one)")
+    good, bad = MapStore(args.maps).entries()
+    print(f"{'name':24} {'version':>7} {'keyframes':>9} {'landmarks':>9} {'size':>10}  built")
+    for entry in good:
+        built = time.strftime("%Y-%m-%d %H:%M", time.localtime(entry.created))
+        print(f"{entry.name:24} {entry.version:>7} {entry.keyframes:>9} {entry.landmarks:>9} "
+              f"{entry.size_bytes / 1e6:>8.2f} MB  {built} by {entry.built_by or '?'}")
+    for name, why in bad.items():
+        print(f"{name:24} UNREADABLE: {why}")
+    return 0 if not bad else 1
+
+
+def _target(args: argparse.Namespace, item: str) -> Path:
+    """A map file named by path, or by name in the ``--maps`` store."""
+    from twohr.mapfile import MapStore
+
+    path = Path(item)
+    return path if path.suffix == ".map" or path.exists() else MapStore(args.maps).path(item)
+
+
+def _show(args: argparse.Namespace) -> int:
+    from twohr.mapfile import read_map
+
+    path = _target(args, args.map)
+    header = read_map(path).header
+    size = path.stat().st_size
+    print(json.dumps({**header.model_dump(mode="json"), "file": str(path), "size_bytes": size,
+                      "bytes_per_keyframe": round(size / max(1, header.keyframes))}, indent=1))
+    return 0
+
+
+def _verify(args: argparse.Namespace) -> int:
+    from twohr.mapfile import MapFileError, read_map
+
+    failed = 0
+    for item in args.maps_or_files:
+        path = _target(args, item)
+        try:
+            header = read_map(path, detector_model=args.detector_model).header
+        except MapFileError as exc:
+            failed += 1
+            print(f"FAIL {exc}")
+            continue
+        print(f"ok   {path}: map {header.name}, {header.keyframes} keyframes, {header.landmarks} landmarks, "
+              f"detector {header.detector_model}")
+    return 2 if failed else 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("maps", help="saved maps: list a map store, show or verify map files",
+                       description="Maps saved by `twohr run --save-map FILE` or by sessions with a map "
+                       "(`twohr up --maps DIR`). A map is named by its file, or by its name in the --maps folder.")
+    actions = p.add_subparsers(dest="action", required=True)
+    listing = actions.add_parser("list", help="the maps in a map store folder, latest versions")
+    show = actions.add_parser("show", help="one map's header: camera, detector, counts, size, provenance")
+    show.add_argument("map", help="a .map file, or a map's name in --maps")
+    verify = actions.add_parser("verify", help="check map files through (exit 2 if any is unusable)")
+    verify.add_argument("maps_or_files", nargs="+", metavar="MAP", help=".map files or names in --maps")
+    verify.add_argument("--detector-model", default=None, help="also check they were built with this detector model")
+    for action in (listing, show, verify):
+        action.add_argument("--maps", default="maps", help="the map store folder (default ./maps)")
+    listing.set_defaults(func=_list)
+    show.set_defaults(func=_show)
+    verify.set_defaults(func=_verify)
