@@ -45,13 +45,15 @@ def _show(args: argparse.Namespace) -> int:
 
 
 def _verify(args: argparse.Namespace) -> int:
+    from twohr.config import DetectorConfig
     from twohr.mapfile import MapFileError, read_map
 
+    detector = None if args.detector_model is None else DetectorConfig(model=args.detector_model)
     failed = 0
     for item in args.maps_or_files:
-        path = _target(args, item)
         try:
-            header = read_map(path, detector_model=args.detector_model).header
+            path = _target(args, item)
+            header = read_map(path, detector=detector).header
         except MapFileError as exc:
             failed += 1
             print(f"FAIL {exc}")

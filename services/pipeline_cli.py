@@ -108,11 +108,15 @@ def _check_map_options(args: argparse.Namespace) -> None:
 
     if args.map_mode and not args.map:
         raise TwohrError("--map-mode needs --map FILE (the map to localize in or extend)")
-    if args.map and args.map_mode == "localize" and args.save_map:
+    if args.map and (args.map_mode or "localize") == "localize" and args.save_map:
         raise TwohrError("--map-mode localize leaves the map as it was: there is nothing to --save-map "
                          "(--map-mode extend saves the map with this run's keyframes as a new file)")
     if args.map and args.save_map and Path(args.map).resolve() == Path(args.save_map).resolve():
         raise TwohrError("--save-map must name a new file: a map is never overwritten in place")
+    if args.save_map:
+        from .tracker.mapfiles import map_name
+
+        map_name(args.save_map)  # a name a map can have, before the run rather than after it
 
 
 def _load_map(args: argparse.Namespace, config, sequence) -> tuple:

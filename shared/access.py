@@ -4,7 +4,8 @@ Every process joins the router with a user name and password (Zenoh's ``usrpwd``
 user name is its role. The router's access-control list, made here from :data:`GRANTS`, denies everything
 that a role was not granted: only the tracker may publish poses, only the gateway may start or stop a
 session, only the pipeline services may report a session's status, and an outside ``client`` (another
-robot, a camera driver, a ROS 2 node, a viewer) may publish camera frames and read results, nothing more.
+robot, a camera driver, a ROS 2 node, a viewer) may publish camera frames and read results and the map store's maps
+(``twohr/maps/<name>``), nothing more; only the tracker may save a map (``twohr/maps/<name>/save``).
 A client that presents no credentials, or wrong ones, cannot connect at all.
 
 Across hosts, a robot's own router links to the stack's router as the ``router`` role, which may forward what a
@@ -56,7 +57,8 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
         # every stream: the session table follows poses and statuses, the live view shows the rest
         "gateway": Grants(publish=_robots("control"), subscribe=[f"{PREFIX}/*/*"],
                           serve=[f"{MAPS_PREFIX}/*", f"{MAPS_PREFIX}/*/save"], watch_liveliness=True),
-        "source": Grants(publish=_robots("frames", "status"), subscribe=_robots("control", "pose", "camera")),
+        "source": Grants(publish=_robots("frames", "status"),
+                         subscribe=_robots("control", "pose", "status", "camera")),
         # the networks answer the tracker's queries only (each answer is published for recordings and views)
         "detector": Grants(publish=_robots("keypoints", "status"), subscribe=_robots("control"),
                            serve=_robots("rpc/detect")),

@@ -192,9 +192,10 @@ class TrackerConfig(Section):
                                               "this many landmarks, the most often matched first; 0 = no "
                                               "whole-map attempt")
     relocalisation_min_inliers: int = Field(30, ge=6, description="a relocalisation must find this many inliers "
-                                            "against one keyframe and again against the local map")
+                                            "against one keyframe (or the whole map) and again against the local map")
     reinit_after_lost_frames: int = Field(60, ge=1, description="lost this long with enough depth: start a new "
-                                          "map at the coasted pose")
+                                          "map at the coasted pose (in a map loaded from a file: look for the camera "
+                                          "in it again, with no pose till then)")
 
 
 class RuntimeConfig(Section):

@@ -18,6 +18,7 @@ import json
 import os
 import re
 import tempfile
+import threading
 import time
 import zipfile
 from dataclasses import dataclass, fields
@@ -26,6 +27,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from .config import DetectorConfig
 from .dataset import CameraIntrinsics
 from .errors import TwohrError, validation_problems
 
@@ -65,6 +67,14 @@ class MapHeader(BaseModel):
         """The frame of poses in this map: its name."""
         return self.name
 
+    def check_built_with(self, detector: DetectorConfig, where: str = "map") -> None:
+        """:class:`MapFileError` unless the map's descriptors come from the same detector model and features as
+        ``detector`` would give (other descriptors would not match them)."""
+        built = (self.detector_model, self.detector_config.get("features", detector.features))
+        if built != (detector.model, detector.features):
+            raise MapFileError(f"{where}: built with detector {built[0]!r} ({built[1]} features), this run uses "
+                               f"{detector.model!r} ({detector.features} features); its descriptors would not match")
+
 
 @dataclass
 class MapArrays:
@@ -86,6 +96,10 @@ class MapArrays:
 
     def check(self, header: MapHeader) -> None:
         """Raise :class:`MapFileError` where the arrays do not fit each other or the header."""
+        for field in fields(MapArrays):
+            kind = getattr(self, field.name).dtype.kind
+            if kind not in ARRAY_KINDS[field.name]:
+                raise MapFileError(f"{field.name} has dtype {getattr(self, field.name).dtype}")
         k, lm = header.keyframes, header.landmarks
         shapes = {"keyframe_poses": (k, 4, 4), "keyframe_stamps": (k,), "keyframe_culled": (k,),
                   "keyframe_first": (k + 1,), "landmark_positions": (lm, 3),
@@ -111,6 +125,12 @@ class MapArrays:
                 raise MapFileError(f"{name} holds values that are not finite")
         if k and not np.allclose(self.keyframe_poses[:, 3], [0, 0, 0, 1]):
             raise MapFileError("a keyframe pose is not a rigid transform")
+
+
+#: the dtype kinds each array may have (f float, i/u integer, b bool)
+ARRAY_KINDS = {"keyframe_poses": "f", "keyframe_stamps": "f", "keyframe_culled": "b", "keyframe_first": "iu",
+               "keypoint_xy": "f", "keypoint_depth": "f", "keypoint_landmark": "i", "landmark_positions": "f",
+               "landmark_descriptors": "fu", "landmark_accepted": "iu", "landmark_rejected": "iu", "landmark_bad": "b"}
 
 
 @dataclass
@@ -145,6 +165,9 @@ def write_bytes_atomically(path: str | Path, data: bytes) -> None:
             out.write(data)
             out.flush()
             os.fsync(out.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(temporary, 0o666 & ~umask)  # as any file written here (mkstemp makes it private)
         os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
@@ -169,30 +192,33 @@ def read_header(path: str | Path) -> MapHeader:
         return _header(archive, path)
 
 
-def read_map(source: str | Path | bytes, detector_model: str | None = None) -> MapFile:
-    """A map file (a path, or its bytes), checked through; with ``detector_model``, also that it was built with
-    that detector."""
+def read_map(source: str | Path | bytes, detector: DetectorConfig | None = None) -> MapFile:
+    """A map file (a path, or its bytes), checked through; with ``detector``, also that it was built with that
+    detector (:meth:`MapHeader.check_built_with`)."""
     path = "map" if isinstance(source, bytes) else source
     with _archive(source) as archive:
         header = _header(archive, path)
-        if detector_model is not None and header.detector_model != detector_model:
-            raise MapFileError(f"{path}: built with detector model {header.detector_model!r}, this run uses "
-                               f"{detector_model!r}; its descriptors would not match")
-        names = set(archive.namelist())
+        if detector is not None:
+            header.check_built_with(detector, str(path))
+        members = {info.filename: info for info in archive.infolist()}
         values = {}
         for field in fields(MapArrays):
-            member = f"{field.name}.npy"
-            if member not in names:
-                raise MapFileError(f"{path}: {member} is missing")
+            member = members.get(f"{field.name}.npy")
+            if member is None:
+                raise MapFileError(f"{path}: {field.name}.npy is missing")
+            if member.compress_type != zipfile.ZIP_STORED:  # stored as written: no member can expand in memory
+                raise MapFileError(f"{path}: {member.filename} is compressed; map files store their arrays as they are")
             try:
                 values[field.name] = np.load(io.BytesIO(archive.read(member)), allow_pickle=False)
-            except (ValueError, OSError, zipfile.BadZipFile) as exc:
-                raise MapFileError(f"{path}: {member} cannot be read ({exc})") from None
+            except Exception as exc:  # a corrupt member: whatever numpy or zipfile raise, one line
+                raise MapFileError(f"{path}: {member.filename} cannot be read ({type(exc).__name__})") from None
     arrays = MapArrays(**values)
     try:
         arrays.check(header)
     except MapFileError as exc:
         raise MapFileError(f"{path}: {exc}") from None
+    except Exception as exc:  # an array of a shape nothing here expects (0-d, structured)
+        raise MapFileError(f"{path}: its arrays do not fit a map ({type(exc).__name__})") from None
     return MapFile(header, arrays)
 
 
@@ -223,14 +249,14 @@ class MapStore:
 
     def path(self, name: str) -> Path:
         """The latest version's file of map ``name`` (:class:`MapFileError` for a name that is not one)."""
-        if not re.match(NAME_PATTERN, name) or _is_version(name):
+        if not re.fullmatch(NAME_PATTERN, name) or _is_version(name):
             raise MapFileError(f"{name!r} is not a map name ({NAME_PATTERN}, not ending in .v<number>)")
         return self.root / f"{name}{SUFFIX}"
 
     def names(self) -> list[str]:
         """The names of the maps in the folder (their latest versions' files)."""
         stems = (p.name.removesuffix(SUFFIX) for p in self.root.glob(f"*{SUFFIX}"))
-        return sorted(stem for stem in stems if re.match(NAME_PATTERN, stem) and not _is_version(stem))
+        return sorted(stem for stem in stems if re.fullmatch(NAME_PATTERN, stem) and not _is_version(stem))
 
     def versions(self, name: str) -> list[Path]:
         """The kept earlier versions of map ``name``, oldest first."""
@@ -257,26 +283,36 @@ class MapStore:
         return good, bad
 
     def save(self, data: bytes, name: str | None = None) -> MapEntry:
-        """Keep a map file's bytes (checked through first) as the latest version of ``name`` (default: the name in
-        its header); the version it replaces is kept."""
+        """Keep a map file's bytes (checked through first) as the latest version of ``name`` (default, and it must
+        be: the name in its header, the frame its poses are in); the version it replaces is kept. The latest file is
+        replaced atomically: a reader always finds the old or the new one."""
         header = verify_bytes(data)
         name = name or header.name
+        if name != header.name:
+            raise MapFileError(f"the file holds map {header.name!r}, not {name!r} (a map's name is its frame)")
         path = self.path(name)
         self.root.mkdir(parents=True, exist_ok=True)
-        if path.exists():
-            os.replace(path, self.root / f"{name}.v{len(self.versions(name)) + 1}{SUFFIX}")
-        write_bytes_atomically(path, data)
-        return self.entry(name)
+        with _STORE_LOCK:  # an upload and a tracker's save may come at once
+            if path.exists():
+                kept = self.versions(name)
+                number = 1 + (int(kept[-1].name[len(name) + 2:-len(SUFFIX)]) if kept else 0)
+                os.link(path, self.root / f"{name}.v{number}{SUFFIX}")
+            write_bytes_atomically(path, data)
+            return self.entry(name)
 
     def delete(self, name: str) -> bool:
         """Remove map ``name`` and its kept versions; False when there was none."""
         path = self.path(name)
-        if not path.exists():
-            return False
-        for old in self.versions(name):
-            old.unlink(missing_ok=True)
-        path.unlink()
-        return True
+        with _STORE_LOCK:
+            if not path.exists():
+                return False
+            for old in self.versions(name):
+                old.unlink(missing_ok=True)
+            path.unlink()
+            return True
+
+
+_STORE_LOCK = threading.Lock()
 
 
 def _is_version(stem: str) -> bool:
@@ -312,8 +348,8 @@ def _header(archive: zipfile.ZipFile, path) -> MapHeader:
         raw = json.loads(archive.read("header.json"))
     except KeyError:
         raise MapFileError(f"{path}: not a twohr map file (no header.json)") from None
-    except (ValueError, zipfile.BadZipFile, OSError) as exc:
-        raise MapFileError(f"{path}: header.json cannot be read ({exc})") from None
+    except Exception as exc:  # a corrupt member: whatever zipfile or json raise, one line
+        raise MapFileError(f"{path}: header.json cannot be read ({type(exc).__name__})") from None
     if not isinstance(raw, dict) or raw.get("format") != FORMAT:
         found = raw.get("format") if isinstance(raw, dict) else raw
         raise MapFileError(f"{path}: not a twohr map file (format {found!r})")

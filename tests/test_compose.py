@@ -50,7 +50,10 @@ def test_every_container_joins_the_bus_with_its_own_role():
         assert env["TWOHR_ZENOH_PASSWORD_FILE"] == f"/run/twohr/{name}.password"
         assert "secrets:/run/twohr:ro" in services[name]["volumes"], name
         assert services[name]["depends_on"]["router"]["condition"] == "service_healthy"
-    assert services["gateway"]["command"][-2:] == ["--api-token-file", "/run/twohr/api-token"]
+    command = services["gateway"]["command"]
+    assert command[command.index("--api-token-file") + 1] == "/run/twohr/api-token"
+    assert command[command.index("--maps") + 1] == "/maps" and any(v.endswith(":/maps") for v in
+                                                                    services["gateway"]["volumes"])
 
 
 def test_volumes_match_service_flags():

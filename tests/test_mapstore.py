@@ -22,7 +22,9 @@ def test_saving_under_a_name_keeps_the_earlier_versions(tmp_path, tiny_map):
     assert [p.name for p in store.versions("lab")] == ["lab.v1.map"]
     assert (read_map(tmp_path / "lab.v1.map").arrays.landmark_positions == 1).all()
     assert (read_map(tmp_path / "lab.map").arrays.landmark_positions == 2).all()
-    assert store.save(first, name="copy").name == "copy" and store.names() == ["copy", "lab"]
+    with pytest.raises(MapFileError, match="holds map 'lab'"):
+        store.save(first, name="copy")  # a map's name is its frame: not another one's
+    assert store.save(encode_map(tiny_map("copy", CAMERA))).name == "copy" and store.names() == ["copy", "lab"]
     (tmp_path / "broken.map").write_bytes(b"garbage")
     good, bad = store.entries()
     assert [e.name for e in good] == ["copy", "lab"] and "not a twohr map file" in bad["broken"]

@@ -19,6 +19,7 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import Depends, FastAPI, HTTPException, Request, status
+from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 from pydantic import BaseModel, Field
@@ -147,7 +148,7 @@ def create_app(settings: GatewaySettings) -> FastAPI:
             sequence=session.request.sequence,
             state=session.state, detail=session.detail, created=session.created,
             frames_total=session.frames_total, frames_sent=session.frames_sent, frames=len(session.poses),
-            frames_dropped=max(0, session.frames_sent - session.poses.distinct_frames())
+            frames_dropped=max(0, session.frames_sent - session.poses.distinct_frames() - session.unposed)
             if session.frames_sent is not None and (session.state not in ACTIVE or session.request.source == "camera")
             else None,
             fps=round(session.fps(), 3),
@@ -213,12 +214,12 @@ def create_app(settings: GatewaySettings) -> FastAPI:
         a readable map built with the session's detector model (422 otherwise, one line)."""
         if settings.maps is None:
             raise TwohrError("map: this gateway has no map store (start it with twohr up --maps DIR)")
+        path = MapStore(settings.maps).path(wanted.name)  # a name the store can keep, in every mode
         if wanted.mode == "build":
             return
-        path = MapStore(settings.maps).path(wanted.name)
         if not path.is_file():
             raise TwohrError(f"map: no map named {wanted.name!r} in the map store (GET /maps lists them)")
-        read_map(path, detector_model=config.detector.model)
+        read_map(path, detector=config.detector)
 
     @app.get("/maps", response_model=list[MapEntry], dependencies=[Depends(require_token)], responses=errors(401, 404))
     def list_maps() -> list[MapEntry]:
@@ -246,12 +247,17 @@ def create_app(settings: GatewaySettings) -> FastAPI:
               openapi_extra={"requestBody": {"required": True, "content": {"application/octet-stream": {
                   "schema": {"type": "string", "format": "binary"}}}}})
     async def upload_map(request: Request, name: str | None = None) -> MapEntry:
-        """Keep an uploaded map file (the body) under ``name`` (default: the name in its header), checked through
-        first; a map already under that name is kept as an earlier version."""
-        data = await request.body()
+        """Keep an uploaded map file (the body), checked through first, under its name (``name``, if given, must be
+        the one in its header); a map already under that name is kept as an earlier version."""
         maps = store()
+        chunks, size = [], 0
+        async for chunk in request.stream():  # a chunked upload has no Content-Length for the middleware to check
+            size += len(chunk)
+            if size > settings.max_map_bytes:
+                raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, f"map over {settings.max_map_bytes} bytes")
+            chunks.append(chunk)
         try:
-            return maps.save(data, name)
+            return await run_in_threadpool(maps.save, b"".join(chunks), name)  # checks and fsyncs: off the loop
         except MapFileError as exc:
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)[:2000]) from None
 

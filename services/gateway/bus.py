@@ -73,8 +73,11 @@ class GatewayBus:
 
     def _on_map_read(self, query: zenoh.Query) -> None:
         """``twohr/maps/<name>``: the latest version's bytes of a map in the store."""
-        name = str(query.key_expr).rsplit("/", 1)[-1]
+        parts = str(query.key_expr).split("/")
+        name = parts[-1]
         try:
+            if len(parts) != 3 or "*" in name:
+                raise MapFileError(f"{query.key_expr}: ask for one map, twohr/maps/<name>")
             query.reply(query.key_expr, MapStore(self.settings.maps).path(name).read_bytes())
         except FileNotFoundError:
             query.reply_err(f"no map named {name!r} in the map store".encode())
@@ -83,8 +86,11 @@ class GatewayBus:
 
     def _on_map_save(self, query: zenoh.Query) -> None:
         """``twohr/maps/<name>/save`` with a map file's bytes: checked, kept as the map's next version."""
-        name = str(query.key_expr).split("/")[-2]
+        parts = str(query.key_expr).split("/")
+        name = parts[-2]
         try:
+            if len(parts) != 4 or "*" in name:
+                raise MapFileError(f"{query.key_expr}: save one map, twohr/maps/<name>/save")
             if query.payload is None:
                 raise MapFileError("a save carries the map file's bytes")
             entry = MapStore(self.settings.maps).save(query.payload.to_bytes(), name)

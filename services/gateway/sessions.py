@@ -57,6 +57,8 @@ class SessionRequest(BaseModel):
 
     @model_validator(mode="after")
     def _sequence_matches_source(self) -> SessionRequest:
+        if self.robot_id == "maps":
+            raise ValueError("robot_id 'maps' is the map store's (twohr/maps/...): choose another")
         if self.source == "sequence" and self.sequence is None:
             raise ValueError("give a sequence, or \"source\": \"camera\" for a live camera session")
         if self.source == "camera" and self.sequence is not None:
@@ -163,8 +165,11 @@ class Session:
     refined_due: float | None = None
     """until when the refined trajectory is worth waiting for (set when the session's stop is sent)"""
     corrections: int = 0
-    health: Literal["ok", "degraded"] = "ok"
+    health: Literal["ok", "degraded", "relocalising"] = "ok"
     health_detail: str = ""
+    unposed: int = 0
+    """frames the tracker answered with no pose (still looking for the camera in the session's map)"""
+    unposed_at: float | None = None
 
     def trajectory(self) -> Trajectory:
         """The poses as published (online), ordered by frame."""
@@ -229,6 +234,12 @@ class SessionTable:
             if status.state == "error":
                 session.state, session.detail = "failed", status.detail or f"the {status.service} service failed"
                 return session
+            if status.service == "tracker" and status.state == "relocalising":  # a frame answered with no pose
+                session.health, session.health_detail = status.state, status.detail
+                session.unposed += 1
+                session.unposed_at = time.time()
+                session.state = "running" if session.state == "starting" else session.state
+                return None
             if status.service == "tracker" and status.state in ("ok", "degraded"):
                 session.health, session.health_detail = status.state, status.detail
                 return None
@@ -261,9 +272,10 @@ class SessionTable:
             for s in self.sessions.values():
                 if s.state not in ACTIVE or s.source_done_at is not None or s.request.source == "camera":
                     continue  # a camera may start late or pause; only a lost service fails a live session
-                if s.last_pose_at is None and now - s.started_at > start_timeout:
+                answered_at = max(s.last_pose_at or 0, s.unposed_at or 0) or None  # a pose, or a frame without
+                if answered_at is None and now - s.started_at > start_timeout:
                     s.state, s.detail = "failed", f"no pose within {start_timeout:.0f} s of the start"
-                elif s.last_pose_at is not None and now - s.last_pose_at > stall_timeout:
+                elif answered_at is not None and now - answered_at > stall_timeout:
                     s.state, s.detail = "failed", f"no pose for {stall_timeout:.0f} s: the pipeline stalled"
                 else:
                     continue
@@ -285,8 +297,9 @@ class SessionTable:
             for s in self.sessions.values():
                 if s.state not in ACTIVE or s.source_done_at is None:
                     continue
-                last = max(s.source_done_at, s.last_pose_at or 0)
-                if (len(s.poses) >= (s.frames_sent or 0) or now - last > idle_timeout) and not s.finalising:
+                last = max(s.source_done_at, s.last_pose_at or 0, s.unposed_at or 0)
+                answered = len(s.poses) + s.unposed
+                if (answered >= (s.frames_sent or 0) or now - last > idle_timeout) and not s.finalising:
                     s.finalising = True
                     done.append(s)
         return done

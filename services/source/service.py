@@ -18,7 +18,7 @@ from twohr import keys
 from twohr.bus import BusConfig
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
-from twohr.messages import ControlMsg, FrameMsg, PoseMsg, decode, encode, split
+from twohr.messages import ControlMsg, FrameMsg, PoseMsg, StatusMsg, decode, encode, split
 from twohr.paths import resolve_under_roots
 from twohr.service import Service
 
@@ -48,7 +48,9 @@ class SourceService(Service):
         self.playbacks: dict[str, Playback] = {}  # by robot id
 
     def subscriptions(self) -> list[str]:
-        return [keys.all_robots(keys.CONTROL), keys.all_robots("pose"), keys.all_robots(keys.RAW_CAMERA)]
+        # poses answer frames; so does the tracker's "relocalising" status for a frame it could give no pose
+        return [keys.all_robots(keys.CONTROL), keys.all_robots("pose"), keys.all_robots("status"),
+                keys.all_robots(keys.RAW_CAMERA)]
 
     def handle(self, key: str, payload: bytes) -> None:
         robot, stream = keys.parse(key)
@@ -57,10 +59,12 @@ class SourceService(Service):
             if control.robot_id != robot:
                 raise TwohrError(f"control for robot {control.robot_id} published on {key}")
             self._start(control) if control.command == "start" else self._stop(robot, control.session_id)
-        elif stream == "pose":
-            pose, _ = decode(payload, PoseMsg)
+        elif stream in ("pose", "status"):
+            answer, _ = decode(payload, PoseMsg if stream == "pose" else StatusMsg)
+            if stream == "status" and (answer.service, answer.state) != ("tracker", "relocalising"):
+                return
             playback = self.playbacks.get(robot)
-            if playback and playback.control.session_id == pose.session_id:
+            if playback and playback.control.session_id == answer.session_id:
                 with playback.progress:
                     playback.answered += 1
                     playback.progress.notify_all()

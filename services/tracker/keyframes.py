@@ -4,7 +4,8 @@ Every frame is tracked by optical flow against the map (:class:`~.flow.FrameTrac
 dynamic mask of the keyframe, descriptor matching, keyframe insertion, local bundle adjustment and
 relocalisation run only on keyframes, in a mapping worker thread (:class:`Mapper`); dynamic masks for the
 frames between come from a second worker on every n-th frame. The per-frame path never waits for either
-(except for the very first map, and in a replay from disk whose keyframe job is too many frames late).
+(except for the very first map, while the camera is not yet found in a map it was given, and in a replay whose
+keyframe job is too many frames late).
 
 Where the networks run is injected (:class:`~.stages.Stages`): in this process for ``twohr run``, or in the
 detector, yolo and matcher services over Zenoh for the tracker service. The map is one :class:`~.map.Map`, owned

@@ -21,8 +21,9 @@ from .map import Map
 def map_name(path: str | Path) -> str:
     """The name of the map a file holds: its file name without ``.map``; :class:`MapFileError` when unusable."""
     name = Path(path).name.removesuffix(".map")
-    if not re.match(NAME_PATTERN, name):
-        raise MapFileError(f"{path}: a map's name (its file name without .map) must match {NAME_PATTERN}")
+    if not re.fullmatch(NAME_PATTERN, name) or re.search(r"\.v\d+$", name):
+        raise MapFileError(f"{path}: a map's name (its file name without .map) must match {NAME_PATTERN}, not "
+                           "ending in .v<number>")
     return name
 
 
@@ -55,11 +56,9 @@ def save_map(path: str | Path, world: Map, config: PipelineConfig, built_by: str
 
 def usable_map(stored: MapFile, config: PipelineConfig, camera: CameraIntrinsics, where: str = "map") -> Map:
     """A stored map as a :class:`Map` for this camera and config; :class:`MapFileError` (one line) when it was
-    built with another detector model or camera, or is empty."""
+    built with another detector or camera, or is empty."""
     header = stored.header
-    if header.detector_model != config.detector.model:
-        raise MapFileError(f"{where}: built with detector model {header.detector_model!r}, this run uses "
-                           f"{config.detector.model!r}; its descriptors would not match")
+    header.check_built_with(config.detector, where)
     built_with = header.camera
     same = [built_with.width, built_with.height] == [camera.width, camera.height] and np.allclose(
         built_with.matrix, camera.matrix, atol=1e-6)
@@ -75,5 +74,5 @@ def load_map(path: str | Path, config: PipelineConfig, camera: CameraIntrinsics)
     """The map in ``path`` for a camera and config; returns it, its header and seconds taken.
     :class:`MapFileError` (one line) when the file is unusable, or was built with another detector model or camera."""
     start = time.perf_counter()
-    stored = read_map(path, detector_model=config.detector.model)
+    stored = read_map(path)
     return usable_map(stored, config, camera, str(path)), stored.header, time.perf_counter() - start

@@ -50,8 +50,9 @@ class Schedule(Protocol):
 
 def build_schedule(config: PipelineConfig, camera: CameraIntrinsics, stages: Stages, live: bool = False,
                    world: Map | None = None) -> Schedule:
-    """The schedule that ``config.pipeline.mode`` names, over ``stages``. ``live``: frames come from a camera, so
-    the per-frame path never waits for a keyframe job (a replay from disk may, see ``max_keyframe_lag``). ``world``:
+    """The schedule that ``config.pipeline.mode`` names, over ``stages``. ``live``: frames come at the camera's pace
+    (a camera, a replay at its rate), so the per-frame path never waits for a keyframe job (a replay paced by the
+    poses may, see ``max_keyframe_lag``). ``world``:
     a map to track in (loaded from a file), whose frame the poses are in once the camera is found in it."""
     if config.pipeline.mode == "keyframes":
         return KeyframePipeline(config, camera, stages, live=live, world=world)

@@ -3,8 +3,9 @@
 It feeds every frame of ``frames`` to the session's :class:`~.schedule.Schedule` (built by
 :func:`~.schedule.build_schedule`, as ``twohr run`` builds it) over stages that ask the detector
 (``rpc/detect``), yolo (``rpc/dynamics``) and matcher (``rpc/match``) services. In the default ``keyframes``
-schedule those are asked only for keyframes and every few frames' masks, from worker threads, so a pose never
-waits for a network; in ``every_frame`` they are asked for every frame, in turn.
+schedule those are asked only for keyframes and every few frames' masks, from worker threads, so a camera's pose
+never waits for a network (a replay paced by the poses, rate 0, waits for a late keyframe job as ``twohr run``
+does); in ``every_frame`` they are asked for every frame, in turn.
 
 Live corrections: whenever a keyframe changes the map, the keyframes' poses after bundle adjustment go out on
 ``twohr/<robot>/path`` (``PathMsg``, ``final`` False). When a session ends, its refined trajectory of every frame
@@ -27,7 +28,7 @@ from twohr.dataset import Frame
 from twohr.errors import TwohrError
 from twohr.features import Keypoints, Matches
 from twohr.geometry import rot_to_quat
-from twohr.mapfile import MapFile, encode_map, read_map
+from twohr.mapfile import MapFile, MapFileError, encode_map, read_map
 from twohr.messages import (
     ControlMsg,
     DynamicsMsg,
@@ -204,14 +205,14 @@ class TrackerService(Service):
             track.schedule.finish()
             track.schedule.refine()
             refined = track.schedule.trajectory()
-            if control is not None and control.map_mode in ("build", "extend"):
-                self._save_map(control, track)
         finally:
             track.schedule.close()
         header = track.last_header
         message = PathMsg(session_id=session_id, robot_id=header.robot_id, frame_index=header.frame_index,
                           stamp=header.stamp, final=True)
         self.publish(keys.key(header.robot_id, "path"), encode(message, path_arrays(refined)))
+        if control is not None and control.map_mode in ("build", "extend"):  # after the path: it is waited for
+            self._save_map(control, track)
 
     def _track_for(self, header: FrameMsg) -> SessionTrack:
         """The session's schedule, built on its first frame (the camera intrinsics come with the frames), in the
@@ -227,7 +228,9 @@ class TrackerService(Service):
             world = None if stored is None else usable_map(stored, config, header.camera, f"map {stored.header.name}")
             control = self.maps.get(header.session_id)
             self.tracks[header.session_id] = SessionTrack(
-                build_schedule(config, header.camera, stages, live=True, world=world), header,
+                # a replay paced by poses (rate 0) waits for late keyframe jobs as `twohr run` does; a camera does not
+                build_schedule(config, header.camera, stages, live=self.paced.get(header.session_id, True),
+                               world=world), header,
                 map_name=control.map_name if control else "", map_mode=control.map_mode if control else "",
                 loaded=stored)
         return self.tracks[header.session_id]
@@ -238,16 +241,25 @@ class TrackerService(Service):
         for reply in self.session.get(key, timeout=MAP_TIMEOUT_S):
             if reply.ok is None:
                 raise TwohrError(f"map {control.map_name}: {reply.err.payload.to_bytes().decode(errors='replace')}")
-            return read_map(reply.ok.payload.to_bytes(), detector_model=control.config.detector.model)
+            return read_map(reply.ok.payload.to_bytes(), detector=control.config.detector)
         raise TwohrError(f"map {control.map_name}: the map store did not answer on {key} (twohr up --maps DIR)")
 
     def _save_map(self, control: ControlMsg, track: SessionTrack) -> None:
-        """A build or extend session's map, saved in the map store as the map's next version."""
-        stored = map_file(track.schedule.map, control.config, control.map_name,
-                          built_by=f"session {control.session_id} (robot {control.robot_id})",
-                          parent=track.loaded.header if track.loaded else None)
+        """A build or extend session's map, saved in the map store as the map's next version (a map with no keyframe,
+        or one that cannot be encoded, is reported and not saved)."""
+        if not track.schedule.map:
+            self.report(control, "error", f"map {control.map_name} not saved: the session built no map")
+            return
+        try:
+            stored = map_file(track.schedule.map, control.config, control.map_name,
+                              built_by=f"session {control.session_id} (robot {control.robot_id})",
+                              parent=track.loaded.header if track.loaded else None)
+            payload = encode_map(stored)
+        except MapFileError as exc:
+            self.report(control, "error", f"map {control.map_name} not saved: {exc}")
+            return
         key = keys.map_key(control.map_name, save=True)
-        for reply in self.session.get(key, payload=encode_map(stored), timeout=MAP_TIMEOUT_S):
+        for reply in self.session.get(key, payload=payload, timeout=MAP_TIMEOUT_S):
             if reply.ok is not None:
                 self.report(control, "map saved", f"map {control.map_name}: {stored.header.keyframes} keyframes, "
                             f"{stored.header.landmarks} landmarks", keyframes=stored.header.keyframes,
@@ -265,7 +277,12 @@ class TrackerService(Service):
         than ``max_skipped_frames`` in a row, so the optical flow keeps short steps while it catches up."""
         header, _ = decode(payload, FrameMsg, only=())
         config = self.config_for(header.session_id)
-        track = self._track_for(header)
+        try:
+            track = self._track_for(header)
+        except MapFileError as exc:  # the map does not fit this camera: said once, the session's frames ignored
+            self.session_configs.pop(header.session_id, None)
+            self.report(header, "error", str(exc))
+            return
         waited_ms = (time.time() - header.sent_at) * 1000 if header.sent_at else 0.0
         stale = len(self.inbox) and waited_ms > config.pipeline.max_frame_age_ms
         if self.paced.get(header.session_id) and stale and track.skipped < config.pipeline.max_skipped_frames:
@@ -282,8 +299,11 @@ class TrackerService(Service):
         track.last_header = header
         result, stats = track.schedule.process(frame)
         track.health.add(dropped=False)
-        if result.posed:  # no pose at all before the camera is found in a given map
+        if result.posed:
             self._publish_pose(header, result, stats, track.map_name)
+        else:  # no pose before the camera is found in the map: the frame is answered on the session's status
+            self.report(header, "relocalising", f"looking for the camera in map {track.map_name}",
+                        frame=header.frame_index)
         self._publish_map(track, header)
         self._report_health(track, header)
 

@@ -29,7 +29,8 @@ class TrackResult:
 
     ``pose`` is the 4x4 camera-to-world pose (world = the first keyframe's camera, or a loaded map's frame).
     ``status`` is one of ``uninitialised`` (no map yet; identity pose), ``init`` (this frame started the map),
-    ``tracking``, ``relocalised`` (found again against an earlier keyframe), ``reinitialised`` (a new map started
+    ``tracking``, ``relocalised`` (found again against earlier keyframes or the whole map), ``reinitialised``
+    (a new map started
     at the coasted pose after a long loss), ``lost`` (not trackable: the pose is the motion model's prediction) or
     ``relocalising`` (not yet found in a map loaded from a file: no pose at all). ``reason`` says why in words;
     ``timings`` are milliseconds per stage.
@@ -77,10 +78,10 @@ def reattach_to_keyframes(stamps: Sequence[float], anchors: Sequence[int], relat
                           keyframe_poses: np.ndarray) -> Trajectory:
     """Frames' poses from their pose relative to an anchor keyframe (-1 = none: the pose itself) and the
     keyframes' current poses, so that bundle adjustment's corrections reach every frame."""
-    anchors = np.asarray(anchors, np.int64)
+    anchors = np.array(anchors, np.int64)  # copies: a view would pin an AnchoredTrajectory's growable arrays
     base = np.tile(np.eye(4), (len(anchors), 1, 1))
     base[anchors >= 0] = keyframe_poses[anchors[anchors >= 0]]
-    return Trajectory(np.asarray(stamps), base @ np.asarray(relative).reshape(-1, 4, 4))
+    return Trajectory(np.array(stamps, np.float64), base @ np.asarray(relative).reshape(-1, 4, 4))
 
 
 def bridge_coasted(trajectory: Trajectory, measured: np.ndarray, max_gap_s: float = 3.0) -> Trajectory:

@@ -11,7 +11,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from twohr.config import load_config
+from twohr.config import DetectorConfig, load_config
 from twohr.dataset import RGBDSequence
 from twohr.evaluation import evaluate
 from twohr.mapfile import MapFileError, read_header, read_map, verify_bytes
@@ -76,8 +76,10 @@ def test_a_bad_map_file_is_one_line(orb_synthetic, tmp_path):
         with pytest.raises(MapFileError, match=says) as caught:
             read_map(path)
         assert "\n" not in str(caught.value)
-    with pytest.raises(MapFileError, match="detector model"):
-        read_map(good, detector_model="another_model")
+    with pytest.raises(MapFileError, match="descriptors would not match"):
+        read_map(good, detector=ORB.detector.model_copy(update={"model": "another_model"}))
+    with pytest.raises(MapFileError, match="orb features"):  # ORB descriptors against 2HR ones: same model name
+        read_map(good, detector=DetectorConfig())
     other_camera = orb_synthetic.camera.model_copy(update={"fx": orb_synthetic.camera.fx * 1.1})
     with pytest.raises(MapFileError, match="another camera"):
         load_map(good, ORB, other_camera)
