@@ -30,6 +30,15 @@ def map_key(name: str, save: bool = False) -> str:
     return f"{MAPS_PREFIX}/{name}" + ("/save" if save else "")
 
 
+def parse_map_key(key_expr: str, save: bool = False) -> str:
+    """The map name in a key made by :func:`map_key`; ValueError for a key that names no single map."""
+    parts = str(key_expr).split("/")
+    name = parts[2] if len(parts) > 2 else ""
+    if str(key_expr) != map_key(name, save) or not name or "*" in name:
+        raise ValueError(f"{key_expr}: name one map, {map_key('<name>', save)}")
+    return name
+
+
 def key(robot_id: str, stream: str) -> str:
     """The key of one robot's stream, e.g. ``twohr/robot1/pose``."""
     if not _ROBOT.match(robot_id) or robot_id == "maps":

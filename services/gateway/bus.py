@@ -73,31 +73,26 @@ class GatewayBus:
 
     def _on_map_read(self, query: zenoh.Query) -> None:
         """``twohr/maps/<name>``: the latest version's bytes of a map in the store."""
-        parts = str(query.key_expr).split("/")
-        name = parts[-1]
         try:
-            if len(parts) != 3 or "*" in name:
-                raise MapFileError(f"{query.key_expr}: ask for one map, twohr/maps/<name>")
+            name = keys.parse_map_key(query.key_expr)
             query.reply(query.key_expr, MapStore(self.settings.maps).path(name).read_bytes())
         except FileNotFoundError:
             query.reply_err(f"no map named {name!r} in the map store".encode())
-        except (MapFileError, OSError) as exc:
+        except (ValueError, MapFileError, OSError) as exc:  # a key naming no single map, a bad file
             query.reply_err(str(exc).encode())
 
     def _on_map_save(self, query: zenoh.Query) -> None:
         """``twohr/maps/<name>/save`` with a map file's bytes: checked, kept as the map's next version."""
-        parts = str(query.key_expr).split("/")
-        name = parts[-2]
+        name = str(query.key_expr)
         try:
-            if len(parts) != 4 or "*" in name:
-                raise MapFileError(f"{query.key_expr}: save one map, twohr/maps/<name>/save")
+            name = keys.parse_map_key(query.key_expr, save=True)
             if query.payload is None:
                 raise MapFileError("a save carries the map file's bytes")
             entry = MapStore(self.settings.maps).save(query.payload.to_bytes(), name)
             log.info("map %s version %d saved (%d keyframes, %d bytes)", name, entry.version, entry.keyframes,
                      entry.size_bytes)
             query.reply(query.key_expr, entry.model_dump_json())
-        except (MapFileError, OSError) as exc:
+        except (ValueError, MapFileError, OSError) as exc:  # a key naming no single map, a bad file
             log.warning("map %s not saved: %s", name, exc)
             query.reply_err(str(exc).encode())
 
