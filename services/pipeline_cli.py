@@ -60,6 +60,11 @@ def write_run(out: Path, sequence, config, result) -> dict:
             "count": len(log), "keyframes": sum(job.keyframe for job in log),
             **{f"{key}_median": round(float(_median([getattr(job, key) for job in log])), 2)
                for key in ("ms_detector", "ms_yolo", "ms_mapping", "lag_frames")},
+            "by_kind": {kind: {"count": len(jobs), "keyframes": sum(job.keyframe for job in jobs),
+                               **{f"{key}_median": round(float(_median([getattr(job, key) for job in jobs])), 2)
+                                  for key in ("ms_detector", "ms_yolo", "ms_mapping", "lag_frames")}}
+                        for kind in sorted({job.kind for job in log})
+                        for jobs in [[job for job in log if job.kind == kind]]},
         }
     title = f"twohr on {sequence.name}"
     evaluation = None

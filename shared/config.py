@@ -158,6 +158,15 @@ class TrackerConfig(Section):
     keyframe_max_translation: float = Field(0.10, gt=0, description="new keyframe when no keyframe lies within "
                                             "this distance (m) and keyframe_max_rotation_deg of the pose")
     keyframe_max_rotation_deg: float = Field(10.0, gt=0, description="see keyframe_max_translation (deg)")
+    keyframe_corners: int = Field(300, ge=1, description="a tracked keyframe (pipeline.keyframes) seeds up to this "
+                                  "many new landmarks at Shi-Tomasi corners with depth, outside the dynamic mask; "
+                                  "they have no descriptor until the 2HR detection of a keyframe that sees them")
+    corner_min_distance_px: int = Field(10, ge=1, description="new corners keep this far from each other and from "
+                                        "the tracks")
+    corner_depth_radius_px: int = Field(3, ge=1, description="a new corner needs valid depth that spreads by less "
+                                        "than depth_edge_ratio over this many pixels around it")
+    describe_radius_px: float = Field(1.5, gt=0, description="a 2HR keypoint this close to a keyframe's "
+                                      "observation describes its landmark")
     init_min_points: int = Field(50, ge=6, description="keypoints with depth needed to start the map")
     landmark_max_outlier_ratio: float = Field(1.0, gt=0, description="drop a landmark once it has been "
                                               "rejected 3+ times and more often than this times accepted")
@@ -213,6 +222,19 @@ class RuntimeConfig(Section):
     max_keyframe_lag: int = Field(8, ge=0, description="replay from disk: a frame waits for the mapping worker "
                                   "when its keyframe job is more than this many frames old, so a replay faster than "
                                   "the camera sees the map as a live camera would (live streams never wait)")
+    keyframes: Literal["auto", "detected", "tracked"] = Field(
+        "detected", description="keyframes mode: how keyframes are made while the camera tracks. detected = the 2HR "
+        "detector and descriptor matching on every keyframe (the paper's design); tracked = from the optical-flow "
+        "tracks and new corners, no network, with the 2HR detector describing them off the mapping path "
+        "(tracker.keyframe_corners): camera rate on a CPU without AMX, but about 10 % more ATE on the dev frames and "
+        "weaker against movers that no mask covers; auto = detected while the detector's measured latency fits "
+        "keyframe_budget_ms, tracked when it does not")
+    keyframe_budget_ms: float = Field(250.0, gt=0, description="keyframes=auto: the 2HR detector latency (median of "
+                                      "the latest keyframes) above which keyframes are tracked; at 30 Hz, about the "
+                                      "max_keyframe_lag frames a live map can lag")
+    max_detection_lag: int = Field(30, ge=0, description="replay from disk: a frame waits for the 2HR detection of "
+                                   "a tracked keyframe when it started more than this many frames ago (live streams "
+                                   "never wait: the detector describes the keyframes it can)")
     max_frame_age_ms: float = Field(150.0, gt=0, description="live streams over the bus: a frame that has waited "
                                     "longer than this when its turn comes, with newer data queued behind it, is "
                                     "dropped (and counted) so that poses stay current; it bounds the latency the "

@@ -90,13 +90,14 @@ class Relocaliser:
         for i in candidates[::-1]:  # the latest keyframes first
             kf = world.keyframes[i]
             ids = kf.landmark_ids[kf.landmark_ids >= 0]
-            estimate = self._attempt(keypoints, xy, ids[~landmarks.bad[ids]], f"keyframe {kf.id}", match)
+            ids = ids[~landmarks.bad[ids] & landmarks.described[ids]]
+            estimate = self._attempt(keypoints, xy, ids, f"keyframe {kf.id}", match)
             if estimate is not None and (best is None or estimate.num_inliers > best.num_inliers):
                 best = estimate
         if (best is None or best.num_inliers < conf.relocalisation_min_inliers) and conf.relocalisation_max_landmarks:
             # the camera came back somewhere far from where it was lost (a robot carried, a replay played again):
             # the whole map's landmarks at once
-            ids = np.flatnonzero(~landmarks.bad)
+            ids = np.flatnonzero(~landmarks.bad & landmarks.described)
             ids = ids[np.argsort(-landmarks.accepted[ids], kind="stable")[:conf.relocalisation_max_landmarks]]
             whole_map = self._attempt(keypoints, xy, ids, "the whole map", match)
             if whole_map is not None and (best is None or whole_map.num_inliers > best.num_inliers):
@@ -197,6 +198,110 @@ class Tracker:
         result.timings = {**timings, **result.timings, "total": _ms(start)}
         result.num_landmarks = self.map.landmarks.num_good
         return result
+
+
+    def add_tracked_keyframe(self, stamp: float, pose: np.ndarray, tracked_xy: np.ndarray,
+                             tracked_landmarks: np.ndarray, corners_xy: np.ndarray, depth: np.ndarray) -> TrackResult:
+        """A keyframe without a network: the per-frame path's pose and inlier tracks (landmark observations found
+        by optical flow) make it, and ``corners_xy`` with depth seed new landmarks, without descriptors until a
+        2HR detection of a keyframe describes them (:meth:`describe_keyframe`). Local bundle adjustment follows.
+        No keyframe where older keyframes already cover the place (see ``keyframe_revisit_min_inliers``)."""
+        conf = self.conf
+        start = time.perf_counter()
+        tracked_xy = np.asarray(tracked_xy, np.float64).reshape(-1, 2)
+        tracked_landmarks = np.asarray(tracked_landmarks, np.int64)
+        usable = ~self.map.landmarks.bad[tracked_landmarks]
+        tracked_xy, tracked_landmarks = tracked_xy[usable], tracked_landmarks[usable]
+        corners_xy = np.asarray(corners_xy, np.float64).reshape(-1, 2)
+        xy = np.concatenate([tracked_xy, corners_xy])
+        z = sample_depth(depth, xy, conf.min_depth, conf.max_depth, conf.depth_edge_ratio)
+        num_tracked = len(tracked_landmarks)
+        counts = dict(num_keypoints=len(xy), num_with_depth=int((z > 0).sum()), num_matches=num_tracked,
+                      num_inliers=num_tracked)
+        self.motion.tracked(stamp, pose)
+        self.motion.advance(stamp, pose)
+        if self._covered(pose, num_tracked):
+            return TrackResult(stamp, pose, "tracking", reason=f"{num_tracked} tracks in a place older keyframes "
+                               "cover: no keyframe", observed_xy=tracked_xy, observed_landmarks=tracked_landmarks,
+                               **counts)
+        landmark_ids = np.concatenate([tracked_landmarks, np.full(len(corners_xy), -1, np.int64)])
+        new = (landmark_ids < 0) & (z > 0)
+        if new.any():
+            landmark_ids[new] = self.map.landmarks.add(transform_points(pose, backproject(xy[new], z[new], self.K)))
+        keep = landmark_ids >= 0
+        keyframe = self.map.add_keyframe(stamp, pose, xy[keep], z[keep], landmark_ids[keep])
+        self._inliers_at_keyframe = int(keep.sum())
+        timings = {"keyframe": _ms(start)}
+        if conf.bundle_adjustment:
+            t0 = time.perf_counter()
+            self.map.local_bundle_adjustment()
+            timings["bundle_adjustment"] = _ms(t0)
+            pose = self.map.keyframe_poses[keyframe.id].copy()
+            self.motion.good_pose = pose
+        self.map.cull_redundant(self.map.local_keyframes(pose, conf.local_map_keyframes))
+        observed = keyframe.landmark_ids >= 0
+        return TrackResult(stamp, pose, "tracking", is_keyframe=True, timings=timings,
+                           reason=f"tracked keyframe: {num_tracked} tracks, {int(new.sum())} new corner landmarks",
+                           observed_xy=keyframe.xy[observed], observed_landmarks=keyframe.landmark_ids[observed],
+                           num_landmarks=self.map.landmarks.num_good, **counts)
+
+    def describe_keyframe(self, keyframe_id: int, keypoints: Keypoints, depth: np.ndarray,
+                          match: MatchFn | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Join the 2HR keypoints of keyframe ``keyframe_id`` (detected off the mapping path) to the map: the
+        landmarks it observes get the descriptor of the keypoint at their observation when they have none;
+        other keypoints are matched to the local map at the keyframe's pose (the same gates as tracking) and
+        become observations; the rest with depth become new landmarks. Returns the keypoints that now observe a
+        landmark: (xy (M, 2), landmark ids (M,))."""
+        match = match or self.match
+        conf, landmarks = self.conf, self.map.landmarks
+        keyframe = self.map.keyframes[keyframe_id]
+        none = np.zeros((0, 2)), np.zeros(0, np.int64)
+        if keyframe.culled or len(keypoints) == 0:
+            return none
+        self._check_inputs(keypoints, depth)
+        pose = self.map.keyframe_poses[keyframe_id]
+        xy = np.asarray(keypoints.xy, np.float64)
+        z = sample_depth(depth, xy, conf.min_depth, conf.max_depth, conf.depth_edge_ratio)
+        free = np.ones(len(xy), bool)
+        observed = np.flatnonzero(keyframe.landmark_ids >= 0)
+        if len(observed):  # keypoints at an observation this keyframe already holds: they describe its landmark
+            distance, nearest = cKDTree(xy).query(keyframe.xy[observed], distance_upper_bound=conf.describe_radius_px)
+            at = np.isfinite(distance)
+            ids, kp = keyframe.landmark_ids[observed[at]], nearest[at]
+            _, first = np.unique(kp, return_index=True)  # one landmark per keypoint
+            ids, kp = ids[first], kp[first]
+            undescribed = ~landmarks.described[ids]
+            landmarks.describe(ids[undescribed], keypoints.descriptors[kp[undescribed]])
+            free[kp] = False
+            near_observation = cKDTree(keyframe.xy[observed]).query(xy, distance_upper_bound=conf.describe_radius_px)[0]
+            free &= ~np.isfinite(near_observation)
+        new_xy, new_z, new_ids = [], [], []
+        if match is not None:
+            # matched to the local map as a keyframe job would, the keyframe's pose as the prediction
+            estimate = self._track_local_map(pose, keypoints, xy, z, conf.match_radius_px, False, match)
+            if estimate.ok:
+                kp = np.flatnonzero((estimate.keypoint_landmarks >= 0) & free)
+                lm = estimate.keypoint_landmarks[kp]
+                new = ~np.isin(lm, keyframe.landmark_ids)
+                kp, lm = kp[new], lm[new]
+                new_xy.append(xy[kp]), new_z.append(z[kp]), new_ids.append(lm)
+                free[kp] = False
+                free &= ~estimate.suspect
+        fresh = free & (z > 0)
+        if fresh.any():
+            points_w = transform_points(pose, backproject(xy[fresh], z[fresh], self.K))
+            new_xy.append(xy[fresh]), new_z.append(z[fresh])
+            new_ids.append(landmarks.add(points_w, keypoints.descriptors[fresh]))
+        if new_ids:
+            keyframe.xy = np.concatenate([keyframe.xy, *new_xy])
+            keyframe.depth = np.concatenate([keyframe.depth, *new_z])
+            keyframe.landmark_ids = np.concatenate([keyframe.landmark_ids, *new_ids])
+            if conf.bundle_adjustment:
+                latest = len(self.map.keyframes)
+                window = np.union1d(np.arange(max(0, latest - conf.ba_window_keyframes), latest), [keyframe_id])
+                self.map.bundle_adjust(window, conf.ba_max_iterations)
+        seen = keyframe.landmark_ids >= 0
+        return keyframe.xy[seen], keyframe.landmark_ids[seen]
 
     # ------------------------------------------------------------------ steps
 
@@ -300,7 +405,7 @@ class Tracker:
     def _track_local_map(self, pose_guess: np.ndarray, keypoints: Keypoints, xy: np.ndarray, z: np.ndarray,
                          radius: float, check_jump: bool, match: MatchFn) -> _Estimate:
         conf = self.conf
-        ids = self.map.usable_landmarks(self.map.local_keyframes(pose_guess, conf.local_map_keyframes))
+        ids = self.map.usable_landmarks(self.map.local_keyframes(pose_guess, conf.local_map_keyframes), described=True)
         T_guess = invert_pose(pose_guess)
         points_cam = transform_points(T_guess, self.map.landmarks.positions[ids])
         uv = project(points_cam, self.K)

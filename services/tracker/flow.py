@@ -28,7 +28,7 @@ import numpy as np
 from twohr.config import TrackerConfig
 from twohr.dataset import CameraIntrinsics
 from twohr.features import masked
-from twohr.geometry import invert_pose, project, transform_points
+from twohr.geometry import backproject, invert_pose, project, transform_points
 
 from .map import MapSnapshot
 from .motion import MotionModel
@@ -55,6 +55,10 @@ class MapUpdate:
     gray: np.ndarray | None = None
     """the frame's grayscale image, to carry the seeds to a later frame by optical flow"""
     timings: dict[str, float] | None = None
+    kind: str = "2hr"
+    """``2hr``, ``tracked`` or ``describe`` (see :class:`~.stages.KeyframeLog`)"""
+    mask: np.ndarray | None = None
+    """the dynamic mask of a tracked keyframe, for its 2HR detection later"""
 
 
 def flow_points(source: np.ndarray, target: np.ndarray, xy: np.ndarray, guess: np.ndarray,
@@ -83,6 +87,52 @@ def flow_points(source: np.ndarray, target: np.ndarray, xy: np.ndarray, guess: n
     return forward, ok
 
 
+def new_corners(gray: np.ndarray, count: int, min_distance: int, mask: np.ndarray | None = None,
+                avoid_xy: np.ndarray | None = None) -> np.ndarray:
+    """(M, 2) float32 Shi-Tomasi corners of ``gray``, strongest first, at most ``count``, outside the dynamic
+    ``mask`` (True = moving) and at least ``min_distance`` pixels from each other and from ``avoid_xy``."""
+    if count <= 0:
+        return np.zeros((0, 2), np.float32)
+    allowed = np.full(gray.shape[:2], 255, np.uint8)
+    if mask is not None:
+        allowed[mask] = 0
+    if avoid_xy is not None:
+        for x, y in np.round(avoid_xy).astype(int):
+            cv2.circle(allowed, (int(x), int(y)), min_distance, 0, -1)
+    corners = cv2.goodFeaturesToTrack(gray, count, 0.01, min_distance, mask=allowed, blockSize=7)
+    if corners is None:
+        return np.zeros((0, 2), np.float32)
+    return corners.reshape(-1, 2).astype(np.float32)
+
+
+def static_in_reference(gray: np.ndarray, pose: np.ndarray, xy: np.ndarray, z: np.ndarray, reference: np.ndarray,
+                        reference_pose: np.ndarray, K: np.ndarray, conf: TrackerConfig) -> np.ndarray:
+    """(N,) True for points ``xy`` (depth ``z``) of image ``gray`` at camera-to-world ``pose`` that optical flow finds
+    in an earlier image ``reference`` (at ``reference_pose``) where a static point would be: within
+    ``ransac_reprojection_px`` of its projection. A corner on someone walking past fails (or its flow does)."""
+    if len(xy) == 0:
+        return np.zeros(0, bool)
+    points_w = transform_points(pose, backproject(xy, z, K))
+    expected = project(transform_points(invert_pose(reference_pose), points_w), K)
+    inside = np.isfinite(expected).all(axis=1)
+    found, ok = flow_points(gray, reference, xy, np.where(inside[:, None], expected, xy), conf)
+    return inside & ok & (np.linalg.norm(found - expected, axis=1) <= conf.ransac_reprojection_px)
+
+
+def on_flat_depth(depth: np.ndarray, xy: np.ndarray, radius: int, ratio: float) -> np.ndarray:
+    """(N,) True where the depth in the (2 radius + 1)-pixel square around ``xy`` is all valid and spreads by less
+    than ``ratio`` of its value: corners love occlusion edges, where a pixel has no single depth."""
+    if len(xy) == 0:
+        return np.zeros(0, bool)
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    filled = np.where(depth > 0, depth, np.inf).astype(np.float32)  # a missing reading spoils its square
+    nearest = cv2.erode(filled, kernel, borderType=cv2.BORDER_REPLICATE)
+    farthest = cv2.dilate(filled, kernel, borderType=cv2.BORDER_REPLICATE)
+    x, y = np.round(xy).astype(int).T
+    near, far = nearest[y, x], farthest[y, x]
+    return np.isfinite(far) & (far - near < ratio * near)
+
+
 class FrameTracker:
     """Camera-rate tracking: landmarks followed by optical flow, pose by PnP; keyframes come from outside."""
 
@@ -101,6 +151,8 @@ class FrameTracker:
         self.frames_since_keyframe = 0
         # (grayscale image, observations xy, landmark ids) of the latest keyframes, to find lost landmarks again
         self._recent_keyframes: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.latest_keyframe: tuple[np.ndarray, int] | None = None
+        """(grayscale image, keyframe id) of the latest keyframe, to check new corners against"""
 
     @property
     def landmarks(self) -> np.ndarray:
@@ -229,6 +281,7 @@ class FrameTracker:
         if not self.initialised:  # no map yet, or the camera looks for itself in a given map (again): no tracks
             self.track_xy, self.track_landmark = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
             self._recent_keyframes = []
+            self.latest_keyframe = None
             return
         keep = self.usable[self.track_landmark]
         self.track_xy, self.track_landmark = self.track_xy[keep], self.track_landmark[keep]
@@ -248,6 +301,7 @@ class FrameTracker:
             xy, ok = flow_points(update.gray, self.previous, xy, guess, self.conf)
             xy, landmark = xy[ok], landmark[ok]
         if update.keyframe_id >= 0 and update.gray is not None:
+            self.latest_keyframe = (update.gray, update.keyframe_id)
             observed = self.usable[update.seeds_landmark]
             self._recent_keyframes = [*self._recent_keyframes, (update.gray, update.seeds_xy[observed].astype(
                 np.float32), update.seeds_landmark[observed])][-self.conf.flow_reacquire_keyframes:]

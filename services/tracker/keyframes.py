@@ -3,7 +3,10 @@
 Every frame is tracked by optical flow against the map (:class:`~.flow.FrameTracker`). 2HR detection, the
 dynamic mask of the keyframe, descriptor matching, keyframe insertion, local bundle adjustment and
 relocalisation run only on keyframes, in a mapping worker thread (:class:`Mapper`); dynamic masks for the
-frames between come from a second worker on every n-th frame. The per-frame path never waits for either
+frames between come from a second worker on every n-th frame. With ``pipeline.keyframes=tracked`` (or ``auto`` on a
+slow detector) a keyframe is made from the tracks and new corners instead, and a third worker runs the 2HR
+detector on the latest such keyframe for the mapping worker to join to the map (:meth:`Mapper.describe`).
+The per-frame path never waits for either
 (except for the very first map, while the camera is not yet found in a map it was given, and in a replay whose
 keyframe job is too many frames late).
 
@@ -23,14 +26,15 @@ import numpy as np
 
 from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics, Frame
-from twohr.features import drop_masked
+from twohr.features import Keypoints, drop_masked
 from twohr.messages import MessageError
 from twohr.trajectory import Trajectory
 from twohr.workers import Worker
 
 from .core import Tracker
-from .flow import FrameTracker, MapUpdate
+from .flow import FrameTracker, MapUpdate, new_corners, on_flat_depth, static_in_reference
 from .map import Map, MapSnapshot
+from .optim import sample_depth
 from .stages import FrameStats, KeyframeLog, Stages
 from .trajectory import AnchoredTrajectory, TrackResult
 
@@ -39,23 +43,77 @@ log = logging.getLogger("twohr.keyframes")
 
 @dataclass
 class KeyframeJob:
-    """A frame handed to the mapping worker, with the pose optical flow gave it."""
+    """A frame handed to the mapping worker, with the pose optical flow gave it. With ``tracks`` (the frame's
+    inlier tracks: image positions and landmark ids) it becomes a tracked keyframe, without a network; without,
+    the 2HR detector runs on it first (the first map, a lost camera, relocalisation)."""
 
     frame: Frame
     pose: np.ndarray
+    tracks: tuple[np.ndarray, np.ndarray] | None = None
+    mask: np.ndarray | None = None
+    """the dynamic mask the per-frame path used for this frame (None: none fresh enough)"""
+    reference: tuple[np.ndarray, int] | None = None
+    """(grayscale image, keyframe id) of the latest keyframe: new corners must be static against it"""
+
+
+@dataclass
+class Detected:
+    """2HR keypoints of an earlier tracked keyframe, detected off the mapping path, for the map to join."""
+
+    keyframe_id: int
+    frame: Frame
+    keypoints: Keypoints
+    ms_detector: float
+    kept: int
 
 
 class Mapper:
-    """Keyframe work, off the per-frame path: YOLO and 2HR detection on the keyframe, masking, and the keyframe
-    job (:class:`~.core.Tracker`: matching to the local map, keyframe insertion, local bundle adjustment and
-    relocalisation) over the :class:`~.map.Map`."""
+    """Keyframe work, off the per-frame path, over the :class:`~.map.Map` (:class:`~.core.Tracker`):
+    tracked keyframes (tracks and new corners, local bundle adjustment), 2HR keyframe jobs (YOLO and 2HR detection,
+    matching to the local map, keyframe insertion, local bundle adjustment and relocalisation), and the 2HR
+    keypoints of earlier tracked keyframes joined to the map (:meth:`describe`)."""
 
     def __init__(self, config: PipelineConfig, world: Map, stages: Stages) -> None:
         self.stages = stages
         self.map = world
+        self.conf = config.tracker
         self.tracker = Tracker(world.camera, config.tracker, world=world)
 
-    def __call__(self, job: KeyframeJob) -> MapUpdate:
+    def __call__(self, job: KeyframeJob | Detected) -> MapUpdate:
+        if isinstance(job, Detected):
+            return self.describe(job)
+        if job.tracks is not None and self.tracker.localised:
+            return self._tracked_keyframe(job)
+        return self._detected_keyframe(job)
+
+    def _tracked_keyframe(self, job: KeyframeJob) -> MapUpdate:
+        frame = job.frame
+        t0 = time.perf_counter()
+        mask = job.mask
+        if mask is None and self.stages.dynamic_mask is not None:
+            mask, _ = self.stages.dynamic_mask(frame)
+        t1 = time.perf_counter()
+        tracks_xy, tracks_landmark = job.tracks
+        corners = new_corners(frame.gray, self.conf.keyframe_corners, self.conf.corner_min_distance_px, mask,
+                              tracks_xy)
+        corners = corners[on_flat_depth(frame.depth, corners, self.conf.corner_depth_radius_px,
+                                        self.conf.depth_edge_ratio)]
+        if job.reference is not None and len(corners):
+            reference, keyframe_id = job.reference
+            z = sample_depth(frame.depth, corners, self.conf.min_depth, self.conf.max_depth,
+                             self.conf.depth_edge_ratio)
+            corners, z = corners[z > 0], z[z > 0]
+            corners = corners[static_in_reference(frame.gray, job.pose, corners, z, reference,
+                                                  self.map.keyframe_poses[keyframe_id], self.map.K, self.conf)]
+        result = self.tracker.add_tracked_keyframe(frame.stamp, job.pose, tracks_xy, tracks_landmark, corners,
+                                                   frame.depth)
+        keyframe_id = self.map.keyframes[-1].id if result.is_keyframe else -1
+        timings = {"detector": 0.0, "yolo": (t1 - t0) * 1000, "mapping": (time.perf_counter() - t1) * 1000,
+                   "keypoints": len(corners), "kept": len(corners)}
+        return MapUpdate(frame.index, frame.stamp, result, keyframe_id, result.observed_xy, result.observed_landmarks,
+                         self.map.snapshot(), frame.gray, timings, kind="tracked", mask=mask)
+
+    def _detected_keyframe(self, job: KeyframeJob) -> MapUpdate:
         frame = job.frame
         t0 = time.perf_counter()
         keypoints = self.stages.detect(frame)
@@ -83,6 +141,29 @@ class Mapper:
         return MapUpdate(frame.index, frame.stamp, result, keyframe_id, seeds_xy, seeds_landmark, snapshot,
                          frame.gray, timings)
 
+    def detect(self, keyframe_id: int, frame: Frame, mask: np.ndarray | None) -> Detected:
+        """The 2HR keypoints of tracked keyframe ``keyframe_id`` (outside its dynamic mask); reads no map, so it
+        runs on its own worker while the mapping worker goes on."""
+        t0 = time.perf_counter()
+        keypoints = self.stages.detect(frame)
+        kept = keypoints if mask is None else drop_masked(keypoints, mask)
+        return Detected(keyframe_id, frame, kept, (time.perf_counter() - t0) * 1000, len(keypoints))
+
+    def describe(self, detected: Detected) -> MapUpdate:
+        """Join a tracked keyframe's 2HR keypoints to the map (:meth:`~.core.Tracker.describe_keyframe`); the
+        landmarks they add come back as seeds for the per-frame path."""
+        frame = detected.frame
+        t0 = time.perf_counter()
+        xy, landmark = self.tracker.describe_keyframe(detected.keyframe_id, detected.keypoints, frame.depth,
+                                                      match=lambda a, b: self.stages.match(frame, a, b))
+        result = TrackResult(frame.stamp, self.map.keyframe_poses[detected.keyframe_id], "described",
+                             num_keypoints=detected.kept, num_matches=len(detected.keypoints),
+                             reason=f"2HR keypoints of keyframe {detected.keyframe_id} joined to the map")
+        timings = {"detector": detected.ms_detector, "yolo": 0.0, "mapping": (time.perf_counter() - t0) * 1000,
+                   "keypoints": detected.kept, "kept": len(detected.keypoints)}
+        return MapUpdate(frame.index, frame.stamp, result, -1, xy, landmark, self.map.snapshot(), frame.gray,
+                         timings, kind="describe")
+
 
 class KeyframePipeline:
     """The camera-rate schedule (see the module docstring). ``process(frame)`` returns the pose and stats."""
@@ -103,6 +184,14 @@ class KeyframePipeline:
         self.masking = None
         if stages.dynamic_mask is not None:
             self.masking = Worker(self._dynamic_mask, "yolo", runtime.synchronous)
+        self._detector_ms: list[float] = []  # the latest 2HR detections' latencies, for keyframes=auto
+        # 2HR detection of tracked keyframes, on its own worker: the latest keyframe waiting for it, and the
+        # detection waiting for the mapping worker to join it to the map
+        self.detecting = Worker(lambda job: self.mapper.detect(*job), "detector", runtime.synchronous)
+        self._to_detect: tuple[int, Frame, np.ndarray | None] | None = None
+        self._detected: Detected | None = None
+        self._job_frame: Frame | None = None
+        self._detect_number = 0  # of the frame when the latest detection started
         self.keyframe_log: list[KeyframeLog] = []
         self.worker_errors = 0
         self.mask: np.ndarray | None = None
@@ -136,6 +225,10 @@ class KeyframePipeline:
     def _take(self, update: MapUpdate | None) -> None:
         if update is None:
             return
+        if update.timings and update.timings["detector"] > 0:
+            self._detector_ms = [*self._detector_ms, update.timings["detector"]][-5:]
+        if update.kind == "tracked" and update.keyframe_id >= 0 and self._job_frame is not None:
+            self._to_detect = (update.keyframe_id, self._job_frame, update.mask)  # the latest one wins
         self.frames.apply(update)
         if update.keyframe_id >= 0:
             self._anchor = update.keyframe_id
@@ -144,7 +237,29 @@ class KeyframePipeline:
         t = update.timings
         self.keyframe_log.append(KeyframeLog(update.frame_index, update.result.status, update.keyframe_id >= 0,
                                              int(t["keypoints"]), int(t["kept"]), t["detector"], t["yolo"],
-                                             t["mapping"], self._number - self._job_number))
+                                             t["mapping"], self._number - self._job_number, update.kind))
+
+    @property
+    def tracked_keyframes(self) -> bool:
+        """Whether keyframes are made from the tracks now (``pipeline.keyframes``; ``auto``: while the detector's
+        median latency over the latest detections exceeds ``keyframe_budget_ms``)."""
+        mode = self.config.pipeline.keyframes
+        if mode != "auto":
+            return mode == "tracked"
+        return bool(self._detector_ms) and float(np.median(self._detector_ms)) > self.config.pipeline.keyframe_budget_ms
+
+    def _detect_keyframes(self) -> None:
+        """Collect the detector worker's keypoints (for the mapping worker) and start it on the latest tracked
+        keyframe waiting for it."""
+        done = self._collect(self.detecting)
+        if done is None and not self.live and self.detecting.busy and (
+                self._number - self._detect_number > self.config.pipeline.max_detection_lag):
+            done = self._collect(self.detecting, wait=True)
+        if done is not None:
+            self._detected = done
+        if self._to_detect is not None and not self.detecting.busy and self.detecting.submit(self._to_detect):
+            self._to_detect = None
+            self._detect_number = self._number
 
     def _mask(self, frame: Frame) -> tuple[np.ndarray | None, int, int]:
         """The freshest dynamic mask for this frame, if it is recent enough: (mask, age, objects)."""
@@ -189,7 +304,11 @@ class KeyframePipeline:
             self.record.add(frame.stamp, result.pose, result.tracked, self._anchor, self.frames.keyframe_poses)
         ms_detector = 0.0
         wants = self.frames.wants_keyframe(result)
-        job = KeyframeJob(frame, result.pose)
+        tracks = None
+        if result.status == "tracking" and self.tracked_keyframes:
+            tracks = (self.frames.track_xy.copy(), self.frames.track_landmark.copy())
+        # new corners need the frame's own dynamic mask: people move in the frames an older one lags
+        job = KeyframeJob(frame, result.pose, tracks, mask if mask_age == 0 else None, self.frames.latest_keyframe)
         if not self.frames.initialised:
             # no map yet: this frame waits for its keyframe, there is nothing to track against
             t_wait = time.perf_counter()
@@ -205,8 +324,15 @@ class KeyframePipeline:
             ms_detector = (time.perf_counter() - t_wait) * 1000
             wants = False
         ms_detector += ms_waited
-        if wants and not self.mapping.busy and self.mapping.submit(job):
-            self._job_number = self._number
+        self._detect_keyframes()
+        if not self.mapping.busy:
+            if self._detected is not None and result.tracked:  # an earlier keyframe's keypoints join the map first
+                if self.mapping.submit(self._detected):
+                    self._detected = None
+                    self._job_number = self._number
+            elif wants and self.mapping.submit(job):
+                self._job_number = self._number
+                self._job_frame = frame
         if result.observed_xy is None:
             result.observed_xy = self.frames.track_xy  # the map points optical flow followed into this frame
         ms_total = (time.perf_counter() - t0) * 1000
@@ -226,8 +352,14 @@ class KeyframePipeline:
         return None if snapshot.version == since else snapshot
 
     def finish(self) -> None:
-        """Let the mapping worker finish its job (its bundle adjustment refines the trajectory), then stop."""
+        """Let the workers finish their jobs (the mapping worker's bundle adjustment refines the trajectory; a
+        detection still running joins the map), then stop."""
         self._take(self._collect(self.mapping, wait=True))
+        done = self._collect(self.detecting, wait=True)
+        for detected in (self._detected, done):
+            if detected is not None and self.mapping.submit(detected):
+                self._take(self._collect(self.mapping, wait=True))
+        self._detected = None
         self.close()
 
     def refine(self) -> None:
@@ -237,6 +369,7 @@ class KeyframePipeline:
     def close(self) -> None:
         """Stop the worker threads (after their running jobs)."""
         self.mapping.close()
+        self.detecting.close()
         if self.masking is not None:
             self.masking.close()
 

@@ -36,11 +36,15 @@ class Keyframe:
 
 
 class Landmarks:
-    """3-D landmarks in growable arrays: world positions, one descriptor each, and vote counts."""
+    """3-D landmarks in growable arrays: world positions, one descriptor each, and vote counts.
+
+    A landmark seeded from a corner on a tracked keyframe has no descriptor until a 2HR detection of a keyframe
+    that observes it gives it one (``described``); until then only optical flow and bundle adjustment use it."""
 
     def __init__(self) -> None:
         self.positions = np.zeros((0, 3))
         self.descriptors: np.ndarray | None = None
+        self.described = np.zeros(0, bool)
         self.accepted = np.zeros(0, np.int64)
         self.rejected = np.zeros(0, np.int64)
         self.bad = np.zeros(0, bool)
@@ -52,16 +56,28 @@ class Landmarks:
     def num_good(self) -> int:
         return int((~self.bad).sum())
 
-    def add(self, positions: np.ndarray, descriptors: np.ndarray) -> np.ndarray:
-        """Append landmarks; returns their ids."""
+    def add(self, positions: np.ndarray, descriptors: np.ndarray | None = None) -> np.ndarray:
+        """Append landmarks (``descriptors`` None: not described yet, needs landmarks with descriptors before it);
+        returns their ids."""
         start = len(self)
+        described = descriptors is not None
+        if descriptors is None:
+            if self.descriptors is None:
+                raise ValueError("the first landmarks of a map need descriptors")
+            descriptors = np.zeros((len(positions), self.descriptors.shape[1]), self.descriptors.dtype)
         self.positions = np.concatenate([self.positions, positions])
         self.descriptors = descriptors.copy() if self.descriptors is None else np.concatenate(
             [self.descriptors, descriptors])
+        self.described = np.concatenate([self.described, np.full(len(positions), described)])
         self.accepted = np.concatenate([self.accepted, np.zeros(len(positions), np.int64)])
         self.rejected = np.concatenate([self.rejected, np.zeros(len(positions), np.int64)])
         self.bad = np.concatenate([self.bad, np.zeros(len(positions), bool)])
         return np.arange(start, len(self))
+
+    def describe(self, ids: np.ndarray, descriptors: np.ndarray) -> None:
+        """Give landmarks ``ids`` their descriptors (from a 2HR keypoint observing them)."""
+        self.descriptors[ids] = descriptors
+        self.described[ids] = True
 
     def vote(self, accepted: np.ndarray, rejected: np.ndarray, max_outlier_ratio: float) -> None:
         """Count matches that agreed / disagreed with the tracked pose; retire landmarks that mostly disagree
@@ -156,6 +172,7 @@ class Map:
         landmarks = world.landmarks
         landmarks.positions = arrays.landmark_positions.astype(np.float64)
         landmarks.descriptors = arrays.landmark_descriptors
+        landmarks.described = np.any(arrays.landmark_descriptors != 0, axis=1)  # stored as zeros
         landmarks.accepted = arrays.landmark_accepted.astype(np.int64)
         landmarks.rejected = arrays.landmark_rejected.astype(np.int64)
         landmarks.bad = arrays.landmark_bad.astype(bool)
@@ -207,11 +224,15 @@ class Map:
             culled.append(i)
         return culled
 
-    def usable_landmarks(self, keyframe_indices: np.ndarray) -> np.ndarray:
-        """Sorted ids of the landmarks that keyframes ``keyframe_indices`` observe, retired ones left out."""
+    def usable_landmarks(self, keyframe_indices: np.ndarray, described: bool = False) -> np.ndarray:
+        """Sorted ids of the landmarks that keyframes ``keyframe_indices`` observe, retired ones left out (and those
+        without a descriptor, with ``described``: what descriptor matching can use)."""
         ids = np.unique(np.concatenate([self.keyframes[i].landmark_ids for i in keyframe_indices]))
         ids = ids[ids >= 0]
-        return ids[~self.landmarks.bad[ids]]
+        keep = ~self.landmarks.bad[ids]
+        if described:
+            keep &= self.landmarks.described[ids]
+        return ids[keep]
 
     # ------------------------------------------------------------------ bundle adjustment
 

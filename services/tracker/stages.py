@@ -64,3 +64,6 @@ class KeyframeLog:
     ms_yolo: float
     ms_mapping: float
     lag_frames: int = 0
+    kind: str = "2hr"
+    """``2hr``: detection and matching on the keyframe; ``tracked``: a keyframe from the optical-flow tracks and new
+    corners, no network; ``describe``: 2HR detection of an earlier tracked keyframe joined to the map"""
