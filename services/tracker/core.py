@@ -255,9 +255,8 @@ class Tracker:
         match = match or self.match
         conf, landmarks = self.conf, self.map.landmarks
         keyframe = self.map.keyframes[keyframe_id]
-        none = np.zeros((0, 2)), np.zeros(0, np.int64)
         if keyframe.culled or len(keypoints) == 0:
-            return none
+            return np.zeros((0, 2)), np.zeros(0, np.int64)
         self._check_inputs(keypoints, depth)
         pose = self.map.keyframe_poses[keyframe_id]
         xy = np.asarray(keypoints.xy, np.float64)
@@ -284,13 +283,16 @@ class Tracker:
                 lm = estimate.keypoint_landmarks[kp]
                 new = ~np.isin(lm, keyframe.landmark_ids)
                 kp, lm = kp[new], lm[new]
-                new_xy.append(xy[kp]), new_z.append(z[kp]), new_ids.append(lm)
+                new_xy.append(xy[kp])
+                new_z.append(z[kp])
+                new_ids.append(lm)
                 free[kp] = False
                 free &= ~estimate.suspect
         fresh = free & (z > 0)
         if fresh.any():
             points_w = transform_points(pose, backproject(xy[fresh], z[fresh], self.K))
-            new_xy.append(xy[fresh]), new_z.append(z[fresh])
+            new_xy.append(xy[fresh])
+            new_z.append(z[fresh])
             new_ids.append(landmarks.add(points_w, keypoints.descriptors[fresh]))
         if new_ids:
             keyframe.xy = np.concatenate([keyframe.xy, *new_xy])
