@@ -224,24 +224,19 @@ class Tracker:
             return TrackResult(stamp, pose, "tracking", reason=f"{num_tracked} tracks in a place older keyframes "
                                "cover: no keyframe", observed_xy=tracked_xy, observed_landmarks=tracked_landmarks,
                                **counts)
-        landmark_ids = np.concatenate([tracked_landmarks, np.full(len(corners_xy), -1, np.int64)])
-        new = (landmark_ids < 0) & (z > 0)
-        if new.any():
-            landmark_ids[new] = self.map.landmarks.add(transform_points(pose, backproject(xy[new], z[new], self.K)))
-        keep = landmark_ids >= 0
-        keyframe = self.map.add_keyframe(stamp, pose, xy[keep], z[keep], landmark_ids[keep])
-        self._inliers_at_keyframe = int(keep.sum())
+        # the keyframe keeps its tracks, and the corners with depth, which become landmarks without descriptors
+        keep = np.arange(len(xy)) < num_tracked
+        keep |= z > 0
+        landmark_ids = np.concatenate([tracked_landmarks, np.full(len(corners_xy), -1, np.int64)])[keep]
+        no_suspects = np.zeros(len(landmark_ids), bool)
+        keyframe = self._insert_keyframe(stamp, pose, None, xy[keep], z[keep], landmark_ids, no_suspects)
+        self._inliers_at_keyframe = len(landmark_ids)
         timings = {"keyframe": _ms(start)}
-        if conf.bundle_adjustment:
-            t0 = time.perf_counter()
-            self.map.local_bundle_adjustment()
-            timings["bundle_adjustment"] = _ms(t0)
-            pose = self.map.keyframe_poses[keyframe.id].copy()
-            self.motion.good_pose = pose
-        self.map.cull_redundant(self.map.local_keyframes(pose, conf.local_map_keyframes))
+        pose = self._adjust_after_keyframe(keyframe.id, pose, timings)
         observed = keyframe.landmark_ids >= 0
+        num_new = len(landmark_ids) - num_tracked
         return TrackResult(stamp, pose, "tracking", is_keyframe=True, timings=timings,
-                           reason=f"tracked keyframe: {num_tracked} tracks, {int(new.sum())} new corner landmarks",
+                           reason=f"tracked keyframe: {num_tracked} tracks, {num_new} new corner landmarks",
                            observed_xy=keyframe.xy[observed], observed_landmarks=keyframe.landmark_ids[observed],
                            num_landmarks=self.map.landmarks.num_good, **counts)
 
@@ -364,13 +359,7 @@ class Tracker:
                                              estimate.suspect)
             self._inliers_at_keyframe = max(estimate.num_inliers, int((keyframe.landmark_ids >= 0).sum()))
             timings["keyframe"] = _ms(t0)
-            if conf.bundle_adjustment:
-                t0 = time.perf_counter()
-                self.map.local_bundle_adjustment()
-                timings["bundle_adjustment"] = _ms(t0)
-                pose = self.map.keyframe_poses[keyframe.id].copy()
-                self.motion.good_pose = pose
-            self.map.cull_redundant(self.map.local_keyframes(pose, conf.local_map_keyframes))
+            pose = self._adjust_after_keyframe(keyframe.id, pose, timings)
         reason = estimate.reason if num_depth else f"{estimate.reason} (no depth: tracked from 2-D matches only)"
         observed = self.keyframes[-1].landmark_ids if is_keyframe else estimate.keypoint_landmarks
         return TrackResult(stamp, pose, status, num_matches=estimate.num_matches, num_inliers=estimate.num_inliers,
@@ -550,18 +539,33 @@ class Tracker:
         return near_any_keyframe(pose, world.keyframe_poses[older], conf.keyframe_max_translation,
                                  conf.keyframe_max_rotation_deg)
 
-    def _insert_keyframe(self, stamp: float, pose: np.ndarray, keypoints: Keypoints, xy: np.ndarray, z: np.ndarray,
-                         keypoint_landmarks: np.ndarray, suspect: np.ndarray):
-        """Keep this frame; its unmatched, unsuspected keypoints with depth become new landmarks."""
+    def _insert_keyframe(self, stamp: float, pose: np.ndarray, keypoints: Keypoints | None, xy: np.ndarray,
+                         z: np.ndarray, keypoint_landmarks: np.ndarray, suspect: np.ndarray):
+        """Keep this frame; its unmatched, unsuspected keypoints with depth become new landmarks (described by
+        ``keypoints``; None: corners of a tracked keyframe, not described yet)."""
         landmark_ids = keypoint_landmarks.copy()
         new = (landmark_ids < 0) & (z > 0) & ~suspect
         if new.any():
             points_w = transform_points(pose, backproject(xy[new], z[new], self.K))
-            landmark_ids[new] = self.map.landmarks.add(points_w, keypoints.descriptors[new])
+            landmark_ids[new] = self.map.landmarks.add(points_w, None if keypoints is None else
+                                                       keypoints.descriptors[new])
         keyframe = self.map.add_keyframe(stamp, pose, xy, z, landmark_ids)
         if self._inliers_at_keyframe == 0:
             self._inliers_at_keyframe = int(new.sum())
         return keyframe
+
+    def _adjust_after_keyframe(self, keyframe_id: int, pose: np.ndarray, timings: dict[str, float]) -> np.ndarray:
+        """Local bundle adjustment after a new keyframe, then culling of redundant local keyframes; returns the
+        keyframe's pose as adjusted."""
+        conf = self.conf
+        if conf.bundle_adjustment:
+            t0 = time.perf_counter()
+            self.map.local_bundle_adjustment()
+            timings["bundle_adjustment"] = _ms(t0)
+            pose = self.map.keyframe_poses[keyframe_id].copy()
+            self.motion.good_pose = pose
+        self.map.cull_redundant(self.map.local_keyframes(pose, conf.local_map_keyframes))
+        return pose
 
     # ------------------------------------------------------------------ input checks
 
