@@ -40,6 +40,11 @@ def _bench(args: argparse.Namespace) -> int:
     elif args.bus:
         import numpy as np
 
+        from twohr.errors import ConfigError
+
+        if args.robots < 1 or (args.robots > 1 and args.gateway):
+            raise ConfigError("--robots takes a count of 1 or more, and more than 1 only without --gateway")
+
         from twohr.config import merge_overrides
         from twohr_services.pipeline import run_sequence
 
@@ -55,7 +60,8 @@ def _bench(args: argparse.Namespace) -> int:
                 bus, args.gateway, sequence.root.name, frames, args.rate, config_overrides=overrides,
                 api_token=args.api_token)) for _ in range(args.runs)]
         else:
-            bus_runs = [bench.bus_latency(sequence.root, overrides, frames, args.rate) for _ in range(args.runs)]
+            bus_runs = [bench.bus_latency(sequence.root, overrides, frames, args.rate, robots=args.robots)
+                        for _ in range(args.runs)]
         report["bus"] = {
             "in_process": {"fps_median": round(float(np.median([len(r.stats) / r.wall_s for r in local])), 3),
                            "latency_ms": {"p50": round(float(np.percentile(lat, 50)), 1),
@@ -144,6 +150,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--camera-runs", type=int, default=1, help="with --live or --soak: feed each session that many "
                    "separate twohr camera runs of its frames (each a new client whose stamps start again, as a camera "
                    "driver restarted), e.g. --live --frames 560 --camera-runs 6 --busy 0")
+    p.add_argument("--robots", type=int, default=1, help="with --bus: that many robots replay the sequence at once "
+                   "through one stack (one detector service for all); per-robot figures and how many kept camera rate")
     p.add_argument("--rate", type=float, default=1.0,
                    help="with --bus: source speed, 1 = the camera's real rate (30 Hz for the dev sequence), "
                    "0 = as fast as the pipeline answers (at most two frames in flight)")

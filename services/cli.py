@@ -38,6 +38,13 @@ COMMAND_GROUP = "twohr.commands"
 def _models(args: argparse.Namespace) -> int:
     from twohr import models
 
+    if args.action == "backends":
+        available = models.available_backends()
+        for backend in models.BACKENDS[1:]:
+            state = "available" if backend in available else f"not here: needs {models.WHAT_IT_NEEDS[backend]}"
+            print(f"{backend:13} {state}")
+        print(f"auto = {available[0] if available else 'none'}")
+        return 0
     if args.action == "list":
         print(f"{'name':24} {'kind':10} {'file':26} {'status':10} licence")
         for name, spec in models.registry().items():
@@ -162,6 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "official URL, into $TWOHR_CACHE/models, and are checked by sha256.")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
     actions.add_parser("list", help="every registered model, its licence and whether it is cached")
+    actions.add_parser("backends", help="the inference backends (CPU and GPU) this machine can run, and auto's pick")
     for action, text in (("fetch", "copy or download models into the cache and check them"),
                          ("verify", "check the sha256 of cached (or mirrored) models")):
         q = actions.add_parser(action, help=text, description=text)

@@ -23,6 +23,7 @@ from twohr.workers import prefetch
 
 from .detector.core import build_detector
 from .matcher.core import build_matcher
+from .tracker.loops import LoopLog
 from .tracker.map import Map
 from .tracker.schedule import Schedule, build_schedule
 from .tracker.stages import FrameStats, KeyframeLog, Stages
@@ -113,6 +114,8 @@ class RunResult:
     """seconds of the final bundle adjustment, after the frames (not in ``wall_s``)"""
     map: Map | None = None
     """the schedule's map after the run (the one given, grown, or a new one)"""
+    loops: LoopLog | None = None
+    """loop closing's counts and closed loops (None: loop closing was off)"""
 
     @property
     def tracked_percent(self) -> float:
@@ -158,4 +161,4 @@ def run_sequence(sequence, config: PipelineConfig, start: int = 0, stop: int | N
     online = online_trajectory(results)
     refined = schedule.trajectory() if results else online
     return RunResult(refined, online, stats, list(sequence.skipped), wall, schedule.keyframe_log, refine_s,
-                     schedule.map)
+                     schedule.map, schedule.loop_log if config.loop_closing.vocabulary else None)

@@ -66,6 +66,11 @@ def write_run(out: Path, sequence, config, result) -> dict:
                         for kind in sorted({job.kind for job in log})
                         for jobs in [[job for job in log if job.kind == kind]]},
         }
+    if result.loops is not None:
+        summary["loops"] = result.loops.as_dict()
+        if sequence.has_ground_truth():
+            summary["loops"].update(loops_against_ground_truth(
+                summary["loops"]["loops"], sequence.ground_truth(sequence.default_gt_extrinsic())))
     title = f"twohr on {sequence.name}"
     evaluation = None
     if sequence.has_ground_truth() and len(result.trajectory) >= 3:
@@ -246,3 +251,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sequence", default=DEV_SEQUENCE, help="TUM-layout RGB-D folder")
     p.add_argument("--out", default="runs/demo", help="output folder")
     p.set_defaults(func=_demo)
+
+
+#: A closed loop whose two keyframes' ground-truth poses are further apart than this is a false accept (issue 27).
+FALSE_LOOP_M, FALSE_LOOP_DEG = 0.3, 15.0
+
+
+def loops_against_ground_truth(loops: list[dict], ground_truth) -> dict:
+    """Each closed loop's two keyframes compared on the ground truth (``gt_distance_m``, ``gt_angle_deg`` added
+    to its entry), and how many are false accepts (further apart than 0.3 m or 15 degrees)."""
+    import numpy as np
+
+    from twohr.trajectory import interpolate_poses
+
+    from .tracker.optim import pose_difference
+
+    false_accepts = 0
+    for loop in loops:
+        poses, valid = interpolate_poses(ground_truth, np.array([loop["stamp"], loop["candidate_stamp"]]))
+        if not valid.all():
+            continue
+        metres, degrees = pose_difference(poses[0], poses[1])
+        loop.update(gt_distance_m=round(metres, 3), gt_angle_deg=round(degrees, 2))
+        false_accepts += metres > FALSE_LOOP_M or degrees > FALSE_LOOP_DEG
+    return {"false_accepts": false_accepts}

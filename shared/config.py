@@ -30,10 +30,13 @@ class DetectorConfig(Section):
     model: str = Field("faster2d2_WASF_N16", description="registered r2d2-kind model")
     input_scale: float = Field(0.75, gt=0, le=2, description="network input size relative to the image (even sizes); "
                                "0.75 = 480x360 for a VGA camera: keyframes cost 0.6x, at no measured loss of accuracy")
-    backend: Literal["auto", "openvino", "onnxruntime"] = Field(
-        "auto", description="inference backend; auto = OpenVINO where installed, else onnxruntime")
+    backend: Literal["auto", "tensorrt", "cuda", "openvino-gpu", "openvino", "onnxruntime"] = Field(
+        "auto", description="inference backend; auto = the first this machine has of tensorrt, cuda (onnxruntime-gpu "
+        "on an NVIDIA GPU), openvino-gpu (an Intel GPU), openvino, onnxruntime (CPU); `twohr models backends` "
+        "lists them")
     precision: Literal["auto", "bf16", "f32"] = Field(
-        "auto", description="OpenVINO precision; auto = bf16 on CPUs with native bf16 (AMX), else f32")
+        "auto", description="OpenVINO precision; auto = bf16 on CPUs with native bf16 (AMX), else f32; f16 on a GPU "
+        "unless f32")
     threads: int = Field(1, ge=1, le=64, description="inference threads (1: the other core tracks frames)")
     subpixel: bool = Field(True, description="refine each keypoint below a pixel by a parabola through the "
                            "repeatability peak and its neighbours (else keypoints sit on the network's pixel grid, "
@@ -54,10 +57,13 @@ class YoloConfig(Section):
 
     enabled: bool = True
     model: str = Field("yolov8n_320", description="registered yolov8- or yolov5-kind model (input size from the ONNX)")
-    backend: Literal["auto", "openvino", "onnxruntime"] = Field(
-        "auto", description="inference backend; auto = OpenVINO where installed, else onnxruntime")
+    backend: Literal["auto", "tensorrt", "cuda", "openvino-gpu", "openvino", "onnxruntime"] = Field(
+        "auto", description="inference backend; auto = the first this machine has of tensorrt, cuda (onnxruntime-gpu "
+        "on an NVIDIA GPU), openvino-gpu (an Intel GPU), openvino, onnxruntime (CPU); `twohr models backends` "
+        "lists them")
     precision: Literal["auto", "bf16", "f32"] = Field(
-        "auto", description="OpenVINO precision; auto = bf16 on CPUs with native bf16 (AMX), else f32")
+        "auto", description="OpenVINO precision; auto = bf16 on CPUs with native bf16 (AMX), else f32; f16 on a GPU "
+        "unless f32")
     threads: int = Field(1, ge=1, le=64, description="inference threads")
     conf_threshold: float = Field(0.25, ge=0, le=1, description="keep detections scoring at least this")
     iou_threshold: float = Field(0.45, ge=0, le=1, description="class-aware NMS overlap")
@@ -249,6 +255,35 @@ class RuntimeConfig(Section):
     prefetch: int = Field(4, ge=1, le=64, description="frames read and decoded ahead on a background thread")
 
 
+class LoopClosingConfig(Section):
+    """Loop closing (the tracker's ``loops`` worker): place recognition with a trained vocabulary
+    (``twohr vocab train``), verification by RANSAC PnP, then a pose graph, landmark fusion and bundle adjustment."""
+
+    vocabulary: str | None = Field(None, description="name of an installed vocabulary (twohr vocab list); None = "
+                                   "no loop closing", pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+    min_separation: int = Field(15, ge=1, description="a loop joins keyframes at least this many keyframes apart")
+    candidates: int = Field(3, ge=1, description="place-recognition candidates verified per keyframe")
+    candidate_neighbours: int = Field(2, ge=0, description="a candidate's landmarks include those of this many "
+                                      "keyframes either side of it on the path")
+    min_score: float = Field(0.05, ge=0, le=1, description="least bag-of-words cosine of a candidate")
+    min_score_ratio: float = Field(0.75, ge=0, description="a candidate scores at least this share of the "
+                                   "keyframe's best score against its 3 predecessors")
+    max_shared_landmarks: float = Field(0.1, ge=0, le=1, description="a candidate whose part of the map already "
+                                        "holds more than this share of the keyframe's landmarks is joined already")
+    min_inliers: int = Field(60, ge=6, description="RANSAC PnP inliers a loop needs against its candidate")
+    max_view_change_m: float = Field(0.3, gt=0, description="a verified loop puts the keyframe at most this far "
+                                     "from its candidate (m): the same place, not the same landmarks seen from afar")
+    max_view_change_deg: float = Field(15.0, gt=0, description="the same, as the angle between their views (deg)")
+    chain_sigma_m: float = Field(0.01, gt=0, description="pose graph: standard deviation of a chain edge (m)")
+    chain_sigma_rad: float = Field(0.01, gt=0, description="pose graph: standard deviation of a chain edge (rad)")
+    unjoined_sigma_m: float = Field(1.0, gt=0, description="pose graph: standard deviation (m) of the step to a "
+                                    "keyframe that shares no landmark with the one before (a new start after a loss)")
+    unjoined_sigma_rad: float = Field(1.0, gt=0, description="pose graph: the same, in rad")
+    loop_sigma_m: float = Field(0.003, gt=0, description="pose graph: standard deviation of the loop edge (m)")
+    loop_sigma_rad: float = Field(0.003, gt=0, description="pose graph: standard deviation of the loop edge (rad)")
+    ba_iterations: int = Field(5, ge=0, description="bundle adjustment over the whole map after a loop; 0 = off")
+
+
 class PipelineConfig(Section):
     """The whole in-process pipeline: detector -> yolo mask -> matcher -> tracker."""
 
@@ -258,6 +293,7 @@ class PipelineConfig(Section):
     yolo: YoloConfig = Field(default_factory=YoloConfig)
     matcher: MatcherConfig = Field(default_factory=MatcherConfig)
     tracker: TrackerConfig = Field(default_factory=TrackerConfig)
+    loop_closing: LoopClosingConfig = Field(default_factory=LoopClosingConfig)
 
 
 def parse_override(item: str) -> tuple[list[str], Any]:

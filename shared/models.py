@@ -172,28 +172,88 @@ def session_options(threads: int):
     return options
 
 
-def cpu_session(model: str | bytes, threads: int):
-    """An onnxruntime CPU session for a model file path or serialised model bytes."""
+#: onnxruntime's execution providers for each backend that runs on it, preferred first.
+ORT_PROVIDERS = {
+    "onnxruntime": ["CPUExecutionProvider"],
+    "cuda": ["CUDAExecutionProvider", "CPUExecutionProvider"],
+    "tensorrt": ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"],
+}
+#: OpenVINO's device for each backend that runs on it.
+OPENVINO_DEVICES = {"openvino": "CPU", "openvino-gpu": "GPU"}
+#: Inference backends for the dense networks. ``auto`` = the first this machine has, in this order (GPUs first):
+#: ``tensorrt`` and ``cuda`` (onnxruntime's NVIDIA execution providers, from the onnxruntime-gpu package),
+#: ``openvino-gpu`` (an Intel GPU), ``openvino`` (CPU), ``onnxruntime`` (CPU).
+BACKENDS = ("auto", "tensorrt", "cuda", "openvino-gpu", "openvino", "onnxruntime")
+WHAT_IT_NEEDS = {
+    "tensorrt": "onnxruntime's TensorrtExecutionProvider (the onnxruntime-gpu package with TensorRT, an NVIDIA GPU)",
+    "cuda": "onnxruntime's CUDAExecutionProvider (the onnxruntime-gpu package, an NVIDIA GPU with CUDA)",
+    "openvino-gpu": "an OpenVINO GPU device (an Intel GPU and its compute runtime)",
+    "openvino": "the openvino package",
+    "onnxruntime": "the onnxruntime package",
+}
+
+
+def ort_session(model: str | bytes, threads: int, backend: str = "onnxruntime"):
+    """An onnxruntime session for a model file path or serialised model bytes, on ``backend``'s execution
+    providers (:data:`ORT_PROVIDERS`); raises :class:`ModelError` when a GPU backend fell back to the CPU."""
     import onnxruntime as ort
 
-    return ort.InferenceSession(model, session_options(threads), providers=["CPUExecutionProvider"])
+    providers: list = list(ORT_PROVIDERS[backend])
+    if backend == "tensorrt":  # engines are built once per model and shape, then read from the cache
+        engines = cache_dir().parent / "tensorrt"
+        engines.mkdir(parents=True, exist_ok=True)
+        providers[0] = ("TensorrtExecutionProvider", {"trt_engine_cache_enable": True,
+                                                      "trt_engine_cache_path": str(engines), "trt_fp16_enable": True})
+    session = ort.InferenceSession(model, session_options(threads), providers=providers)
+    if session.get_providers()[0] != ORT_PROVIDERS[backend][0]:
+        raise ModelError(f"backend {backend}: onnxruntime fell back to {session.get_providers()[0]}; it needs "
+                         f"{WHAT_IT_NEEDS[backend]}")
+    return session
 
 
-#: Inference backends for the dense networks; ``auto`` = OpenVINO where it is installed, else onnxruntime.
-BACKENDS = ("auto", "openvino", "onnxruntime")
+def cpu_session(model: str | bytes, threads: int):
+    """An onnxruntime CPU session for a model file path or serialised model bytes."""
+    return ort_session(model, threads, "onnxruntime")
+
+
+@cache
+def available_backends() -> tuple[str, ...]:
+    """The inference backends this machine can run, in ``auto``'s order of preference (GPUs first)."""
+    found = []
+    try:
+        import onnxruntime as ort
+
+        providers = set(ort.get_available_providers())
+    except ImportError:
+        providers = set()
+    found += [b for b in ("tensorrt", "cuda") if ORT_PROVIDERS[b][0] in providers]
+    try:
+        import openvino as ov
+
+        devices = ov.Core().available_devices
+        found += ["openvino-gpu"] if any(d.startswith("GPU") for d in devices) else []
+        found.append("openvino")
+    except ImportError:
+        pass
+    if "CPUExecutionProvider" in providers:
+        found.append("onnxruntime")
+    return tuple(found)
 
 
 def resolve_backend(backend: str) -> str:
-    """``auto`` -> ``openvino`` when the package imports, else ``onnxruntime``; others are checked."""
+    """``auto`` -> the first of :func:`available_backends`; a named backend is checked, and one this machine does
+    not have is a :class:`ModelError` that says what it needs."""
     if backend not in BACKENDS:
         raise ModelError(f"unknown inference backend {backend!r}; choose one of {', '.join(BACKENDS)}")
-    if backend != "auto":
-        return backend
-    try:
-        import openvino  # noqa: F401
-    except ImportError:
-        return "onnxruntime"
-    return "openvino"
+    available = available_backends()
+    if backend == "auto":
+        if not available:
+            raise ModelError("no inference backend: install onnxruntime or openvino")
+        return available[0]
+    if backend not in available:
+        raise ModelError(f"inference backend {backend} is not available here: it needs {WHAT_IT_NEEDS[backend]} "
+                         f"(available: {', '.join(available) or 'none'})")
+    return backend
 
 
 def cpu_has_bf16() -> bool:
@@ -208,27 +268,30 @@ def cpu_has_bf16() -> bool:
 class Network:
     """One compiled network, called with a dict of float32 inputs; returns its outputs by name.
 
-    ``backend`` is ``onnxruntime`` or ``openvino`` (see :func:`resolve_backend`). For OpenVINO,
+    ``backend`` is one of :data:`BACKENDS` (see :func:`resolve_backend`). For OpenVINO on the CPU,
     ``precision`` is the inference precision: ``bf16`` uses AMX where the CPU has it (about 3.5x
-    faster than fp32 for faster2d2 here), ``f32`` is exact, ``auto`` = bf16 where native. The model
-    is compiled once per input shape, because static shapes run faster. Not thread-safe: give each
-    thread its own, or lock.
+    faster than fp32 for faster2d2 here), ``f32`` is exact, ``auto`` = bf16 where native; on a GPU
+    (``openvino-gpu``) ``auto`` and ``bf16`` run f16. The model is compiled once per input shape, because static
+    shapes run faster. Not thread-safe: give each thread its own, or lock.
     """
 
     def __init__(self, model: str | bytes, threads: int, backend: str = "auto", precision: str = "auto") -> None:
         self.backend = resolve_backend(backend)
         self.threads = threads
-        if self.backend == "onnxruntime":
-            self._session = cpu_session(model, threads)
+        if self.backend in ORT_PROVIDERS:
+            self._session = ort_session(model, threads, self.backend)
             self.input_names = [i.name for i in self._session.get_inputs()]
             self.output_names = [o.name for o in self._session.get_outputs()]
             return
         import openvino as ov
 
-        if precision == "auto":
-            precision = "bf16" if cpu_has_bf16() else "f32"
-        if precision not in ("bf16", "f32"):
+        self.device = OPENVINO_DEVICES[self.backend]
+        if precision not in ("auto", "bf16", "f32"):
             raise ModelError(f"unknown OpenVINO precision {precision!r}; choose auto, bf16 or f32")
+        if self.device == "GPU":
+            precision = "f32" if precision == "f32" else "f16"
+        elif precision == "auto":
+            precision = "bf16" if cpu_has_bf16() else "f32"
         self.precision = precision
         self._core = ov.Core()
         self._model = self._core.read_model(model)
@@ -241,14 +304,15 @@ class Network:
         if key not in self._compiled:
             model = self._model.clone()
             model.reshape({name: list(inputs[name].shape) for name in self.input_names})
-            compiled = self._core.compile_model(model, "CPU", {
-                "INFERENCE_PRECISION_HINT": self.precision, "INFERENCE_NUM_THREADS": self.threads,
-                "PERFORMANCE_HINT": "LATENCY", "NUM_STREAMS": 1})
+            options = {"INFERENCE_PRECISION_HINT": self.precision, "PERFORMANCE_HINT": "LATENCY", "NUM_STREAMS": 1}
+            if self.device == "CPU":
+                options["INFERENCE_NUM_THREADS"] = self.threads
+            compiled = self._core.compile_model(model, self.device, options)
             self._compiled[key] = compiled.create_infer_request()
         return self._compiled[key]
 
     def __call__(self, inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        if self.backend == "onnxruntime":
+        if self.backend in ORT_PROVIDERS:
             return dict(zip(self.output_names, self._session.run(self.output_names, inputs), strict=True))
         request = self._request(inputs)
         request.infer(inputs)

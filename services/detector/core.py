@@ -27,7 +27,7 @@ import onnxruntime as ort
 
 from twohr.config import DetectorConfig
 from twohr.features import Keypoints
-from twohr.models import Network, cpu_session, model_path, resolve_backend
+from twohr.models import ORT_PROVIDERS, Network, model_path, ort_session, resolve_backend
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
@@ -285,9 +285,10 @@ def _is_2x_bilinear(node, constants: dict[str, np.ndarray]) -> bool:
 
 
 @cache
-def _session(path: str, threads: int, sparse_descriptors: bool) -> tuple[ort.InferenceSession, _PreparedModel]:
+def _session(path: str, threads: int, sparse_descriptors: bool,
+             backend: str = "onnxruntime") -> tuple[ort.InferenceSession, _PreparedModel]:
     prepared = _prepare_model(path, sparse_descriptors)
-    session = cpu_session(prepared.model, threads)
+    session = ort_session(prepared.model, threads, backend)
     return session, prepared
 
 
@@ -304,11 +305,11 @@ class R2D2Network:
         self.threads = threads
         self.backend = resolve_backend(backend)
         path = str(model_path(model, kind="r2d2"))
-        if self.backend == "openvino":
+        if self.backend not in ORT_PROVIDERS:  # OpenVINO, on the CPU or a GPU
             prepared = _prepare_model(path, sparse_descriptors)
-            self.openvino = Network(prepared.model, threads, "openvino", precision)  # compiled per input size
+            self.openvino = Network(prepared.model, threads, self.backend, precision)  # compiled per input size
         else:
-            self.session, prepared = _session(path, threads, sparse_descriptors)
+            self.session, prepared = _session(path, threads, sparse_descriptors, self.backend)
         self.feature_stride = prepared.feature_stride
         self._buffers: dict[tuple[int, int], tuple[np.ndarray, dict[str, np.ndarray], ort.IOBinding]] = {}
         self._lock = threading.Lock()
@@ -325,7 +326,7 @@ class R2D2Network:
                 "reliability": np.zeros((1, 1, height, width), np.float32),
                 "repeatability": np.zeros((1, 1, height, width), np.float32),
             }
-            if self.backend == "openvino":
+            if self.backend not in ORT_PROVIDERS:
                 self._buffers[key] = (image, outputs, None)
                 return self._buffers[key]
             binding = self.session.io_binding()

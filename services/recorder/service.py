@@ -95,9 +95,10 @@ class RecorderService(Service):
     def _close(self, session_id: str) -> None:
         self.closing.pop(session_id, None)
         self.posed.discard(session_id)
-        recorder = self.open.pop(session_id, None)
+        recorder = self.open.get(session_id)
         if recorder is not None:
             recorder.close()
+            del self.open[session_id]  # only now: a session not in ``open`` has a complete, indexed file
             self.log.info("finalised %s (%s)", recorder.path, recorder.counts)
 
     def run(self, stop=None) -> None:

@@ -14,6 +14,7 @@ from twohr.features import drop_masked
 from twohr.trajectory import Trajectory
 
 from .core import Tracker
+from .loops import LoopLog
 from .map import Map, MapSnapshot
 from .stages import FrameStats, KeyframeLog, Stages
 from .trajectory import AnchoredTrajectory, TrackResult
@@ -29,6 +30,7 @@ class EveryFrameSchedule:
         self.tracker = Tracker(camera, config.tracker, world=self.map)
         self.record = AnchoredTrajectory(config.tracker)
         self.keyframe_log: list[KeyframeLog] = []  # no keyframe jobs apart from the frames
+        self.loop_log = LoopLog()  # no loop closing in this schedule
         self.mask: np.ndarray | None = None
         """the dynamic mask the latest frame was tracked with, for live views"""
 

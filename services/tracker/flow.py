@@ -30,6 +30,7 @@ from twohr.dataset import CameraIntrinsics
 from twohr.features import masked
 from twohr.geometry import backproject, invert_pose, project, transform_points
 
+from .loops import LoopQuery
 from .map import MapSnapshot
 from .motion import MotionModel
 from .optim import estimate_pose, sample_depth
@@ -56,9 +57,13 @@ class MapUpdate:
     """the frame's grayscale image, to carry the seeds to a later frame by optical flow"""
     timings: dict[str, float] | None = None
     kind: str = "2hr"
-    """``2hr``, ``tracked`` or ``describe`` (see :class:`~.stages.KeyframeLog`)"""
+    """``2hr``, ``tracked``, ``describe`` or ``loop`` (see :class:`~.stages.KeyframeLog`)"""
     mask: np.ndarray | None = None
     """the dynamic mask of a tracked keyframe, for its 2HR detection later"""
+    loop_query: LoopQuery | None = None
+    """place-recognition candidates of the job's keyframe, for the loop worker to verify"""
+    fused: np.ndarray | None = None
+    """(M, 2) landmark ids a closed loop fused: (retired duplicate, the landmark that replaces it)"""
 
 
 def flow_points(source: np.ndarray, target: np.ndarray, xy: np.ndarray, guess: np.ndarray,
@@ -130,7 +135,10 @@ def on_flat_depth(depth: np.ndarray, xy: np.ndarray, radius: int, ratio: float) 
     farthest = cv2.dilate(filled, kernel, borderType=cv2.BORDER_REPLICATE)
     x, y = np.round(xy).astype(int).T
     near, far = nearest[y, x], farthest[y, x]
-    return np.isfinite(far) & (far - near < ratio * near)
+    flat = np.zeros(len(xy), bool)
+    valid = np.isfinite(far)  # inf - inf would be NaN: squares with a hole are decided here already
+    flat[valid] = far[valid] - near[valid] < ratio * near[valid]
+    return flat
 
 
 class FrameTracker:
@@ -283,6 +291,9 @@ class FrameTracker:
             self._recent_keyframes = []
             self.latest_keyframe = None
             return
+        if update.fused is not None and len(update.fused):  # follow the landmark that replaced a fused duplicate
+            rename = dict(update.fused.tolist())
+            self.track_landmark = np.array([rename.get(i, i) for i in self.track_landmark.tolist()], np.int64)
         keep = self.usable[self.track_landmark]
         self.track_xy, self.track_landmark = self.track_xy[keep], self.track_landmark[keep]
         new_map = found or (update.keyframe_id >= 0 and update.result.status in ("init", "reinitialised"))

@@ -33,8 +33,10 @@ from twohr.workers import Worker
 
 from .core import Tracker
 from .flow import FrameTracker, MapUpdate, new_corners, on_flat_depth, static_in_reference
+from .loops import Loop, LoopClosing, LoopLog, LoopQuery, LoopVerdict, verify
 from .map import Map, MapSnapshot
 from .optim import sample_depth
+from .places import Vocabulary, vocabulary_path
 from .stages import FrameStats, KeyframeLog, Stages
 from .trajectory import AnchoredTrajectory, TrackResult
 
@@ -78,10 +80,17 @@ class Mapper:
         self.map = world
         self.conf = config.tracker
         self.tracker = Tracker(world.camera, config.tracker, world=world)
+        self.loops = None
+        self.loop_log = LoopLog()
+        if config.loop_closing.vocabulary is not None:
+            vocabulary = Vocabulary.load(vocabulary_path(config.loop_closing.vocabulary))
+            self.loops = LoopClosing(world, vocabulary, config.loop_closing)
 
-    def __call__(self, job: KeyframeJob | Detected) -> MapUpdate:
+    def __call__(self, job: KeyframeJob | Detected | Loop) -> MapUpdate:
         if isinstance(job, Detected):
             return self.describe(job)
+        if isinstance(job, Loop):
+            return self.close_loop(job)
         if job.tracks is not None and self.tracker.localised:
             return self._tracked_keyframe(job)
         return self._detected_keyframe(job)
@@ -139,7 +148,28 @@ class Mapper:
         # until the camera is found in a given map, the per-frame path gets none of it
         snapshot = self.map.snapshot() if tracker.localised else MapSnapshot.empty()
         return MapUpdate(frame.index, frame.stamp, result, keyframe_id, seeds_xy, seeds_landmark, snapshot,
-                         frame.gray, timings)
+                         frame.gray, timings, loop_query=self._loop_query(keyframe_id))
+
+    def _loop_query(self, keyframe_id: int) -> LoopQuery | None:
+        """Place recognition for a keyframe whose landmarks have descriptors (off without a vocabulary)."""
+        if self.loops is None or keyframe_id < 0 or not self.tracker.localised:
+            return None
+        return self.loops.query(keyframe_id)
+
+    def close_loop(self, loop: Loop) -> MapUpdate:
+        """Correct the map for a verified loop (:meth:`~.loops.LoopClosing.close`); the per-frame path gets the
+        corrected map, and its tracks follow the fused landmarks."""
+        t0 = time.perf_counter()
+        closed = self.loops.close(loop, self.loops.conf.ba_iterations)
+        self.loop_log.closed += 1
+        self.loop_log.loops.append({**closed, "ms": round((time.perf_counter() - t0) * 1000, 1)})
+        pose = self.map.keyframe_poses[loop.keyframe_id]
+        result = TrackResult(loop.stamp, pose, "loop", reason=f"loop closed at keyframe {loop.keyframe_id} against "
+                             f"keyframe {loop.candidate_id}: {closed['correction_m']} m corrected")
+        timings = {"detector": 0.0, "yolo": 0.0, "mapping": (time.perf_counter() - t0) * 1000, "keypoints": 0,
+                   "kept": 0}
+        return MapUpdate(-1, loop.stamp, result, -1, np.zeros((0, 2)), np.zeros(0, np.int64), self.map.snapshot(),
+                         None, timings, kind="loop", fused=loop.pairs)
 
     def detect(self, keyframe_id: int, frame: Frame, mask: np.ndarray | None) -> Detected:
         """The 2HR keypoints of tracked keyframe ``keyframe_id`` (outside its dynamic mask); reads no map, so it
@@ -162,7 +192,7 @@ class Mapper:
         timings = {"detector": detected.ms_detector, "yolo": 0.0, "mapping": (time.perf_counter() - t0) * 1000,
                    "keypoints": detected.kept, "kept": len(detected.keypoints)}
         return MapUpdate(frame.index, frame.stamp, result, -1, xy, landmark, self.map.snapshot(), frame.gray,
-                         timings, kind="describe")
+                         timings, kind="describe", loop_query=self._loop_query(detected.keyframe_id))
 
 
 class KeyframePipeline:
@@ -188,6 +218,11 @@ class KeyframePipeline:
         # 2HR detection of tracked keyframes, on its own worker: the latest keyframe waiting for it, and the
         # detection waiting for the mapping worker to join it to the map
         self.detecting = Worker(lambda job: self.mapper.detect(*job), "detector", runtime.synchronous)
+        # loop closing: the loop worker verifies the latest keyframe's place-recognition candidates, and a verified
+        # loop waits for the mapping worker to correct the map
+        self.closing = Worker(self._verify_loop, "loops", runtime.synchronous)
+        self._loop_query: LoopQuery | None = None
+        self._loop: Loop | None = None
         self._to_detect: tuple[int, Frame, np.ndarray | None] | None = None
         self._detected: Detected | None = None
         self._job_frame: Frame | None = None
@@ -209,6 +244,32 @@ class KeyframePipeline:
         number, frame = numbered
         return (number, *self.stages.dynamic_mask(frame))
 
+    @property
+    def loop_log(self) -> LoopLog:
+        """Loops detected, accepted, rejected and closed so far, and every loop closed."""
+        return self.mapper.loop_log
+
+    def _verify_loop(self, job: tuple[LoopQuery, Frame]) -> LoopVerdict:
+        """Loop worker: geometric verification of one keyframe's candidates (reads no map)."""
+        query, frame = job
+        return verify(query, self.map.K, self.config.loop_closing, self.config.tracker,
+                      match=lambda a, b: self.stages.match(frame, a, b))
+
+    def _close_loops(self, frame: Frame, wait: bool = False) -> None:
+        """Collect the loop worker's verdict and start it on the latest keyframe's candidates."""
+        verdict = self._collect(self.closing, wait=wait)
+        if verdict is not None:
+            if verdict.loop is not None:
+                self.loop_log.accepted += 1
+                self._loop = verdict.loop
+            else:
+                self.loop_log.rejected += 1
+            log.debug("loop verification: %s (%.0f ms)", verdict.reason, verdict.ms)
+        if self._loop_query is not None and not self.closing.busy:
+            query, self._loop_query = self._loop_query, None
+            self.loop_log.detected += 1
+            self.closing.submit((query, frame))
+
     def _collect(self, worker: Worker, wait: bool = False):
         """A worker's finished result; a failed job (say, a stage behind the bus timed out) is logged and
         counted, and the per-frame path goes on without it."""
@@ -229,6 +290,8 @@ class KeyframePipeline:
             self._detector_ms = [*self._detector_ms, update.timings["detector"]][-5:]
         if update.kind == "tracked" and update.keyframe_id >= 0 and self._job_frame is not None:
             self._to_detect = (update.keyframe_id, self._job_frame, update.mask)  # the latest one wins
+        if update.loop_query is not None and self._loop is None:
+            self._loop_query = update.loop_query  # the latest keyframe's wins
         self.frames.apply(update)
         if update.keyframe_id >= 0:
             self._anchor = update.keyframe_id
@@ -325,8 +388,12 @@ class KeyframePipeline:
             wants = False
         ms_detector += ms_waited
         self._detect_keyframes()
+        self._close_loops(frame)
         if not self.mapping.busy:
-            if self._detected is not None and result.tracked:  # an earlier keyframe's keypoints join the map first
+            if self._loop is not None and result.tracked:  # a verified loop corrects the map first
+                if self.mapping.submit(self._loop):
+                    self._loop = None
+            elif self._detected is not None and result.tracked:  # an earlier keyframe's keypoints join the map
                 if self.mapping.submit(self._detected):
                     self._detected = None
                     self._job_number = self._number
@@ -360,6 +427,12 @@ class KeyframePipeline:
             if detected is not None and self.mapping.submit(detected):
                 self._take(self._collect(self.mapping, wait=True))
         self._detected = None
+        if self._job_frame is not None:  # a loop found at the end still corrects the map
+            for _ in range(2):  # a verification running, then one waiting
+                self._close_loops(self._job_frame, wait=True)
+            if self._loop is not None and self.mapping.submit(self._loop):
+                self._take(self._collect(self.mapping, wait=True))
+            self._loop = None
         self.close()
 
     def refine(self) -> None:
@@ -370,6 +443,7 @@ class KeyframePipeline:
         """Stop the worker threads (after their running jobs)."""
         self.mapping.close()
         self.detecting.close()
+        self.closing.close()
         if self.masking is not None:
             self.masking.close()
 

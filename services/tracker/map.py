@@ -90,7 +90,7 @@ class Landmarks:
 
 @dataclass
 class MapSnapshot:
-    """A read-only copy of what the per-frame path needs of the map, as of ``version`` keyframes."""
+    """A read-only copy of what the per-frame path needs of the map, as of its ``version`` (:attr:`Map.version`)."""
 
     version: int
     landmark_positions: np.ndarray
@@ -113,8 +113,9 @@ class MapSnapshot:
 
 
 class Map:
-    """Landmarks and keyframes of one camera's map. Nothing else writes keyframe poses: they change only when a
-    keyframe is added and when :meth:`local_bundle_adjustment` or :meth:`final_bundle_adjustment` refine them."""
+    """Landmarks and keyframes of one camera's map. Keyframe poses change only when a keyframe is added, when
+    :meth:`local_bundle_adjustment` or :meth:`final_bundle_adjustment` refine them, and when a loop is closed
+    (:meth:`~.loops.LoopClosing.close`)."""
 
     def __init__(self, camera: CameraIntrinsics, conf: TrackerConfig) -> None:
         self.camera = camera
@@ -124,14 +125,16 @@ class Map:
         self.keyframes: list[Keyframe] = []
         self.keyframe_poses = np.zeros((0, 4, 4))
         """(K, 4, 4) camera-to-world poses of the keyframes, as bundle adjustment has refined them"""
+        self.corrections = 0
+        """loops closed: each moved the whole map"""
 
     def __bool__(self) -> bool:
         return bool(self.keyframes)
 
     @property
     def version(self) -> int:
-        """Changes when the map does (a keyframe was added)."""
-        return len(self.keyframes)
+        """Changes when the map does (a keyframe was added, a loop closed)."""
+        return len(self.keyframes) + self.corrections
 
     def snapshot(self) -> MapSnapshot:
         """A copy of the landmark positions and keyframe poses, for a reader on another thread."""

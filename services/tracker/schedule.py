@@ -13,6 +13,7 @@ from twohr.trajectory import Trajectory
 
 from .every_frame import EveryFrameSchedule
 from .keyframes import KeyframePipeline
+from .loops import LoopLog
 from .map import Map, MapSnapshot
 from .stages import FrameStats, KeyframeLog, Stages
 from .trajectory import TrackResult
@@ -27,6 +28,8 @@ class Schedule(Protocol):
     """what each keyframe job cost (empty where keyframes are not built apart from the frames)"""
     mask: np.ndarray | None
     """the dynamic mask the latest frame was tracked with"""
+    loop_log: LoopLog
+    """loops detected, accepted, rejected and closed (none where loop closing is off)"""
 
     def process(self, frame: Frame) -> tuple[TrackResult, FrameStats]:
         """The pose of one frame (online: final when returned), and what each stage did with it."""

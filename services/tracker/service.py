@@ -211,6 +211,11 @@ class TrackerService(Service):
         message = PathMsg(session_id=session_id, robot_id=header.robot_id, frame_index=header.frame_index,
                           stamp=header.stamp, final=True)
         self.publish(keys.key(header.robot_id, "path"), encode(message, path_arrays(refined)))
+        config = self.session_configs.get(session_id)
+        if config is not None and config.loop_closing.vocabulary:
+            loops = track.schedule.loop_log
+            self.report(header, "loops", f"{loops.closed} loops closed", detected=loops.detected,
+                        accepted=loops.accepted, rejected=loops.rejected, closed=loops.closed)
         if control is not None and control.map_mode in ("build", "extend"):  # after the path: it is waited for
             self._save_map(control, track)
 
@@ -279,7 +284,7 @@ class TrackerService(Service):
         config = self.config_for(header.session_id)
         try:
             track = self._track_for(header)
-        except MapFileError as exc:  # the map does not fit this camera: said once, the session's frames ignored
+        except TwohrError as exc:  # a map or vocabulary that does not fit: said once, the session's frames ignored
             self.session_configs.pop(header.session_id, None)
             self.report(header, "error", str(exc))
             return

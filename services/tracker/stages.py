@@ -66,4 +66,5 @@ class KeyframeLog:
     lag_frames: int = 0
     kind: str = "2hr"
     """``2hr``: detection and matching on the keyframe; ``tracked``: a keyframe from the optical-flow tracks and new
-    corners, no network; ``describe``: 2HR detection of an earlier tracked keyframe joined to the map"""
+    corners, no network; ``describe``: 2HR detection of an earlier tracked keyframe joined to the map; ``loop``: a
+    verified loop closed (:mod:`.loops`)"""

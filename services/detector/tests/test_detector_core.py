@@ -9,6 +9,8 @@ from scipy.spatial import cKDTree
 
 from twohr.config import DetectorConfig
 from twohr.dataset import RGBDSequence
+from twohr.errors import ModelError
+from twohr.models import BACKENDS, WHAT_IT_NEEDS, available_backends
 from twohr_services.detector.core import (
     FASTDetector,
     ORBDetector,
@@ -332,3 +334,32 @@ def test_bad_configuration_is_rejected():
         DetectorConfig(input_scale=0)
     with pytest.raises(ValueError, match="2hr or r2d2"):
         R2D2Detector(DetectorConfig(features="orb"))
+
+
+@pytest.mark.parametrize("backend", BACKENDS[1:])
+def test_every_backend_gives_the_same_keypoints(real_frame, backend):
+    """The CPU and GPU backends (``detector.backend``) agree with onnxruntime on the CPU, run where the machine
+    has them (f32; a GPU's f16 within a pixel)."""
+    if backend not in available_backends():
+        pytest.skip(f"{backend} is not available here: it needs {WHAT_IT_NEEDS[backend]}")
+    reference = R2D2Detector(DetectorConfig(backend="onnxruntime")).detect(real_frame)
+    keypoints = R2D2Detector(DetectorConfig(backend=backend, precision="f32")).detect(real_frame)
+    assert len(reference) > 300 and 0.95 < len(keypoints) / len(reference) < 1.05
+    distance, nearest = nearest_neighbours(keypoints.xy, reference.xy)
+    close = distance <= 1.0
+    assert close.mean() > 0.95
+    cosine = np.sum(keypoints.descriptors[close] * reference.descriptors[nearest[close]], axis=1)
+    assert np.median(cosine) > 0.999
+
+
+def test_a_backend_this_machine_lacks_is_refused_with_what_it_needs():
+    from twohr.models import resolve_backend
+
+    available = available_backends()
+    assert "onnxruntime" in available and resolve_backend("auto") == available[0]
+    assert available.index("onnxruntime") == len(available) - 1  # the CPU fallback comes last
+    missing = [b for b in BACKENDS[1:] if b not in available]
+    if not missing:
+        pytest.skip("every backend is available on this machine")
+    with pytest.raises(ModelError, match=f"{missing[0]} is not available here: it needs"):
+        R2D2Detector(DetectorConfig(backend=missing[0]))

@@ -218,7 +218,8 @@ def test_recorder_service_over_the_bus(bus_config, dev_sequence, tmp_path):
             assert time.time() < deadline, service.counters
             time.sleep(0.1)
         counts = topic_counts(tmp_path / "sess2.mcap")
-        assert counts["/r1/camera/image"] == 4 and counts["/twohr/r1/pose"] == 4 and "/twohr/r1/frames" not in counts
+        assert counts.get("/r1/camera/image") == 4 and counts.get("/twohr/r1/pose") == 4, (counts, service.counters)
+        assert "/twohr/r1/frames" not in counts
         assert counts["/twohr/r1/control"] == 2 and counts["/twohr/r1/path"] == 1 and counts["/r1/path_refined"] == 1
         np.testing.assert_allclose(recorded_trajectory(tmp_path / "sess2.mcap").poses, refined.poses)
         assert len(recorded_trajectory(tmp_path / "sess2.mcap", online=True)) == 4

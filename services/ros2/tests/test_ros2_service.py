@@ -201,7 +201,7 @@ def test_ros2_camera_images_become_twohr_frames(ros2_service, dev_sequence):
         depth_pub.put(msgs.serialize(depth))
         color_pub.put(msgs.serialize(color))
         originals.append(frame)
-    assert wait_until(lambda: len(received) >= n)
+    assert wait_until(lambda: len(received) >= n), (len(received), ros2_service[0].health())
     subscriber.undeclare()
     assert len(received) == n
     for frame, (message, arrays) in zip(originals, received, strict=True):

@@ -7,6 +7,7 @@ import pytest
 
 from twohr.config import YoloConfig
 from twohr.errors import ModelError
+from twohr.models import BACKENDS, WHAT_IT_NEEDS, available_backends
 from twohr.synthetic import SyntheticScene, SyntheticSpec, camera_path
 from twohr_services.yolo.core import (
     PAD_VALUE,
@@ -176,3 +177,18 @@ def test_detect_rejects_bad_images(yolo_detector):
         detector.detect(np.zeros((480, 640), np.uint8))
     with pytest.raises(ValueError, match="RGB uint8"):
         detector.detect(np.zeros((480, 640, 3), np.float32))
+
+
+@pytest.mark.parametrize("backend", BACKENDS[1:])
+def test_every_backend_finds_the_same_people(dev_frames, backend):
+    """The CPU and GPU backends (``yolo.backend``) agree with onnxruntime on the CPU, run where the machine has them."""
+    if backend not in available_backends():
+        pytest.skip(f"{backend} is not available here: it needs {WHAT_IT_NEEDS[backend]}")
+    rgb = dev_frames(300).rgb
+    reference = YoloDetector(YoloConfig(model="yolov8n_320", backend="onnxruntime")).detect(rgb)
+    detections = YoloDetector(YoloConfig(model="yolov8n_320", backend=backend, precision="f32")).detect(rgb)
+    people = detections.boxes[np.array(detections.names) == "person"]
+    expected = reference.boxes[np.array(reference.names) == "person"]
+    assert len(people) == len(expected) == 2
+    for box in people:
+        assert box_iou(box, expected).max() > 0.95
