@@ -29,7 +29,10 @@ def _bench(args: argparse.Namespace) -> int:
             frames, busy, repeats = int(args.soak * 60 * 30) // args.camera_runs, [args.soak_busy], 1
         else:
             frames, busy, repeats = args.frames or 300, [int(b) for b in args.busy.split(",")], args.runs
-        rows = live.live_runs(sequence, frames, busy, repeats, progress=not args.quiet, camera_runs=args.camera_runs)
+        from twohr.config import merge_overrides
+
+        rows = live.live_runs(sequence, frames, busy, repeats, progress=not args.quiet, camera_runs=args.camera_runs,
+                              config_overrides=merge_overrides({}, args.set or []))
         report["live"] = rows
         table = live.format_table(rows)
         if args.soak:
@@ -138,7 +141,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "(endpoint and credentials) of that system, e.g. the one twohr up writes")
     p.add_argument("--api-token", default=None, help="with --gateway: its HTTP API token")
     p.add_argument("--live", action="store_true", help="live camera sessions over twohr up (twohr camera --replay "
-                   "at 30 Hz, --frames frames, default 300), --runs times for each count of busy processes in --busy: "
+                   "at 30 Hz, --frames frames, default 300; --set overrides go to the sessions), --runs times for each "
+                   "count of busy processes in --busy: "
                    "frames posed and dropped, FPS, frame->pose latency, ATE of the served and online trajectories, "
                    "every service's RSS")
     p.add_argument("--busy", default="0,1,2", help="with --live: counts of busy processes beside the stack "

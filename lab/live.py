@@ -80,10 +80,12 @@ def _score(sequence, text: str) -> float | None:
 
 
 def camera_session(system, client_config: Path, url: str, sequence, robot: str, frames: int, busy: int,
-                   sample_every_s: float = 10.0, progress: bool = True, camera_runs: int = 1) -> dict:
+                   sample_every_s: float = 10.0, progress: bool = True, camera_runs: int = 1,
+                   config_overrides: dict | None = None) -> dict:
     """One live camera session with ``busy`` busy processes beside the stack; see the module docstring.
     ``camera_runs`` > 1 feeds the session ``frames`` frames that many times, each by a new ``twohr camera`` (a new
-    client on the bus whose stamps start again, as a robot's camera driver restarted); ``frames`` then counts all."""
+    client on the bus whose stamps start again, as a robot's camera driver restarted); ``frames`` then counts all.
+    ``config_overrides`` (dotted keys) is the session's pipeline config, as ``POST /sessions`` takes it."""
     import httpx
 
     from twohr import keys
@@ -98,7 +100,8 @@ def camera_session(system, client_config: Path, url: str, sequence, robot: str, 
     rss: dict[str, list[tuple[float, float]]] = {}
     try:
         with httpx.Client(base_url=url, timeout=60) as client:
-            response = client.post("/sessions", json={"source": "camera", "robot_id": robot, "record": False})
+            response = client.post("/sessions", json={"source": "camera", "robot_id": robot, "record": False,
+                                                      "config": config_overrides or {}})
             response.raise_for_status()
             session_id = response.json()["id"]
             t0 = time.monotonic()
@@ -153,8 +156,9 @@ def camera_session(system, client_config: Path, url: str, sequence, robot: str, 
 
 
 def live_runs(sequence, frames: int, busy_counts: list[int], repeats: int, progress: bool = True,
-              camera_runs: int = 1) -> list[dict]:
-    """Start ``twohr up`` once and run :func:`camera_session` ``repeats`` times per busy count."""
+              camera_runs: int = 1, config_overrides: dict | None = None) -> list[dict]:
+    """Start ``twohr up`` once and run :func:`camera_session` ``repeats`` times per busy count (each session with
+    ``config_overrides``)."""
     from twohr.access import write_client_config
     from twohr.bus import free_port
     from twohr_services.launcher_cli import start_system
@@ -173,7 +177,8 @@ def live_runs(sequence, frames: int, busy_counts: list[int], repeats: int, progr
                               flush=True)
                     rows.append(camera_session(system, config, f"http://127.0.0.1:{port}", sequence,
                                                f"live{busy}x{repeat}", frames * camera_runs, busy,
-                                               progress=progress, camera_runs=camera_runs))
+                                               progress=progress, camera_runs=camera_runs,
+                                               config_overrides=config_overrides))
             return rows
         finally:
             system.stop()

@@ -1,5 +1,6 @@
 """The real compose stack in containers: up, healthy, a session on 60 real frames, every pose seen
-from outside, the MCAP read back from the mounted folder, then down with nothing left running.
+from outside, the MCAP read back from the mounted folder; a map built by a session that outlives the stack going
+down and up again; then down with nothing left running.
 
 Run by ``make compose-test`` (scripts/docker-here.sh provides the engine, the image and
 $TWOHR_COMPOSE); skipped in ``make test``.
@@ -50,6 +51,36 @@ def health(container: str) -> str:
     return result.stdout.strip() or result.stderr.strip()
 
 
+def up_and_healthy(env: dict) -> None:
+    """``docker compose up -d`` and wait until every service reports healthy."""
+    compose("up", "-d", "--no-build", env=env)
+    containers = {s: compose("ps", "-q", s, env=env).stdout.strip() for s in SERVICES}
+    deadline = time.time() + 300
+    while set((states := {s: health(c) for s, c in containers.items()}).values()) != {"healthy"}:
+        assert "unhealthy" not in states.values(), states
+        assert time.time() < deadline, f"not healthy after 300 s: {states}"
+        time.sleep(1)
+
+
+def run_session(gateway: str, body: dict, timeout: float = 900) -> dict:
+    """``POST /sessions`` and wait until it ends; its final info."""
+    with httpx.Client(base_url=gateway, timeout=60, headers={"Authorization": f"Bearer {TOKEN}"}) as client:
+        response = client.post("/sessions", json=body)
+        assert response.status_code == 201, response.text
+        session_id = response.json()["id"]
+        deadline = time.time() + timeout
+        while (info := client.get(f"/sessions/{session_id}").json())["state"] in ("starting", "running"):
+            assert time.time() < deadline, info
+            time.sleep(0.5)
+        return info
+
+
+def map_names(gateway: str) -> list[str]:
+    listing = httpx.get(f"{gateway}/maps", timeout=60, headers={"Authorization": f"Bearer {TOKEN}"})
+    assert listing.status_code == 200, listing.text
+    return [entry["name"] for entry in listing.json()]
+
+
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory, dev_sequence, model_mirror):
     recordings, maps = tmp_path_factory.mktemp("compose_recordings"), tmp_path_factory.mktemp("compose_maps")
@@ -65,18 +96,13 @@ def stack(tmp_path_factory, dev_sequence, model_mirror):
     t0 = time.time()
     healthy = False
     try:
-        compose("up", "-d", "--no-build", env=env)
-        containers = {s: compose("ps", "-q", s, env=env).stdout.strip() for s in SERVICES}
-        deadline = time.time() + 300
-        while set((states := {s: health(c) for s, c in containers.items()}).values()) != {"healthy"}:
-            assert "unhealthy" not in states.values(), states
-            assert time.time() < deadline, f"not healthy after 300 s: {states}"
-            time.sleep(1)
+        up_and_healthy(env)
         healthy = True
         client_config = tmp_path_factory.mktemp("client") / "client.json5"
         client_config.write_text(compose("exec", "-T", "router", "cat", "/run/twohr/client.json5", env=env).stdout)
         yield {"router": f"tcp/127.0.0.1:{router_port}", "gateway": f"http://127.0.0.1:{gateway_port}",
-               "recordings": recordings, "startup_s": time.time() - t0, "client_config": client_config}
+               "recordings": recordings, "maps": maps, "startup_s": time.time() - t0, "client_config": client_config,
+               "env": env}
     finally:
         if not healthy:
             print(compose("logs", "--tail", "40", env=env).stdout)
@@ -116,3 +142,22 @@ def test_session_in_containers_streams_every_pose_and_records_mcap(stack, dev_se
     (out / "session.json").write_text(json.dumps(
         {"startup_s": round(stack["startup_s"], 1), **latency_summary(result), "ate_rmse": info["ate_rmse"]},
         indent=2))
+
+
+def test_a_map_outlives_the_stack_going_down_and_up(stack, dev_sequence):
+    built = run_session(stack["gateway"], {"sequence": dev_sequence.name, "robot_id": "a", "max_frames": FRAMES,
+                                           "map": {"name": "lab", "mode": "build"}})
+    assert built["state"] == "finished" and built["frames"] == FRAMES, built
+    deadline = time.time() + 60
+    while "lab" not in map_names(stack["gateway"]):  # saved after the session's final path
+        assert time.time() < deadline, "map lab not saved"
+        time.sleep(1)
+    assert (stack["maps"] / "lab.map").is_file()
+
+    compose("down", "--remove-orphans", env=stack["env"])
+    assert project_containers() == []
+    up_and_healthy(stack["env"])
+    assert "lab" in map_names(stack["gateway"])
+    found = run_session(stack["gateway"], {"sequence": dev_sequence.name, "robot_id": "b", "start": FRAMES,
+                                           "max_frames": FRAMES, "map": {"name": "lab", "mode": "localize"}})
+    assert found["state"] == "finished" and found["frames"] >= 0.9 * FRAMES, found
