@@ -193,9 +193,10 @@ WHAT_IT_NEEDS = {
 }
 
 
-def ort_session(model: str | bytes, threads: int, backend: str = "onnxruntime"):
+def ort_session(model: str | bytes, threads: int, backend: str = "onnxruntime", precision: str = "auto"):
     """An onnxruntime session for a model file path or serialised model bytes, on ``backend``'s execution
-    providers (:data:`ORT_PROVIDERS`); raises :class:`ModelError` when a GPU backend fell back to the CPU."""
+    providers (:data:`ORT_PROVIDERS`; TensorRT in fp16 unless ``precision`` is ``f32``); raises
+    :class:`ModelError` when a GPU backend fell back to the CPU."""
     import onnxruntime as ort
 
     providers: list = list(ORT_PROVIDERS[backend])
@@ -203,7 +204,8 @@ def ort_session(model: str | bytes, threads: int, backend: str = "onnxruntime"):
         engines = cache_dir().parent / "tensorrt"
         engines.mkdir(parents=True, exist_ok=True)
         providers[0] = ("TensorrtExecutionProvider", {"trt_engine_cache_enable": True,
-                                                      "trt_engine_cache_path": str(engines), "trt_fp16_enable": True})
+                                                      "trt_engine_cache_path": str(engines),
+                                                      "trt_fp16_enable": precision != "f32"})
     session = ort.InferenceSession(model, session_options(threads), providers=providers)
     if session.get_providers()[0] != ORT_PROVIDERS[backend][0]:
         raise ModelError(f"backend {backend}: onnxruntime fell back to {session.get_providers()[0]}; it needs "
@@ -226,18 +228,36 @@ def available_backends() -> tuple[str, ...]:
         providers = set(ort.get_available_providers())
     except ImportError:
         providers = set()
-    found += [b for b in ("tensorrt", "cuda") if ORT_PROVIDERS[b][0] in providers]
+    # onnxruntime lists the providers it was built with (onnxruntime-gpu lists CUDA on a machine without a GPU):
+    # a GPU backend counts only when a tiny model really runs on it
+    found += [b for b in ("tensorrt", "cuda") if ORT_PROVIDERS[b][0] in providers and _runs_on(ORT_PROVIDERS[b][0])]
     try:
         import openvino as ov
 
         devices = ov.Core().available_devices
         found += ["openvino-gpu"] if any(d.startswith("GPU") for d in devices) else []
         found.append("openvino")
-    except ImportError:
+    except Exception:  # noqa: BLE001 - not installed, or its runtime cannot start here: not a backend here
         pass
     if "CPUExecutionProvider" in providers:
         found.append("onnxruntime")
     return tuple(found)
+
+
+def _runs_on(provider: str) -> bool:
+    """Whether onnxruntime runs a one-node model on ``provider`` without falling back to the CPU."""
+    import onnxruntime as ort
+    from onnx import TensorProto, helper
+
+    value = helper.make_tensor_value_info
+    graph = helper.make_graph([helper.make_node("Identity", ["x"], ["y"])], "probe",
+                              [value("x", TensorProto.FLOAT, [1])], [value("y", TensorProto.FLOAT, [1])])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)], ir_version=8)
+    try:
+        session = ort.InferenceSession(model.SerializeToString(), providers=[provider, "CPUExecutionProvider"])
+    except Exception:  # noqa: BLE001 - a provider that cannot start is simply not there
+        return False
+    return session.get_providers()[0] == provider
 
 
 def resolve_backend(backend: str) -> str:
@@ -279,7 +299,7 @@ class Network:
         self.backend = resolve_backend(backend)
         self.threads = threads
         if self.backend in ORT_PROVIDERS:
-            self._session = ort_session(model, threads, self.backend)
+            self._session = ort_session(model, threads, self.backend, precision)
             self.input_names = [i.name for i in self._session.get_inputs()]
             self.output_names = [o.name for o in self._session.get_outputs()]
             return

@@ -110,3 +110,8 @@ def test_override_files_publish_ports_or_use_the_host_network():
         for command in (svc.get("command"), svc.get("healthcheck", {}).get("test", [None])[1:]):
             if command:
                 _check_command(command)
+    # a command the host file replaces keeps every option of the bridged one (the map store once went missing)
+    for name, svc in host.items():
+        if "command" in svc and "command" in COMPOSE["services"][name]:
+            options = {token for token in COMPOSE["services"][name]["command"] if token.startswith("--")}
+            assert options <= set(svc["command"]), (name, options - set(svc["command"]))

@@ -285,10 +285,10 @@ def _is_2x_bilinear(node, constants: dict[str, np.ndarray]) -> bool:
 
 
 @cache
-def _session(path: str, threads: int, sparse_descriptors: bool,
-             backend: str = "onnxruntime") -> tuple[ort.InferenceSession, _PreparedModel]:
+def _session(path: str, threads: int, sparse_descriptors: bool, backend: str = "onnxruntime",
+             precision: str = "auto") -> tuple[ort.InferenceSession, _PreparedModel]:
     prepared = _prepare_model(path, sparse_descriptors)
-    session = ort_session(prepared.model, threads, backend)
+    session = ort_session(prepared.model, threads, backend, precision)
     return session, prepared
 
 
@@ -309,7 +309,7 @@ class R2D2Network:
             prepared = _prepare_model(path, sparse_descriptors)
             self.openvino = Network(prepared.model, threads, self.backend, precision)  # compiled per input size
         else:
-            self.session, prepared = _session(path, threads, sparse_descriptors, self.backend)
+            self.session, prepared = _session(path, threads, sparse_descriptors, self.backend, precision)
         self.feature_stride = prepared.feature_stride
         self._buffers: dict[tuple[int, int], tuple[np.ndarray, dict[str, np.ndarray], ort.IOBinding]] = {}
         self._lock = threading.Lock()

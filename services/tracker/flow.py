@@ -285,6 +285,11 @@ class FrameTracker:
         """Take a finished keyframe job: refreshed landmarks and keyframe poses, and new tracks seeded from the
         keyframe's observations (carried by optical flow from the keyframe's image to the latest frame)."""
         found = not self.initialised  # the first map, or the camera found (again) in a given map
+        if update.kind == "loop" and len(self.snapshot.keyframe_poses) and len(update.snapshot.keyframe_poses):
+            # the map moved under the camera: it moves with the latest keyframe, where it is
+            latest = len(self.snapshot.keyframe_poses) - 1
+            self.motion.move_world(update.snapshot.keyframe_poses[latest] @ invert_pose(
+                self.snapshot.keyframe_poses[latest]))
         self.snapshot = update.snapshot
         if not self.initialised:  # no map yet, or the camera looks for itself in a given map (again): no tracks
             self.track_xy, self.track_landmark = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
@@ -293,7 +298,12 @@ class FrameTracker:
             return
         if update.fused is not None and len(update.fused):  # follow the landmark that replaced a fused duplicate
             rename = dict(update.fused.tolist())
-            self.track_landmark = np.array([rename.get(i, i) for i in self.track_landmark.tolist()], np.int64)
+
+            def renamed(ids: np.ndarray) -> np.ndarray:
+                return np.array([rename.get(i, i) for i in ids.tolist()], np.int64)
+
+            self.track_landmark = renamed(self.track_landmark)
+            self._recent_keyframes = [(gray, xy, renamed(ids)) for gray, xy, ids in self._recent_keyframes]
         keep = self.usable[self.track_landmark]
         self.track_xy, self.track_landmark = self.track_xy[keep], self.track_landmark[keep]
         new_map = found or (update.keyframe_id >= 0 and update.result.status in ("init", "reinitialised"))

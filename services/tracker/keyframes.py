@@ -27,6 +27,7 @@ import numpy as np
 from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics, Frame
 from twohr.features import Keypoints, drop_masked
+from twohr.geometry import invert_pose
 from twohr.messages import MessageError
 from twohr.trajectory import Trajectory
 from twohr.workers import Worker
@@ -160,10 +161,12 @@ class Mapper:
         """Correct the map for a verified loop (:meth:`~.loops.LoopClosing.close`); the per-frame path gets the
         corrected map, and its tracks follow the fused landmarks."""
         t0 = time.perf_counter()
+        latest = self.map.keyframe_poses[-1].copy()
         closed = self.loops.close(loop, self.loops.conf.ba_iterations)
+        self.tracker.motion.move_world(self.map.keyframe_poses[-1] @ invert_pose(latest))  # where the camera is
         self.loop_log.closed += 1
         self.loop_log.loops.append({**closed, "ms": round((time.perf_counter() - t0) * 1000, 1)})
-        pose = self.map.keyframe_poses[loop.keyframe_id]
+        pose = self.map.keyframe_poses[loop.keyframe_id].copy()
         result = TrackResult(loop.stamp, pose, "loop", reason=f"loop closed at keyframe {loop.keyframe_id} against "
                              f"keyframe {loop.candidate_id}: {closed['correction_m']} m corrected")
         timings = {"detector": 0.0, "yolo": 0.0, "mapping": (time.perf_counter() - t0) * 1000, "keypoints": 0,
@@ -252,8 +255,11 @@ class KeyframePipeline:
     def _verify_loop(self, job: tuple[LoopQuery, Frame]) -> LoopVerdict:
         """Loop worker: geometric verification of one keyframe's candidates (reads no map)."""
         query, frame = job
-        return verify(query, self.map.K, self.config.loop_closing, self.config.tracker,
-                      match=lambda a, b: self.stages.match(frame, a, b))
+        try:
+            return verify(query, self.map.K, self.config.loop_closing, self.config.tracker,
+                          match=lambda a, b: self.stages.match(frame, a, b))
+        except (MessageError, TimeoutError) as exc:  # the matcher behind the bus failed: a loop not verified
+            return LoopVerdict(None, f"verification failed: {exc}")
 
     def _close_loops(self, frame: Frame, wait: bool = False) -> None:
         """Collect the loop worker's verdict and start it on the latest keyframe's candidates."""
@@ -261,11 +267,12 @@ class KeyframePipeline:
         if verdict is not None:
             if verdict.loop is not None:
                 self.loop_log.accepted += 1
-                self._loop = verdict.loop
+                self._loop = verdict.loop  # no query waits now (_take keeps none while a loop is pending)
+                self._loop_query = None  # built before the loop closes: its candidates are about to be joined
             else:
                 self.loop_log.rejected += 1
             log.debug("loop verification: %s (%.0f ms)", verdict.reason, verdict.ms)
-        if self._loop_query is not None and not self.closing.busy:
+        if self._loop_query is not None and self._loop is None and not self.closing.busy:
             query, self._loop_query = self._loop_query, None
             self.loop_log.detected += 1
             self.closing.submit((query, frame))

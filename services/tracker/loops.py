@@ -18,6 +18,7 @@ Three steps, split by the thread they may run on:
 from __future__ import annotations
 
 import importlib.util
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -34,6 +35,7 @@ from .optim import pnp_ransac, pose_difference, refine_pose
 from .places import PlaceIndex, Vocabulary
 
 MatchFn = Callable[[np.ndarray, np.ndarray], Matches]
+log = logging.getLogger("twohr.loops")
 
 
 @dataclass
@@ -65,13 +67,14 @@ class LoopQuery:
 @dataclass
 class Loop:
     """A verified loop: keyframe ``keyframe_id`` seen again from candidate ``candidate_id``'s part of the map, at
-    world-to-camera pose ``T_cw`` in that part's frame; ``pairs`` (M, 2) the inlier (keyframe's landmark,
-    candidate's landmark) pairs."""
+    camera-to-world pose ``relative`` in the candidate keyframe's frame (relative, so that bundle adjustment moving
+    both meanwhile does not matter); ``pairs`` (M, 2) the inlier (keyframe's landmark, candidate's landmark)
+    pairs."""
 
     keyframe_id: int
     candidate_id: int
     score: float
-    T_cw: np.ndarray
+    relative: np.ndarray
     pairs: np.ndarray
     stamp: float = 0.0
     candidate_stamp: float = 0.0
@@ -127,7 +130,8 @@ def verify(query: LoopQuery, K: np.ndarray, conf: LoopClosingConfig, tracking: T
                 best_reason = f"keyframe {candidate.keyframe_id} seen from {metres:.2f} m, {degrees:.0f} deg away"
                 continue
             pairs = np.stack([query.landmark_ids[a], candidate.landmark_ids[b]], axis=1)
-            loop = Loop(query.keyframe_id, candidate.keyframe_id, candidate.score, T_cw, pairs, query.stamp)
+            relative = invert_pose(candidate.pose) @ invert_pose(T_cw)
+            loop = Loop(query.keyframe_id, candidate.keyframe_id, candidate.score, relative, pairs, query.stamp)
             return LoopVerdict(loop, f"{found} inliers against keyframe {candidate.keyframe_id}",
                                (time.perf_counter() - t0) * 1000)
     reason = best_reason or f"best {best_inliers} inliers < {conf.min_inliers}"
@@ -145,9 +149,21 @@ class LoopClosing:
         self.vocabulary = vocabulary
         self.conf = conf
         self.index = PlaceIndex(vocabulary.size)
+        self.off = ""  # why loop closing stopped (a vocabulary for other descriptors)
         self._indexed: set[int] = set()
-        for keyframe in world.keyframes:  # a map loaded from a file: its keyframes are places already
-            self._index(keyframe.id)
+        if self._fits():
+            for keyframe in world.keyframes:  # a map loaded from a file: its keyframes are places already
+                self._index(keyframe.id)
+
+    def _fits(self) -> bool:
+        """Whether the vocabulary's words fit the map's descriptors; when they do not (a vocabulary trained for
+        another detector), loop closing turns itself off, said once, and the keyframe jobs go on."""
+        descriptors = self.map.landmarks.descriptors
+        if not self.off and descriptors is not None and descriptors.shape[1] != self.vocabulary.words.shape[1]:
+            self.off = (f"loop closing off: vocabulary {self.vocabulary.card.get('name', '?')} has "
+                        f"{self.vocabulary.words.shape[1]}-D words, the map's descriptors are {descriptors.shape[1]}-D")
+            log.warning(self.off)
+        return not self.off
 
     def _observed(self, keyframe_id: int) -> np.ndarray:
         """Keypoint indices of a keyframe that observe a described, usable landmark."""
@@ -172,6 +188,8 @@ class LoopClosing:
         the keyframe's best score against its 3 predecessors (how alike views of one place are here), and share at most
         ``max_shared_landmarks`` of the keyframe's landmarks (more: the map already joins them)."""
         conf, world = self.conf, self.map
+        if not self._fits():
+            return None
         keyframe = world.keyframes[keyframe_id]
         observed = self._observed(keyframe_id)
         query = None
@@ -211,7 +229,7 @@ class LoopClosing:
         """Correct the map for a verified loop; returns what it moved (the keyframe's correction, in m and deg)."""
         world = self.map
         before = world.keyframe_poses.copy()
-        corrected = invert_pose(loop.T_cw)
+        corrected = before[loop.candidate_id] @ loop.relative
         metres, degrees = pose_difference(before[loop.keyframe_id], corrected)
         poses = optimise_pose_graph(before, loop.candidate_id, loop.keyframe_id, corrected, self.conf, self._joined())
         self._move_landmarks(before, poses)
@@ -240,13 +258,15 @@ class LoopClosing:
         return joined
 
     def _move_landmarks(self, before: np.ndarray, after: np.ndarray) -> None:
-        """Every landmark moves rigidly with the first keyframe that observes it."""
+        """Every landmark moves rigidly with the first keyframe that observes it; one that no keyframe observes any
+        more (its observations cut as outliers, or only culled keyframes saw it) cannot be moved and is retired."""
         landmarks = self.map.landmarks
         reference = np.full(len(landmarks), -1, np.int64)
         for keyframe in self.map.keyframes:
             ids = keyframe.landmark_ids[keyframe.landmark_ids >= 0]
             fresh = ids[reference[ids] < 0]
             reference[fresh] = keyframe.id
+        landmarks.bad[reference < 0] = True
         for k in np.unique(reference[reference >= 0]):
             ids = np.flatnonzero(reference == k)
             motion = after[k] @ invert_pose(before[k])
@@ -255,17 +275,20 @@ class LoopClosing:
     def _fuse(self, pairs: np.ndarray) -> None:
         """The keyframe's landmarks of the loop's inlier pairs are the candidate's: observations move over and the
         duplicates retire."""
+        landmarks = self.map.landmarks
         duplicate, original = pairs[:, 0], pairs[:, 1]
-        keep = duplicate != original
+        keep = (duplicate != original) & ~landmarks.bad[original]  # an original retired meanwhile replaces nothing
         duplicate, original = duplicate[keep], original[keep]
         if not len(duplicate):
             return
-        replace = np.arange(len(self.map.landmarks))
+        replace = np.arange(len(landmarks))
         replace[duplicate] = original
+        while np.any(replace[replace] != replace):  # a duplicate that is also another pair's original: follow on
+            replace = replace[replace]
         for keyframe in self.map.keyframes:
             seen = keyframe.landmark_ids >= 0
             keyframe.landmark_ids[seen] = replace[keyframe.landmark_ids[seen]]
-        self.map.landmarks.bad[duplicate] = True
+        landmarks.bad[duplicate] = True
 
 
 def optimise_pose_graph(poses_wc: np.ndarray, candidate: int, keyframe: int, corrected_wc: np.ndarray,

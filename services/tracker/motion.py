@@ -101,6 +101,14 @@ class MotionModel:
                 self.tracked(stamp, pose)
             self.last_pose = pose
 
+    def move_world(self, motion: np.ndarray) -> None:
+        """The world frame moved (a loop closed): left-multiply the remembered poses by ``motion``, so that the
+        next prediction is in the corrected frame (the velocity, in the camera frame, stays)."""
+        if self.last_pose is not None:
+            self.last_pose = motion @ self.last_pose
+        if self.good_pose is not None:
+            self.good_pose = motion @ self.good_pose
+
     def advance(self, stamp: float, pose: np.ndarray) -> None:
         """Remember the pose reported for this frame, tracked or coasted."""
         self.last_pose, self.last_stamp = pose, stamp

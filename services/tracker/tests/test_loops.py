@@ -104,3 +104,38 @@ def test_loops_on_real_frames_are_found_verified_and_closed(dev_sequence, tmp_pa
     monkeypatch.setenv("TWOHR_VOCABULARIES", str(tmp_path / "none"))
     with pytest.raises(VocabularyError, match="twohr vocab train"):
         run_sequence(sequence, config, stop=5, progress=False)
+
+
+def test_fusion_follows_chains_and_skips_retired_originals_and_the_world_moves_with_the_correction():
+    from twohr.config import TrackerConfig
+    from twohr.dataset import CameraIntrinsics
+    from twohr_services.tracker.loops import Loop, LoopClosing
+    from twohr_services.tracker.map import Map
+    from twohr_services.tracker.motion import MotionModel
+
+    camera = CameraIntrinsics(fx=500, fy=500, cx=319.5, cy=239.5, width=640, height=480)
+    world = Map(camera, TrackerConfig())
+    rng = np.random.default_rng(1)
+    world.landmarks.add(rng.normal(size=(6, 3)) + [0, 0, 3], _unit(rng.normal(size=(6, 4))).astype(np.float32))
+    for k, ids in enumerate([[0, 1, 2], [1, 3, 4], [3, 5, -1]]):
+        pose = make_pose(np.eye(3), np.array([0.1 * k, 0.0, 0.0]))
+        world.add_keyframe(float(k), pose, rng.uniform(0, 400, (3, 2)), np.full(3, 2.0), np.array(ids))
+    world.landmarks.bad[5] = True
+    vocabulary = Vocabulary(_unit(rng.normal(size=(4, 4))).astype(np.float32), np.ones(4, np.float32), {})
+    loops = LoopClosing(world, vocabulary, LoopClosingConfig(ba_iterations=0))
+    # 3 duplicates 1, which duplicates 0; 4 would be replaced by 5, which is retired
+    loops._fuse(np.array([[3, 1], [1, 0], [4, 5]]))
+    assert [kf.landmark_ids.tolist() for kf in world.keyframes] == [[0, 0, 2], [0, 0, 4], [0, 5, -1]]
+    assert world.landmarks.bad.tolist() == [False, True, False, True, False, True]
+
+    # closing a loop that says keyframe 2 sits 5 cm further along x than the map has it
+    relative = np.linalg.inv(world.keyframe_poses[0]) @ make_pose(np.eye(3), np.array([0.25, 0.0, 0.0]))
+    motion = MotionModel()
+    motion.advance(3.0, world.keyframe_poses[2].copy())
+    latest = world.keyframe_poses[2].copy()
+    closed = loops.close(Loop(2, 0, 0.9, relative, np.zeros((0, 2), np.int64), 2.0), ba_iterations=0)
+    assert abs(closed["correction_m"] - 0.05) < 1e-6 and world.corrections == 1
+    assert abs(world.keyframe_poses[2][0, 3] - 0.25) < 0.01  # the loop edge is much stiffer than the chain
+    np.testing.assert_allclose(world.keyframe_poses[0], np.eye(4), atol=1e-6)  # the first keyframe is held
+    motion.move_world(world.keyframe_poses[2] @ np.linalg.inv(latest))
+    np.testing.assert_allclose(motion.last_pose, world.keyframe_poses[2], atol=1e-9)
