@@ -69,3 +69,20 @@ def test_cli_one_line_errors(tmp_path, model_mirror):
     result = _twohr("demo", "--sequence", str(tmp_path / "missing_sequence"))
     assert result.returncode == 2
     assert result.stderr.strip() == f"twohr: error: sequence folder not found: {tmp_path / 'missing_sequence'}"
+
+
+def test_demo_runs_end_to_end(static_synthetic_sequence, tmp_path):
+    """``make demo``'s command on a short synthetic sequence: the whole job, its outputs and a real trajectory."""
+    import json
+
+    from twohr.dataset import RGBDSequence
+    from twohr.evaluation import evaluate, static_trajectory
+
+    result = _twohr("demo", "--sequence", str(static_synthetic_sequence), "--out", str(tmp_path / "demo"))
+    assert result.returncode == 0, result.stderr[-2000:]
+    summary = json.loads((tmp_path / "demo" / "summary.json").read_text())
+    sequence = RGBDSequence(static_synthetic_sequence)
+    standing_still = evaluate(sequence.ground_truth(), static_trajectory(sequence.stamps))[0].ate.rmse
+    assert summary["frames"] == 30 and summary["tracked_percent"] > 80, summary
+    assert summary["ate"]["ate"]["rmse"] < standing_still / 3, (summary["ate"]["ate"], standing_still)
+    assert (tmp_path / "demo" / "report.html").is_file() and (tmp_path / "demo" / "trajectory.txt").is_file()
