@@ -58,7 +58,7 @@ class Vocabulary:
         """k-means (k-means++ seeding) of all descriptors of ``descriptor_sets`` (one (N_i, D) array per frame)
         into ``num_words`` words; each frame is one document for the idf."""
         sets = [np.asarray(d, np.float32) for d in descriptor_sets if len(d)]
-        everything = np.concatenate(sets)
+        everything = np.concatenate(sets) if sets else np.zeros((0, 0), np.float32)
         if len(everything) < num_words:
             raise VocabularyError(f"{len(everything)} descriptors cannot make {num_words} words")
         cv2.setRNGSeed(seed)

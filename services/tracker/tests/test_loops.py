@@ -48,6 +48,8 @@ def test_a_vocabulary_finds_its_words_and_tells_places_apart(tmp_path):
         Vocabulary.load(tmp_path / "missing.npz")
     with pytest.raises(VocabularyError, match="letters, digits"):
         vocabulary_path("../../etc/passwd")
+    with pytest.raises(VocabularyError, match="0 descriptors cannot make 8 words"):
+        Vocabulary.train([np.zeros((0, 32))], 8)
 
 
 def test_the_pose_graph_spreads_a_loop_correction_along_the_path():
