@@ -61,13 +61,17 @@ def _splits(args: argparse.Namespace, split_conf) -> dict[str, list[int]]:
 
 
 def _open_cache(args: argparse.Namespace, frames: list[int]):
-    """The sequence's keypoint cache, filled for ``frames`` (runs the detector only where needed)."""
+    return open_cache(args.sequence, _detector_conf(args), args.cache, frames)
+
+
+def open_cache(sequence_path: str | Path, detector_conf, root: str | Path, frames: list[int]):
+    """The sequence's keypoint cache under ``root``, filled for ``frames`` (runs the detector only where needed);
+    the vocabulary study (``twohr vocab``) reads the same cache."""
     from twohr.dataset import RGBDSequence
 
     from .data import KeypointCache
 
-    sequence = RGBDSequence(args.sequence)
-    cache = KeypointCache(sequence, _detector_conf(args), args.cache)
+    cache = KeypointCache(RGBDSequence(sequence_path), detector_conf, root)
     if cache.missing(frames):
         from twohr_services.detector.core import build_detector
 

@@ -16,10 +16,9 @@ import time
 from pathlib import Path
 
 from twohr.paths import DEV_SEQUENCE
+from twohr_services.pipeline_cli import FALSE_LOOP_DEG, FALSE_LOOP_M
 
 from ..stamp import provenance
-
-SAME_PLACE_M, SAME_PLACE_DEG = 0.3, 15.0  # issue 27's bound for a false loop
 
 
 def _frames(args: argparse.Namespace) -> list[int]:
@@ -36,18 +35,12 @@ def _frames(args: argparse.Namespace) -> list[int]:
 
 
 def _cache(args: argparse.Namespace, frames: list[int]):
-    """The sequence's keypoint cache, filled for ``frames``."""
+    """The sequence's keypoint cache (the matcher study's), filled for ``frames``."""
     from twohr.config import load_config
-    from twohr.dataset import RGBDSequence
-    from twohr_services.detector.core import build_detector
 
-    from ..matching.data import KeypointCache
+    from ..matching.cli import open_cache
 
-    cache = KeypointCache(RGBDSequence(args.sequence), load_config(None, args.set).detector, args.cache)
-    if cache.missing(frames):
-        print(f"detecting keypoints on {len(cache.missing(frames))} frames (cached in {cache.folder})")
-        cache.fill(frames, build_detector(cache.detector_conf))
-    return cache
+    return open_cache(args.sequence, load_config(None, args.set).detector, args.cache, frames)
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -123,7 +116,7 @@ def _eval(args: argparse.Namespace) -> int:
     loaded = [f for f in loaded if f.pose is not None]
     vectors = np.stack([vocabulary.vector(f.keypoints.descriptors) for f in loaded])
     similarity = vectors @ vectors.T
-    rows, same_place = [], 0
+    rows = []
     for q, frame in enumerate(loaded):
         far = np.array([abs(other.index - frame.index) >= args.min_gap for other in loaded])
         if not far.any():
@@ -131,8 +124,7 @@ def _eval(args: argparse.Namespace) -> int:
         best = int(np.flatnonzero(far)[np.argmax(similarity[q, far])])
         metres, degrees = pose_difference(frame.pose, loaded[best].pose)
         revisits = [j for j in np.flatnonzero(far) if _same(pose_difference(frame.pose, loaded[j].pose))]
-        correct = metres <= SAME_PLACE_M and degrees <= SAME_PLACE_DEG
-        same_place += correct
+        correct = _same((metres, degrees))
         rows.append({"query": frame.index, "best": loaded[best].index, "score": round(float(similarity[q, best]), 4),
                      "distance_m": round(metres, 3), "angle_deg": round(degrees, 2), "same_place": bool(correct),
                      "revisits_available": len(revisits)})
@@ -154,7 +146,7 @@ def _eval(args: argparse.Namespace) -> int:
 
 
 def _same(difference: tuple[float, float]) -> bool:
-    return difference[0] <= SAME_PLACE_M and difference[1] <= SAME_PLACE_DEG
+    return difference[0] <= FALSE_LOOP_M and difference[1] <= FALSE_LOOP_DEG
 
 
 def register(sub: argparse._SubParsersAction) -> None:

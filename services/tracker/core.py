@@ -40,8 +40,8 @@ from .motion import MotionModel
 from .optim import (
     MotionPrior,
     estimate_pose,
+    matched_pnp,
     observation_errors,
-    pnp_ransac,
     refine_pose,
     sample_depth,
 )
@@ -114,13 +114,13 @@ class Relocaliser:
         conf, world = self.conf, self.map
         if len(ids) < conf.relocalisation_min_inliers:
             return None
-        matches = match(keypoints.descriptors, world.landmarks.descriptors[ids])
-        if len(matches) < conf.relocalisation_min_inliers:
+        found = matched_pnp(world.K, match, keypoints.descriptors, xy, world.landmarks.descriptors[ids],
+                            world.landmarks.positions[ids], conf.relocalisation_min_inliers,
+                            conf.ransac_reprojection_px, conf.ransac_iterations)
+        if found is None or found[0] is None:
             return None
-        kp, lm = np.asarray(matches.idx_a, np.int64), ids[np.asarray(matches.idx_b, np.int64)]
-        T_cw, inliers = pnp_ransac(world.K, world.landmarks.positions[lm], xy[kp], conf.ransac_reprojection_px,
-                                   conf.ransac_iterations)
-        return None if T_cw is None else _Estimate(True, what, T_cw, len(kp), int(inliers.sum()))
+        T_cw, kp, _, inliers = found
+        return _Estimate(True, what, T_cw, len(kp), int(inliers.sum()))
 
 
 class Tracker:

@@ -31,7 +31,7 @@ from twohr.features import Matches
 from twohr.geometry import invert_pose
 
 from .map import Map
-from .optim import pnp_ransac, pose_difference, refine_pose
+from .optim import matched_pnp, pose_difference, refine_pose
 from .places import PlaceIndex, Vocabulary
 
 MatchFn = Callable[[np.ndarray, np.ndarray], Matches]
@@ -112,12 +112,11 @@ def verify(query: LoopQuery, K: np.ndarray, conf: LoopClosingConfig, tracking: T
     t0 = time.perf_counter()
     best_inliers, best_reason = 0, ""
     for candidate in query.candidates:
-        matches = match(query.descriptors, candidate.descriptors)
-        if len(matches) < conf.min_inliers:
+        matched = matched_pnp(K, match, query.descriptors, query.xy, candidate.descriptors, candidate.positions,
+                              conf.min_inliers, tracking.ransac_reprojection_px, tracking.ransac_iterations)
+        if matched is None:
             continue
-        a, b = np.asarray(matches.idx_a, np.int64), np.asarray(matches.idx_b, np.int64)
-        T_cw, inliers = pnp_ransac(K, candidate.positions[b], query.xy[a], tracking.ransac_reprojection_px,
-                                   tracking.ransac_iterations)
+        T_cw, a, b, inliers = matched
         found = int(inliers.sum())
         best_inliers = max(best_inliers, found)
         if T_cw is not None and found >= conf.min_inliers:

@@ -190,6 +190,19 @@ def pnp_ransac(K: np.ndarray, points_w: np.ndarray, xy: np.ndarray, threshold_px
     return pose_from_vectors(rvec, tvec), inlier_mask
 
 
+def matched_pnp(K: np.ndarray, match, descriptors: np.ndarray, xy: np.ndarray, map_descriptors: np.ndarray,
+                map_positions: np.ndarray, min_matches: int, threshold_px: float, iterations: int):
+    """Descriptor matches of a view's keypoints (``descriptors``, ``xy``) to map points, then RANSAC PnP on them:
+    ``(T_cw or None, keypoint index, map point index, inlier mask)`` per match; None when fewer than
+    ``min_matches`` match (relocalisation and loop verification both start this way)."""
+    matches = match(descriptors, map_descriptors)
+    if len(matches) < min_matches:
+        return None
+    a, b = np.asarray(matches.idx_a, np.int64), np.asarray(matches.idx_b, np.int64)
+    T_cw, inliers = pnp_ransac(K, map_positions[b], xy[a], threshold_px, iterations)
+    return T_cw, a, b, inliers
+
+
 @dataclass
 class MotionPrior:
     """A Gaussian prior on the pose: the motion model's prediction with per-frame standard deviations."""
