@@ -17,6 +17,7 @@ import base64
 import contextlib
 import json
 import logging
+import re
 import struct
 import threading
 import time
@@ -32,6 +33,12 @@ from .foxglove_convert import TOPIC_TYPES, FoxgloveConverter, topics
 
 SDK_PROTOCOL = b"foxglove.sdk.v1"
 LEGACY_PROTOCOL = b"foxglove.websocket.v1"
+# foxglove-sdk 0.30 sends a new channel's "advertise" before it records the channel as advertised to that client
+# (ConnectedClient::advertise_channels), so a client that subscribes at once can be told "Unknown channel ID"
+# and never get that channel. Holding what clients send for a moment closes that window; clients only send
+# subscribe/unsubscribe here, so nothing else waits on it.
+CLIENT_HOLD_S = 0.02
+UNKNOWN_CHANNEL = re.compile(r"Unknown channel ID: (\d+)")
 
 
 class SubprotocolBridge:
@@ -62,7 +69,7 @@ class SubprotocolBridge:
             server_out.write(request)
             response = await server_in.readuntil(b"\r\n\r\n")
             client_out.write(response.replace(SDK_PROTOCOL, LEGACY_PROTOCOL) if legacy else response)
-            await asyncio.gather(self._pipe(client_in, server_out), self._pipe(server_in, client_out))
+            await asyncio.gather(self._pipe(client_in, server_out, CLIENT_HOLD_S), self._pipe(server_in, client_out))
         except (OSError, asyncio.IncompleteReadError, asyncio.LimitOverrunError):
             pass  # a client that went away or never spoke HTTP
         finally:
@@ -71,9 +78,11 @@ class SubprotocolBridge:
                     writer.close()
 
     @staticmethod
-    async def _pipe(source: asyncio.StreamReader, sink: asyncio.StreamWriter) -> None:
+    async def _pipe(source: asyncio.StreamReader, sink: asyncio.StreamWriter, hold_s: float = 0.0) -> None:
         with contextlib.suppress(OSError):
             while data := await source.read(1 << 16):
+                if hold_s:
+                    await asyncio.sleep(hold_s)
                 sink.write(data)
                 await sink.drain()
         with contextlib.suppress(OSError):
@@ -163,7 +172,10 @@ class LiveView:
 
 class FoxgloveClient:
     """A Foxglove WebSocket client on its own thread: it subscribes to every channel the server advertises and
-    counts the messages of each topic (and keeps the latest one). For tests, the bench and quick checks."""
+    counts the messages of each topic (and keeps the latest one). For tests, the bench and quick checks.
+
+    A subscription the server refuses with "Unknown channel ID" (see :data:`CLIENT_HOLD_S`) is sent again after a moment,
+    and counted in :attr:`resubscribed`."""
 
     def __init__(self, url: str, subprotocol: str = "foxglove.websocket.v1", timeout: float = 10.0) -> None:
         # the protocol's name in its spec is "foxglove.websocket.v1"; foxglove-sdk 0.30 calls it "foxglove.sdk.v1"
@@ -175,6 +187,7 @@ class FoxgloveClient:
         self.counts: dict[str, int] = {}
         self.latest: dict[str, bytes] = {}
         self.server_info: dict | None = None
+        self.resubscribed = 0
         self.thread = threading.Thread(target=self._run, name="foxglove-client", daemon=True)
         self.thread.start()
 
@@ -186,13 +199,15 @@ class FoxgloveClient:
                     if body["op"] == "serverInfo":
                         self.server_info = body
                     elif body["op"] == "advertise":
-                        new = []
                         for channel in body["channels"]:
                             self.channels[channel["id"]] = channel
-                            subscription = len(self.subscriptions) + 1
-                            self.subscriptions[subscription] = channel["id"]
-                            new.append({"id": subscription, "channelId": channel["id"]})
-                        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                        self._subscribe([channel["id"] for channel in body["channels"]])
+                    elif body["op"] == "status" and (refused := UNKNOWN_CHANNEL.fullmatch(body.get("message", ""))):
+                        channel_id = int(refused.group(1))
+                        if channel_id in self.channels and self.resubscribed < len(self.channels):
+                            time.sleep(0.05)
+                            self.resubscribed += 1
+                            self._subscribe([channel_id])
                 elif message[0] == 1:  # message data: opcode, subscription id (u32), log time (u64), payload
                     subscription = struct.unpack_from("<I", message, 1)[0]
                     topic = self.channels[self.subscriptions[subscription]]["topic"]
@@ -200,6 +215,14 @@ class FoxgloveClient:
                     self.latest[topic] = bytes(message[13:])
         except ConnectionClosed:
             pass
+
+    def _subscribe(self, channel_ids: list[int]) -> None:
+        new = []
+        for channel_id in channel_ids:
+            subscription = len(self.subscriptions) + 1
+            self.subscriptions[subscription] = channel_id
+            new.append({"id": subscription, "channelId": channel_id})
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
 
     def topics(self) -> dict[str, str]:
         """Advertised topic -> schema name."""
