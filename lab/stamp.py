@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
-import os
 import shlex
 import subprocess
 import sys
 from datetime import UTC, datetime
 from pathlib import Path
+
+from twohr.machine import machine
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -29,23 +30,6 @@ def provenance(argv: list[str] | None = None, program: str = "twohr") -> dict[st
         commit += "+dirty"
     return {"commit": commit, "command": " ".join([program, shlex.join(argv)]).strip(),
             "made_at": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"), "machine": machine()}
-
-
-def machine() -> dict[str, object]:
-    """The CPU a figure was measured on: model name (as lscpu shows it), cores, and whether it has AMX and
-    AVX-512 bf16 (the keyframe network's speed depends on both)."""
-    model, flags = "unknown", set()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            key, _, value = line.partition(":")
-            if key.strip() == "model name" and model == "unknown":
-                model = value.strip()
-            elif key.strip() == "flags" and not flags:
-                flags = set(value.split())
-    except OSError:
-        pass
-    return {"cpu_model": model, "cpus": os.cpu_count(), "amx": "amx_bf16" in flags,
-            "avx512_bf16": "avx512_bf16" in flags}
 
 
 def write_stamp(out: str | Path, argv: list[str] | None = None, program: str = "twohr") -> Path:

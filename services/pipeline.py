@@ -73,9 +73,11 @@ def local_stages(config: PipelineConfig, camera: CameraIntrinsics) -> Stages:
     if front.masker is not None:
         front.masker.detect_dynamic(blank)
     matcher = build_matcher(config.matcher)
+    scales = getattr(front.detector, "input_scales", {})
+    chosen = {"detector_input_scale": scales[(camera.width, camera.height)]} if scales else {}
     return Stages(lambda frame: front.detector.detect(frame.rgb),
                   None if front.masker is None else front.dynamic_mask,
-                  lambda _frame, desc_a, desc_b: matcher(desc_a, desc_b))
+                  lambda _frame, desc_a, desc_b: matcher(desc_a, desc_b), chosen)
 
 
 def cached_stages(config: PipelineConfig, cache: dict[int, StageOutput]) -> Stages:
@@ -116,6 +118,8 @@ class RunResult:
     """the schedule's map after the run (the one given, grown, or a new one)"""
     loops: LoopLog | None = None
     """loop closing's counts and closed loops (None: loop closing was off)"""
+    chosen: dict[str, float] = field(default_factory=dict)
+    """settings chosen at warm-up (:attr:`~.tracker.stages.Stages.chosen`)"""
 
     @property
     def tracked_percent(self) -> float:
@@ -161,4 +165,4 @@ def run_sequence(sequence, config: PipelineConfig, start: int = 0, stop: int | N
     online = online_trajectory(results)
     refined = schedule.trajectory() if results else online
     return RunResult(refined, online, stats, list(sequence.skipped), wall, schedule.keyframe_log, refine_s,
-                     schedule.map, schedule.loop_log if config.loop_closing.vocabulary else None)
+                     schedule.map, schedule.loop_log if config.loop_closing.vocabulary else None, stages.chosen)

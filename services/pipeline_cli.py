@@ -28,6 +28,7 @@ def write_run(out: Path, sequence, config, result) -> dict:
     import yaml
 
     from twohr.evaluation import evaluate
+    from twohr.machine import machine
     from twohr.trajectory import write_tum
 
     from .pipeline import stats_rows
@@ -51,6 +52,7 @@ def write_run(out: Path, sequence, config, result) -> dict:
         "lost_frames": [s.index for s in result.stats if s.status not in TRACKED_STATUSES],
         "fps": round(frames / result.wall_s, 3) if result.wall_s > 0 else None,
         "final_bundle_adjustment_s": round(result.refine_s, 3),
+        "machine": machine(), **result.chosen,
         "ms_per_frame_median": {k: round(float(_median([getattr(s, k) for s in result.stats])), 2)
                                 for k in ("ms_detector", "ms_yolo", "ms_tracker", "ms_total")} if frames else {},
     }
@@ -100,7 +102,8 @@ def _median(values):
 def print_summary(summary: dict, out: Path) -> None:
     print(f"frames {summary['frames']}  tracked {summary['tracked_percent']:.1f} %  fps {summary['fps']}  "
           f"skipped {len(summary['skipped_frames'])}  per-frame ms {summary['ms_per_frame_median']}  "
-          f"then final BA {summary.get('final_bundle_adjustment_s', 0):.1f} s")
+          f"then final BA {summary.get('final_bundle_adjustment_s', 0):.1f} s"
+          + (f"  detector input scale {summary['detector_input_scale']}" if "detector_input_scale" in summary else ""))
     if "ate" in summary:
         a, r = summary["ate"], summary["ate_raw_gt"]
         print(f"ATE RMSE {a['ate']['rmse']:.4f} m (SE(3), max dt {a['max_dt']} s, camera-frame GT "

@@ -29,7 +29,15 @@ class DetectorConfig(Section):
     )
     model: str = Field("faster2d2_WASF_N16", description="registered r2d2-kind model")
     input_scale: float = Field(0.75, gt=0, le=2, description="network input size relative to the image (even sizes); "
-                               "0.75 = 480x360 for a VGA camera: keyframes cost 0.6x, at no measured loss of accuracy")
+                               "0.75 = 480x360 for a VGA camera: keyframes cost 0.6x, at no measured loss of accuracy; "
+                               "the largest scale latency_budget_ms may choose")
+    latency_budget_ms: float | None = Field(
+        200.0, gt=0, description="choose the input scale on the first image of each size: the largest of "
+        "input_scale, input_scale - 1/8, ... down to min_input_scale whose latency (timed at input_scale, scaled by "
+        "the pixel count) fits this budget, so that a slow CPU keeps its keyframe jobs short (200 ms: a keyframe job "
+        "within about max_keyframe_lag frames at 30 Hz); None = always input_scale")
+    min_input_scale: float = Field(0.5, gt=0, le=2, description="the smallest input scale latency_budget_ms may "
+                                   "choose (on the dev frames, ATE grew by a third at 0.375)")
     backend: Literal["auto", "tensorrt", "cuda", "openvino-gpu", "openvino", "onnxruntime"] = Field(
         "auto", description="inference backend; auto = the first this machine has of tensorrt, cuda (onnxruntime-gpu "
         "on an NVIDIA GPU), openvino-gpu (an Intel GPU), openvino, onnxruntime (CPU); `twohr models backends` "
@@ -144,6 +152,11 @@ class TrackerConfig(Section):
     flow_reacquire_keyframes: int = Field(3, ge=0, description="when tracks run short, look for the landmarks "
                                           "of this many latest keyframes again by flow from the keyframe's image")
     flow_reacquire_below: int = Field(100, ge=0, description="tracks run short below this many flowed tracks")
+    flow_reacquire_per_frame: int = Field(3, ge=1, description="while tracking, look again in this many of those "
+                                          "keyframes per frame, taking them in turn (all of them while lost): "
+                                          "each costs two Lucas-Kanade passes, the per-frame path's largest cost; "
+                                          "on the dev frames 1 took the per-frame path from 22 to 15 ms but raised "
+                                          "ATE by about a tenth")
     flow_max_tracks: int = Field(600, ge=16, description="follow at most this many landmarks per frame")
     reanchor_lagging_frames: bool = Field(True, description="when a keyframe job returns, the frames tracked while "
                                           "it ran keep their flow motion relative to the keyframe's new pose in the "
@@ -228,6 +241,12 @@ class RuntimeConfig(Section):
     max_keyframe_lag: int = Field(8, ge=0, description="replay from disk: a frame waits for the mapping worker "
                                   "when its keyframe job is more than this many frames old, so a replay faster than "
                                   "the camera sees the map as a live camera would (live streams never wait)")
+    keyframe_duty: float = Field(0.5, gt=0, le=1, description="keyframes mode: the keyframe jobs take at most "
+                                 "this share of the camera's time: after a job of t ms, the next one waits "
+                                 "t * (1 / keyframe_duty - 1) ms of camera time while the camera tracks (never while "
+                                 "it is lost). Sparser jobs on a slow CPU, as many as the tracks ask for on a fast "
+                                 "one; 1 = a job whenever the tracks ask and the worker is free. Not with "
+                                 "synchronous (it times the jobs, and synchronous runs are deterministic)")
     keyframes: Literal["auto", "detected", "tracked"] = Field(
         "detected", description="keyframes mode: how keyframes are made while the camera tracks. detected = the 2HR "
         "detector and descriptor matching on every keyframe (the paper's design); tracked = from the optical-flow "

@@ -174,8 +174,8 @@ class FoxgloveClient:
     """A Foxglove WebSocket client on its own thread: it subscribes to every channel the server advertises and
     counts the messages of each topic (and keeps the latest one). For tests, the bench and quick checks.
 
-    A subscription the server refuses with "Unknown channel ID" (see :data:`CLIENT_HOLD_S`) is sent again after a moment,
-    and counted in :attr:`resubscribed`."""
+    A subscription the server refuses with "Unknown channel ID" (see :data:`CLIENT_HOLD_S`) is sent again after a
+    moment, and counted in :attr:`resubscribed`."""
 
     def __init__(self, url: str, subprotocol: str = "foxglove.websocket.v1", timeout: float = 10.0) -> None:
         # the protocol's name in its spec is "foxglove.websocket.v1"; foxglove-sdk 0.30 calls it "foxglove.sdk.v1"

@@ -69,7 +69,7 @@ def benchmark_detector(image: np.ndarray, models: Sequence[str] = DEFAULT_MODELS
         size = network_size(width, height, scale)
         sparse = R2D2Network(model, threads)
         dense = R2D2Network(model, threads, sparse_descriptors=False)
-        detector = R2D2Detector(DetectorConfig(model=model, input_scale=scale, threads=threads))
+        detector = R2D2Detector(DetectorConfig(model=model, input_scale=scale, threads=threads, latency_budget_ms=None))
         times = _interleaved_ms({"sparse": lambda net=sparse, size=size: net(image, size),
                                  "dense": lambda net=dense, size=size: net(image, size),
                                  "detect": lambda det=detector: det.detect(image)}, runs)

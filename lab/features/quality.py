@@ -236,7 +236,7 @@ def feature_table(sequence: RGBDSequence, methods: Sequence[str] = tuple(METHODS
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown methods {unknown}; choose from {list(METHODS)}")
-    conf = conf or DetectorConfig()
+    conf = conf or DetectorConfig(latency_budget_ms=None)
     extract = _Extractors(methods, conf)  # first, so that a bad model fails before any work
     geometry = SequenceGeometry.of(sequence)
     pairs = [(a, b) for a, b in plan_pairs(len(sequence), deltas, step, start, stop)
@@ -395,7 +395,7 @@ def kmeans_study(sequence: RGBDSequence, base: DetectorConfig | None = None, del
                  step: int = 10, start: int = 0, stop: int | None = None, threshold: float = 3.0,
                  grid: dict[str, list[float]] = STUDY_GRID, progress: bool = True) -> StudyResult:
     """Score every setting of ``grid`` (one parameter changed at a time from ``base``) on the same frame pairs."""
-    base = base or DetectorConfig()
+    base = base or DetectorConfig(latency_budget_ms=None)
     network = R2D2Network(base.model, base.threads)
     geometry = SequenceGeometry.of(sequence)
     pairs = [(a, b) for a, b in plan_pairs(len(sequence), deltas, step, start, stop)

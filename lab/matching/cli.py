@@ -32,7 +32,8 @@ def _detector_conf(args: argparse.Namespace):
     """The ``detector`` section of the pipeline config: defaults, then --config, then --set."""
     from twohr.config import load_config
 
-    return load_config(args.config, args.set).detector
+    # keypoints at input_scale on any machine (no latency budget): the study's figures are the matcher's
+    return load_config(args.config, args.set).detector.model_copy(update={"latency_budget_ms": None})
 
 
 def _split_conf(args: argparse.Namespace):

@@ -16,7 +16,7 @@ def held_out_cache(dev_sequence, tmp_path_factory):
     from twohr_lab.matching.data import KeypointCache
     from twohr_services.detector.core import build_detector
 
-    conf = DetectorConfig()
+    conf = DetectorConfig(latency_budget_ms=None)  # input_scale on any machine
     cache = KeypointCache(RGBDSequence(dev_sequence), conf, tmp_path_factory.mktemp("matcher_cache"))
     cache.fill(HELD_OUT_FRAMES, build_detector(conf), progress=False)
     return cache

@@ -16,7 +16,9 @@ the same interface.
 
 from __future__ import annotations
 
+import logging
 import threading
+import time
 from bisect import bisect_right
 from dataclasses import dataclass
 from functools import cache
@@ -28,6 +30,8 @@ import onnxruntime as ort
 from twohr.config import DetectorConfig
 from twohr.features import Keypoints
 from twohr.models import ORT_PROVIDERS, Network, model_path, ort_session, resolve_backend
+
+log = logging.getLogger("twohr.detector")
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
@@ -150,6 +154,17 @@ def select_keypoints(reliability: np.ndarray, repeatability: np.ndarray, conf: D
 def network_size(width: int, height: int, scale: float) -> tuple[int, int]:
     """Network input (width, height): the image scaled by ``scale`` and rounded to even numbers."""
     return max(2, int(round(width * scale / 2)) * 2), max(2, int(round(height * scale / 2)) * 2)
+
+
+def choose_input_scale(latency_ms: float, measured_at: float, budget_ms: float, largest: float,
+                       smallest: float, step: float = 0.125) -> float:
+    """The largest of ``largest``, ``largest - step``, ... down to ``smallest`` whose latency fits ``budget_ms``,
+    predicted from ``latency_ms`` timed at scale ``measured_at`` by the pixel count (a convolutional network's cost
+    grows with it: here within 4 % of the timed latency from 0.5 to 0.75); ``smallest`` when none fits."""
+    scale = largest
+    while scale - step >= smallest - 1e-9 and latency_ms * (scale / measured_at) ** 2 > budget_ms:
+        scale -= step
+    return scale
 
 
 # ----------------------------------------------------------------------------- R2D2 network
@@ -381,12 +396,36 @@ class R2D2Detector:
             raise ValueError(f"R2D2Detector builds 2hr or r2d2 features, not {self.conf.features!r}")
         self.network = R2D2Network(self.conf.model, self.conf.threads, backend=self.conf.backend,
                                    precision=self.conf.precision)
+        self.input_scales: dict[tuple[int, int], float] = {}
+        """image (width, height) -> the input scale chosen for it (see ``latency_budget_ms``)"""
+
+    def input_scale(self, rgb: np.ndarray) -> float:
+        """The network's input scale for images the size of ``rgb``: ``input_scale``, or with a latency budget the
+        scale chosen by timing the network on ``rgb`` the first time this size is seen (about 3 runs)."""
+        height, width = rgb.shape[:2]
+        if (width, height) not in self.input_scales:
+            scale = self.conf.input_scale
+            if self.conf.latency_budget_ms is not None and scale > self.conf.min_input_scale:
+                size = network_size(width, height, scale)
+                self.network(rgb, size)  # compiles for the size
+                timed = []
+                for _ in range(2):
+                    t0 = time.perf_counter()
+                    self.network(rgb, size)
+                    timed.append((time.perf_counter() - t0) * 1000)
+                scale = choose_input_scale(min(timed), scale, self.conf.latency_budget_ms, scale,
+                                           self.conf.min_input_scale)
+                log.info("%s at %dx%d: %.0f ms at input scale %g, %g chosen for the %.0f ms budget",
+                         self.conf.model, width, height, min(timed), self.conf.input_scale, scale,
+                         self.conf.latency_budget_ms)
+            self.input_scales[(width, height)] = scale
+        return self.input_scales[(width, height)]
 
     def detect(self, rgb: np.ndarray) -> Keypoints:
         """Keypoints of an RGB uint8 image, in its pixel coordinates, best score first."""
         check_image(rgb)
         height, width = rgb.shape[:2]
-        maps = self.network(rgb, network_size(width, height, self.conf.input_scale))
+        maps = self.network(rgb, network_size(width, height, self.input_scale(rgb)))
         return self.keypoints_from_maps(maps, (width, height))
 
     def keypoints_from_maps(self, maps: R2D2Maps, image_size: tuple[int, int]) -> Keypoints:

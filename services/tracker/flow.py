@@ -159,6 +159,7 @@ class FrameTracker:
         self.frames_since_keyframe = 0
         # (grayscale image, observations xy, landmark ids) of the latest keyframes, to find lost landmarks again
         self._recent_keyframes: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._reacquire_turn = 0  # which of the recent keyframes reacquisition starts with (in turn while tracking)
         self.latest_keyframe: tuple[np.ndarray, int] | None = None
         """(grayscale image, keyframe id) of the latest keyframe, to check new corners against"""
 
@@ -243,7 +244,12 @@ class FrameTracker:
         found_xy, found = [np.zeros((0, 2), np.float32)], [np.zeros(0, np.int64)]
         taken = set(tracked.tolist())
         height, width = gray.shape[:2]
-        for gray_kf, xy_kf, landmark_kf in reversed(self._recent_keyframes):
+        keyframes = self._recent_keyframes[::-1]  # newest first
+        if self.motion.lost_frames == 0 and len(keyframes) > self.conf.flow_reacquire_per_frame:
+            self._reacquire_turn = (self._reacquire_turn + 1) % len(keyframes)
+            keyframes = (keyframes[self._reacquire_turn:] + keyframes[:self._reacquire_turn])[
+                :self.conf.flow_reacquire_per_frame]
+        for gray_kf, xy_kf, landmark_kf in keyframes:
             todo = self.usable[landmark_kf] & ~np.isin(landmark_kf, list(taken))
             if self.motion.lost_frames == 0:
                 # only landmarks the prediction puts in view: the flow could not keep the others (it costs the

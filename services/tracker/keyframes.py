@@ -241,6 +241,8 @@ class KeyframePipeline:
         self._number = -1  # of the latest frame
         self._job_number = 0  # of the latest keyframe job
         self._anchor = -1  # the latest keyframe taken: new frames' poses are kept relative to it
+        self._stamp = 0.0  # of the latest frame (camera time)
+        self._rest_until = -np.inf  # camera time before which a tracking camera asks for no keyframe job
 
     def _dynamic_mask(self, numbered: tuple[int, Frame]) -> tuple[int, np.ndarray, int]:
         """YOLO worker: the dynamic mask of one frame (the frames after it reuse it, see :meth:`_mask`)."""
@@ -295,6 +297,9 @@ class KeyframePipeline:
             return
         if update.timings and update.timings["detector"] > 0:
             self._detector_ms = [*self._detector_ms, update.timings["detector"]][-5:]
+        if update.kind in ("2hr", "tracked") and update.timings and not self.config.pipeline.synchronous:
+            job_s = (update.timings["detector"] + update.timings["yolo"] + update.timings["mapping"]) / 1000
+            self._rest_until = self._stamp + job_s * (1 / self.config.pipeline.keyframe_duty - 1)
         if update.kind == "tracked" and update.keyframe_id >= 0 and self._job_frame is not None:
             self._to_detect = (update.keyframe_id, self._job_frame, update.mask)  # the latest one wins
         if update.loop_query is not None and self._loop is None:
@@ -355,6 +360,7 @@ class KeyframePipeline:
         """Track one frame; hand it to the mapping worker when the map should grow and the worker is free."""
         t0 = time.perf_counter()
         self._number += 1
+        self._stamp = frame.stamp
         update = self._collect(self.mapping)
         ms_waited = 0.0
         if update is None and not self.live and self.mapping.busy and (
@@ -373,7 +379,9 @@ class KeyframePipeline:
         else:
             self.record.add(frame.stamp, result.pose, result.tracked, self._anchor, self.frames.keyframe_poses)
         ms_detector = 0.0
-        wants = self.frames.wants_keyframe(result)
+        # a tracking camera lets the keyframe worker rest (pipeline.keyframe_duty); a lost one asks at once
+        wants = self.frames.wants_keyframe(result) and not (result.status == "tracking"
+                                                            and frame.stamp < self._rest_until)
         tracks = None
         if result.status == "tracking" and self.tracked_keyframes:
             tracks = (self.frames.track_xy.copy(), self.frames.track_landmark.copy())

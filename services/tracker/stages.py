@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -25,6 +25,8 @@ class Stages:
     """frame -> (the frame's dynamic mask, True = moving; how many dynamic objects), or None = no masking"""
     match: Callable[[Frame, np.ndarray, np.ndarray], Matches]
     """(frame, its descriptors, the map's descriptors) -> Matches"""
+    chosen: dict[str, float] = field(default_factory=dict)
+    """settings the stages chose for this camera at warm-up (the detector's input scale), for the run's summary"""
 
 
 @dataclass

@@ -18,6 +18,7 @@ from twohr_services.detector.core import (
     R2D2Network,
     SIFTDetector,
     build_detector,
+    choose_input_scale,
     kmeans_1d,
     local_maxima,
     network_size,
@@ -192,7 +193,7 @@ def real_frame(dev_sequence):
 
 @pytest.fixture(scope="module")
 def default_keypoints(real_frame):
-    return R2D2Detector().detect(real_frame)
+    return R2D2Detector(DetectorConfig(latency_budget_ms=None)).detect(real_frame)  # input_scale 0.75 anywhere
 
 
 def test_2hr_on_a_real_frame(real_frame, default_keypoints):
@@ -275,20 +276,46 @@ def test_half_scale_keypoints_are_in_original_pixels(real_frame, default_keypoin
     assert np.median(distance) < 3.0
 
 
+def test_the_input_scale_is_the_largest_whose_predicted_latency_fits():
+    assert choose_input_scale(100, 0.75, 200, 0.75, 0.5) == 0.75
+    assert choose_input_scale(280, 0.75, 200, 0.75, 0.5) == 0.625  # 194 ms predicted at 0.625
+    assert choose_input_scale(300, 0.75, 200, 0.75, 0.5) == 0.5  # 208 ms at 0.625, 133 at 0.5
+    assert choose_input_scale(2000, 0.75, 200, 0.75, 0.5) == 0.5  # none fits: the smallest
+    assert choose_input_scale(300, 0.75, 200, 0.75, 0.55) == 0.625  # the ladder stops above the floor
+    assert choose_input_scale(50, 0.5, 200, 1.0, 0.5) == 1.0  # timed at 0.5: 200 ms predicted at 1.0
+
+
+def test_a_latency_budget_chooses_the_input_scale_once_per_image_size(real_frame):
+    small = np.ascontiguousarray(real_frame[:240, :320])
+    tight = R2D2Detector(DetectorConfig(latency_budget_ms=1e-3))
+    keypoints = tight.detect(small)
+    assert tight.input_scales == {(320, 240): 0.5}
+    assert len(keypoints) > 20 and keypoints.xy[:, 0].max() > 240  # in image pixels, not the 160x120 network's
+    tight.detect(real_frame)
+    assert tight.input_scales == {(320, 240): 0.5, (640, 480): 0.5}
+    loose = R2D2Detector(DetectorConfig(latency_budget_ms=1e6))
+    fixed = R2D2Detector(DetectorConfig(latency_budget_ms=None, input_scale=0.625))
+    for detector in (loose, fixed):
+        detector.detect(small)
+    assert loose.input_scales == {(320, 240): 0.75} and fixed.input_scales == {(320, 240): 0.625}
+    half = R2D2Detector(DetectorConfig(input_scale=0.5)).detect(small)  # the scale the tight budget chose
+    assert np.array_equal(half.xy, keypoints.xy)
+
+
 def test_subpixel_keypoints_follow_a_shifted_image(real_frame):
     """Shift the image by 2 px: at input_scale 0.75 that is 1.5 network pixels, so grid keypoints move by 1 or 2
     network pixels (1.33 or 2.67 px) while refined ones should move by about the true 2 px."""
     shifted = np.ascontiguousarray(np.roll(real_frame, 2, axis=1))
     errors = {}
     for subpixel in (False, True):
-        detector = R2D2Detector(DetectorConfig(subpixel=subpixel))
+        detector = R2D2Detector(DetectorConfig(subpixel=subpixel, latency_budget_ms=None))
         before, after = detector.detect(real_frame), detector.detect(shifted)
         distance, nearest = nearest_neighbours(before.xy + np.float32([2, 0]), after.xy)
         same = (distance < 1.5) & (before.xy[:, 0] > 20)
         assert same.sum() > 200
         errors[subpixel] = np.median(np.abs(after.xy[nearest[same], 0] - before.xy[same, 0] - 2.0))
         if subpixel:
-            grid = R2D2Detector(DetectorConfig(subpixel=False)).detect(real_frame)
+            grid = R2D2Detector(DetectorConfig(subpixel=False, latency_budget_ms=None)).detect(real_frame)
             offset = np.abs(before.xy - grid.xy[nearest_neighbours(before.xy, grid.xy)[1]])
             assert offset.max() <= 0.5 * 640 / 480 + 1e-3 and np.median(offset) > 0.05
     assert errors[True] < 0.6 * errors[False]
@@ -342,8 +369,9 @@ def test_every_backend_gives_the_same_keypoints(real_frame, backend):
     has them (f32; a GPU's f16 within a pixel)."""
     if backend not in available_backends():
         pytest.skip(f"{backend} is not available here: it needs {WHAT_IT_NEEDS[backend]}")
-    reference = R2D2Detector(DetectorConfig(backend="onnxruntime")).detect(real_frame)
-    keypoints = R2D2Detector(DetectorConfig(backend=backend, precision="f32")).detect(real_frame)
+    reference = R2D2Detector(DetectorConfig(backend="onnxruntime", latency_budget_ms=None)).detect(real_frame)
+    keypoints = R2D2Detector(DetectorConfig(backend=backend, precision="f32", latency_budget_ms=None)).detect(
+        real_frame)
     assert len(reference) > 300 and 0.95 < len(keypoints) / len(reference) < 1.05
     distance, nearest = nearest_neighbours(keypoints.xy, reference.xy)
     close = distance <= 1.0

@@ -70,7 +70,7 @@ def test_the_pose_graph_spreads_a_loop_correction_along_the_path():
 
 STRESS = {  # a local map of one keyframe: revisits are not re-found by tracking, so only loop closing joins them
     "tracker.local_map_keyframes": 1, "tracker.keyframe_revisit_min_inliers": 0, "pipeline.synchronous": True,
-    "yolo.enabled": False}
+    "yolo.enabled": False, "detector.latency_budget_ms": None}
 
 
 def test_loops_on_real_frames_are_found_verified_and_closed(dev_sequence, tmp_path, monkeypatch):
