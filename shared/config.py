@@ -33,9 +33,9 @@ class DetectorConfig(Section):
                                "the largest scale latency_budget_ms may choose")
     latency_budget_ms: float | None = Field(
         200.0, gt=0, description="choose the input scale on the first image of each size: the largest of "
-        "input_scale, input_scale - 1/8, ... down to min_input_scale whose latency (timed at input_scale, scaled by "
-        "the pixel count) fits this budget, so that a slow CPU keeps its keyframe jobs short (200 ms: a keyframe job "
-        "within about max_keyframe_lag frames at 30 Hz); None = always input_scale")
+        "input_scale, input_scale - 1/8, ... down to min_input_scale whose latency (timed at min_input_scale, scaled "
+        "by the pixel count) fits this budget, so that a slow CPU keeps its keyframe jobs short (200 ms: a keyframe "
+        "job within about max_keyframe_lag frames at 30 Hz); None = always input_scale")
     min_input_scale: float = Field(0.5, gt=0, le=2, description="the smallest input scale latency_budget_ms may "
                                    "choose (on the dev frames, ATE grew by a third at 0.375)")
     backend: Literal["auto", "tensorrt", "cuda", "openvino-gpu", "openvino", "onnxruntime"] = Field(
@@ -152,11 +152,10 @@ class TrackerConfig(Section):
     flow_reacquire_keyframes: int = Field(3, ge=0, description="when tracks run short, look for the landmarks "
                                           "of this many latest keyframes again by flow from the keyframe's image")
     flow_reacquire_below: int = Field(100, ge=0, description="tracks run short below this many flowed tracks")
-    flow_reacquire_per_frame: int = Field(3, ge=1, description="while tracking, look again in this many of those "
-                                          "keyframes per frame, taking them in turn (all of them while lost): "
-                                          "each costs two Lucas-Kanade passes, the per-frame path's largest cost; "
-                                          "on the dev frames 1 took the per-frame path from 22 to 15 ms but raised "
-                                          "ATE by about a tenth")
+    flow_reacquire_backoff: int = Field(4, ge=0, description="a landmark that reacquisition did not find is tried "
+                                        "again only this many frames later (on the dev frames 96 % of the tries "
+                                        "failed, mostly behind people, at two Lucas-Kanade passes each); 0 = on "
+                                        "every frame")
     flow_max_tracks: int = Field(600, ge=16, description="follow at most this many landmarks per frame")
     reanchor_lagging_frames: bool = Field(True, description="when a keyframe job returns, the frames tracked while "
                                           "it ran keep their flow motion relative to the keyframe's new pose in the "

@@ -66,6 +66,20 @@ class MapUpdate:
     """(M, 2) landmark ids a closed loop fused: (retired duplicate, the landmark that replaces it)"""
 
 
+@dataclass
+class RecentKeyframe:
+    """A recent keyframe whose landmarks reacquisition looks for again (:meth:`FrameTracker._reacquire`)."""
+
+    gray: np.ndarray
+    """its grayscale image"""
+    xy: np.ndarray
+    """(M, 2) float32 its observations of landmarks"""
+    landmark: np.ndarray
+    """(M,) their landmark ids"""
+    retry_at: np.ndarray
+    """(M,) the frame number from which each may be tried again (after a try that did not find it)"""
+
+
 def flow_points(source: np.ndarray, target: np.ndarray, xy: np.ndarray, guess: np.ndarray,
                 conf: TrackerConfig) -> tuple[np.ndarray, np.ndarray]:
     """Track points ``xy`` of grayscale image ``source`` into ``target`` by pyramidal Lucas-Kanade, starting
@@ -157,9 +171,10 @@ class FrameTracker:
         self.track_landmark = np.zeros(0, np.int64)
         self.previous: np.ndarray | None = None  # the previous frame's grayscale image
         self.frames_since_keyframe = 0
-        # (grayscale image, observations xy, landmark ids) of the latest keyframes, to find lost landmarks again
-        self._recent_keyframes: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-        self._reacquire_turn = 0  # which of the recent keyframes reacquisition starts with (in turn while tracking)
+        self._recent_keyframes: list[RecentKeyframe] = []  # to find lost landmarks again
+        self._frame_number = 0
+        self.reacquisition = {"tried": 0, "found": 0}
+        """landmarks reacquisition looked for, and found, so far"""
         self.latest_keyframe: tuple[np.ndarray, int] | None = None
         """(grayscale image, keyframe id) of the latest keyframe, to check new corners against"""
 
@@ -195,6 +210,7 @@ class FrameTracker:
         self.motion.advance(stamp, result.pose)
         self.previous = gray
         self.frames_since_keyframe += 1
+        self._frame_number += 1
         result.timings = {"total": (time.perf_counter() - start) * 1000}
         result.num_landmarks = len(self.track_landmark)
         return result
@@ -244,13 +260,10 @@ class FrameTracker:
         found_xy, found = [np.zeros((0, 2), np.float32)], [np.zeros(0, np.int64)]
         taken = set(tracked.tolist())
         height, width = gray.shape[:2]
-        keyframes = self._recent_keyframes[::-1]  # newest first
-        if self.motion.lost_frames == 0 and len(keyframes) > self.conf.flow_reacquire_per_frame:
-            self._reacquire_turn = (self._reacquire_turn + 1) % len(keyframes)
-            keyframes = (keyframes[self._reacquire_turn:] + keyframes[:self._reacquire_turn])[
-                :self.conf.flow_reacquire_per_frame]
-        for gray_kf, xy_kf, landmark_kf in keyframes:
+        for keyframe in reversed(self._recent_keyframes):  # newest first
+            landmark_kf = keyframe.landmark
             todo = self.usable[landmark_kf] & ~np.isin(landmark_kf, list(taken))
+            todo &= keyframe.retry_at <= self._frame_number  # not one that failed a moment ago
             if self.motion.lost_frames == 0:
                 # only landmarks the prediction puts in view: the flow could not keep the others (it costs the
                 # same per point, found or not, and this runs on every frame while tracks are short)
@@ -258,8 +271,12 @@ class FrameTracker:
                 todo &= (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= width - 1) & (uv[:, 1] <= height - 1)
             if not todo.any():
                 continue
-            xy_kf, landmark_kf = xy_kf[todo], landmark_kf[todo]
-            xy, ok = flow_points(gray_kf, gray, xy_kf, self._flow_start(T_guess, landmark_kf, xy_kf), self.conf)
+            xy_kf, landmark_kf = keyframe.xy[todo], landmark_kf[todo]
+            xy, ok = flow_points(keyframe.gray, gray, xy_kf, self._flow_start(T_guess, landmark_kf, xy_kf),
+                                 self.conf)
+            keyframe.retry_at[np.flatnonzero(todo)[~ok]] = self._frame_number + self.conf.flow_reacquire_backoff
+            self.reacquisition["tried"] += len(ok)
+            self.reacquisition["found"] += int(ok.sum())
             found_xy.append(xy[ok])
             found.append(landmark_kf[ok])
             taken.update(landmark_kf[ok].tolist())
@@ -309,7 +326,8 @@ class FrameTracker:
                 return np.array([rename.get(i, i) for i in ids.tolist()], np.int64)
 
             self.track_landmark = renamed(self.track_landmark)
-            self._recent_keyframes = [(gray, xy, renamed(ids)) for gray, xy, ids in self._recent_keyframes]
+            for keyframe in self._recent_keyframes:
+                keyframe.landmark = renamed(keyframe.landmark)
         keep = self.usable[self.track_landmark]
         self.track_xy, self.track_landmark = self.track_xy[keep], self.track_landmark[keep]
         new_map = found or (update.keyframe_id >= 0 and update.result.status in ("init", "reinitialised"))
@@ -330,8 +348,9 @@ class FrameTracker:
         if update.keyframe_id >= 0 and update.gray is not None:
             self.latest_keyframe = (update.gray, update.keyframe_id)
             observed = self.usable[update.seeds_landmark]
-            self._recent_keyframes = [*self._recent_keyframes, (update.gray, update.seeds_xy[observed].astype(
-                np.float32), update.seeds_landmark[observed])][-self.conf.flow_reacquire_keyframes:]
+            self._recent_keyframes = [*self._recent_keyframes, RecentKeyframe(
+                update.gray, update.seeds_xy[observed].astype(np.float32), update.seeds_landmark[observed],
+                np.zeros(int(observed.sum()), np.int64))][-self.conf.flow_reacquire_keyframes:]
         room = max(0, self.conf.flow_max_tracks - len(self.track_landmark))
         self.track_xy = np.concatenate([self.track_xy, xy[:room].astype(np.float32)])
         self.track_landmark = np.concatenate([self.track_landmark, landmark[:room]])

@@ -50,6 +50,28 @@ def test_synchronous_runs_are_deterministic(synthetic_sequence):
     np.testing.assert_array_equal(first.online.poses, second.online.poses)
 
 
+def test_landmarks_reacquisition_missed_wait_before_they_are_tried_again(synthetic_sequence):
+    """tracker.flow_reacquire_backoff: a landmark that reacquisition did not find (the occluder covers it) is tried
+    again only that many frames later: far fewer tries, each two Lucas-Kanade passes, and as good a trajectory."""
+    sequence = RGBDSequence(synthetic_sequence)
+    static = evaluate(sequence.ground_truth(), static_trajectory(sequence.stamps))[0].ate.rmse
+    tries, ate = {}, {}
+    for backoff in (0, 4):
+        # reacquisition on every frame, not only when the tracks run short
+        config = _synthetic_config(**{"tracker.flow_reacquire_below": 10_000,
+                                      "tracker.flow_reacquire_backoff": backoff})
+        schedule = KeyframePipeline(config, sequence.camera, local_stages(config, sequence.camera))
+        for frame in sequence.frames():
+            schedule.process(frame)
+        schedule.finish()
+        tries[backoff] = schedule.frames.reacquisition
+        ate[backoff] = evaluate(sequence.ground_truth(), schedule.trajectory())[0].ate.rmse
+    missed = {backoff: count["tried"] - count["found"] for backoff, count in tries.items()}
+    assert missed[0] > 1000 and missed[4] < 0.6 * missed[0], tries  # here 4453 -> 1938
+    assert tries[4]["found"] > 0.9 * tries[0]["found"], tries  # here 6379 -> 6260
+    assert ate[4] < static / 3 and ate[4] < 1.2 * ate[0] + 0.002, (ate, static)
+
+
 class SlowStage:
     """A real network stage behind a fixed delay: a stand-in for an overloaded CPU or a larger network."""
 
