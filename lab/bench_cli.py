@@ -36,7 +36,7 @@ def _bench(args: argparse.Namespace) -> int:
         report["live"] = rows
         table = live.format_table(rows)
         if args.soak:
-            report["soak"] = live.soak_summary(rows[0])
+            report["soak"] = live.soak_summary(rows[0], args.soak)
             table += f"\n\nsoak: {json.dumps(report['soak'])}"
         (out / "live.md").write_text(f"{stamp_line(args.argv)}\n\n{table}\n")
         print(table)
@@ -100,7 +100,10 @@ def _bench(args: argparse.Namespace) -> int:
         report["throughput"] = result
         print(f"{result['frames']} frames x {result['runs']} runs: {result['fps_median']} FPS "
               f"(ORB baseline {result['baseline_fps_median']} FPS, ratio {result['speed_ratio_to_baseline']}); "
-              f"peak RSS {result['peak_rss_mib']} MiB; ATE median {result['ate_rmse_median']} m")
+              f"peak RSS {result['peak_rss_mib']} MiB"
+              + (f" ({result['peak_rss_mib_with_orbslam3']} MiB once ORB-SLAM3 ran in this process)"
+                 if "peak_rss_mib_with_orbslam3" in result else "")
+              + f"; ATE median {result['ate_rmse_median']} m")
         orbslam3 = result["orbslam3"]
         if isinstance(orbslam3, dict):
             print(f"ORB-SLAM3 RGB-D (pyorbslam3): {orbslam3['ms_per_frame_median']} ms/frame; ours/ORB-SLAM3 "

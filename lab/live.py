@@ -195,8 +195,11 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def soak_summary(row: dict, warmup_minutes: float = 5.0, window_minutes: float = 5.0) -> dict:
-    """RSS growth of each service after ``warmup_minutes``, and the FPS of the first and last ``window_minutes``."""
+def soak_summary(row: dict, minutes: float) -> dict:
+    """RSS growth of each service after a warm-up, and the FPS of the first and last window, in a soak of
+    ``minutes``: warm-up and windows are a fifth of it, at most 5 minutes (and at least 1 for the windows)."""
+    warmup_minutes = min(5.0, minutes / 5)
+    window_minutes = max(1, min(5, int(minutes // 5)))
     growth = {}
     for name, samples in row["rss_mib"].items():
         later = [v for t, v in samples if t >= warmup_minutes * 60]

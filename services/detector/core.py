@@ -160,7 +160,8 @@ def choose_input_scale(latency_ms: float, measured_at: float, budget_ms: float, 
                        smallest: float, step: float = 0.125) -> float:
     """The largest of ``largest``, ``largest - step``, ... down to ``smallest`` whose latency fits ``budget_ms``,
     predicted from ``latency_ms`` timed at scale ``measured_at`` by the pixel count (a convolutional network's cost
-    grows with it: here within 4 % of the timed latency from 0.5 to 0.75); ``smallest`` when none fits."""
+    grows with it: here within 4 % of the timed latency from 0.5 to 0.75); the last step above ``smallest`` when
+    none fits."""
     scale = largest
     while scale - step >= smallest - 1e-9 and latency_ms * (scale / measured_at) ** 2 > budget_ms:
         scale -= step

@@ -360,6 +360,8 @@ class KeyframePipeline:
         """Track one frame; hand it to the mapping worker when the map should grow and the worker is free."""
         t0 = time.perf_counter()
         self._number += 1
+        if frame.stamp < self._stamp:  # the camera's clock went back (a driver restarted): no rest owed in it
+            self._rest_until = -np.inf
         self._stamp = frame.stamp
         update = self._collect(self.mapping)
         ms_waited = 0.0
