@@ -43,11 +43,12 @@ def _detector_conf(args: argparse.Namespace):
     from twohr.errors import ConfigError, validation_problems
 
     conf = load_config(args.config, args.set).detector
+    flags = {"model": args.model, "input_scale": args.input_scale, "threads": args.threads}
     # a study runs the network at input_scale on any machine (no latency budget): its figures are the features'
-    flags = {"model": args.model, "input_scale": args.input_scale, "threads": args.threads, "latency_budget_ms": None}
+    fixed_scale = {"latency_budget_ms": None}
     try:
-        return DetectorConfig.model_validate(conf.model_dump() | {k: v for k, v in flags.items()
-                                                                   if v is not None or k == "latency_budget_ms"})
+        return DetectorConfig.model_validate(conf.model_dump() | {k: v for k, v in flags.items() if v is not None}
+                                             | fixed_scale)
     except ValidationError as exc:
         raise ConfigError(f"invalid detector option: {validation_problems(exc)}") from None
 
