@@ -289,9 +289,10 @@ class LoopClosingConfig(Section):
     max_shared_landmarks: float = Field(0.1, ge=0, le=1, description="a candidate whose part of the map already "
                                         "holds more than this share of the keyframe's landmarks is joined already")
     min_inliers: int = Field(60, ge=6, description="RANSAC PnP inliers a loop needs against its candidate")
-    max_view_change_m: float = Field(0.3, gt=0, description="a verified loop puts the keyframe at most this far "
+    # 0.25 m and 12 deg keep a margin below "the same place" (0.3 m, 15 deg): the gate reads drifted estimates
+    max_view_change_m: float = Field(0.25, gt=0, description="a verified loop puts the keyframe at most this far "
                                      "from its candidate (m): the same place, not the same landmarks seen from afar")
-    max_view_change_deg: float = Field(15.0, gt=0, description="the same, as the angle between their views (deg)")
+    max_view_change_deg: float = Field(12.0, gt=0, description="the same, as the angle between their views (deg)")
     chain_sigma_m: float = Field(0.01, gt=0, description="pose graph: standard deviation of a chain edge (m)")
     chain_sigma_rad: float = Field(0.01, gt=0, description="pose graph: standard deviation of a chain edge (rad)")
     unjoined_sigma_m: float = Field(1.0, gt=0, description="pose graph: standard deviation (m) of the step to a "
