@@ -257,15 +257,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_demo)
 
 
-#: A closed loop whose two keyframes' ground-truth poses are further apart than this is a false accept (issue 27).
-FALSE_LOOP_M, FALSE_LOOP_DEG = 0.3, 15.0
-
-
 def loops_against_ground_truth(loops: list[dict], ground_truth) -> dict:
     """Each closed loop's two keyframes compared on the ground truth (``gt_distance_m``, ``gt_angle_deg`` added
-    to its entry), and how many are false accepts (further apart than 0.3 m or 15 degrees)."""
+    to its entry), and how many are false accepts (not the same place: ``SAME_PLACE_M``, ``SAME_PLACE_DEG``)."""
     import numpy as np
 
+    from twohr.config import SAME_PLACE_DEG, SAME_PLACE_M
     from twohr.trajectory import interpolate_poses
 
     from .tracker.optim import pose_difference
@@ -277,5 +274,5 @@ def loops_against_ground_truth(loops: list[dict], ground_truth) -> dict:
             continue
         metres, degrees = pose_difference(poses[0], poses[1])
         loop.update(gt_distance_m=round(metres, 3), gt_angle_deg=round(degrees, 2))
-        false_accepts += metres > FALSE_LOOP_M or degrees > FALSE_LOOP_DEG
+        false_accepts += metres > SAME_PLACE_M or degrees > SAME_PLACE_DEG
     return {"false_accepts": false_accepts}

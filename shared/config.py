@@ -273,6 +273,11 @@ class RuntimeConfig(Section):
     prefetch: int = Field(4, ge=1, le=64, description="frames read and decoded ahead on a background thread")
 
 
+#: Two keyframes whose ground-truth poses are further apart than this are not the same place: a loop between them
+#: is a false accept (issue 27).
+SAME_PLACE_M, SAME_PLACE_DEG = 0.3, 15.0
+
+
 class LoopClosingConfig(Section):
     """Loop closing (the tracker's ``loops`` worker): place recognition with a trained vocabulary
     (``twohr vocab train``), verification by RANSAC PnP, then a pose graph, landmark fusion and bundle adjustment."""
@@ -289,7 +294,7 @@ class LoopClosingConfig(Section):
     max_shared_landmarks: float = Field(0.1, ge=0, le=1, description="a candidate whose part of the map already "
                                         "holds more than this share of the keyframe's landmarks is joined already")
     min_inliers: int = Field(60, ge=6, description="RANSAC PnP inliers a loop needs against its candidate")
-    # 0.25 m and 12 deg keep a margin below "the same place" (0.3 m, 15 deg): the gate reads drifted estimates
+    # 0.25 m and 12 deg keep a margin below SAME_PLACE_M and SAME_PLACE_DEG: the gate reads drifted estimates
     max_view_change_m: float = Field(0.25, gt=0, description="a verified loop puts the keyframe at most this far "
                                      "from its candidate (m): the same place, not the same landmarks seen from afar")
     max_view_change_deg: float = Field(12.0, gt=0, description="the same, as the angle between their views (deg)")

@@ -15,8 +15,8 @@ import shutil
 import time
 from pathlib import Path
 
+from twohr.config import SAME_PLACE_DEG, SAME_PLACE_M
 from twohr.paths import DEV_SEQUENCE
-from twohr_services.pipeline_cli import FALSE_LOOP_DEG, FALSE_LOOP_M
 
 from ..stamp import provenance
 
@@ -146,7 +146,7 @@ def _eval(args: argparse.Namespace) -> int:
 
 
 def _same(difference: tuple[float, float]) -> bool:
-    return difference[0] <= FALSE_LOOP_M and difference[1] <= FALSE_LOOP_DEG
+    return difference[0] <= SAME_PLACE_M and difference[1] <= SAME_PLACE_DEG
 
 
 def register(sub: argparse._SubParsersAction) -> None:
