@@ -160,6 +160,11 @@ class TrackerConfig(Section):
     reanchor_lagging_frames: bool = Field(True, description="when a keyframe job returns, the frames tracked while "
                                           "it ran keep their flow motion relative to the keyframe's new pose in the "
                                           "trajectory, instead of to the previous keyframe (no spike per keyframe)")
+    refine_frames: int = Field(3000, ge=0, description="the refined trajectory re-measures the pose of each of "
+                               "the latest this many frames tracked by flow against the landmarks as the final "
+                               "bundle adjustment left them, from the tracks the frame was tracked with (about 4 kB "
+                               "a frame kept: 3000 = 100 s at 30 Hz); older frames, and all with 0, keep their pose "
+                               "relative to their keyframe")
     smoothing_acceleration: float = Field(1.0, ge=0, description="the refined trajectory (not the online poses) is "
                                           "smoothed under a white-noise acceleration model; the camera's "
                                           "acceleration and the pose noise are measured from the trajectory, the "

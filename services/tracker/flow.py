@@ -251,7 +251,9 @@ class FrameTracker:
         reason = f"{num_inliers} inliers of {len(xy)} flowed tracks"
         if counts["num_with_depth"] == 0:
             reason += " (no depth: tracked from 2-D flow only)"
-        return TrackResult(stamp, pose, "tracking", num_inliers=num_inliers, reason=reason, **counts)
+        return TrackResult(stamp, pose, "tracking", num_inliers=num_inliers, reason=reason,
+                           observed_xy=self.track_xy, observed_landmarks=self.track_landmark,
+                           observed_depth=z[inliers], **counts)
 
     def _reacquire(self, gray: np.ndarray, T_guess: np.ndarray, tracked: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Find landmarks of the latest keyframes again that the flow has lost (a person walked past them):

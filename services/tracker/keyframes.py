@@ -39,7 +39,7 @@ from .map import Map, MapSnapshot
 from .optim import sample_depth
 from .places import Vocabulary, vocabulary_path
 from .stages import FrameStats, KeyframeLog, Stages
-from .trajectory import AnchoredTrajectory, TrackResult
+from .trajectory import AnchoredTrajectory, FrameObservations, TrackResult
 
 log = logging.getLogger("twohr.keyframes")
 
@@ -379,7 +379,8 @@ class KeyframePipeline:
         if in_given_map:  # no pose before the camera is found in a given map
             result = TrackResult(frame.stamp, np.eye(4), "relocalising", reason="looking for the camera in the map")
         else:
-            self.record.add(frame.stamp, result.pose, result.tracked, self._anchor, self.frames.keyframe_poses)
+            self.record.add(frame.stamp, result.pose, result.tracked, self._anchor, self.frames.keyframe_poses,
+                            FrameObservations.of(result))
         ms_detector = 0.0
         # a tracking camera lets the keyframe worker rest (pipeline.keyframe_duty); a lost one asks at once
         wants = self.frames.wants_keyframe(result) and not (result.status == "tracking"
@@ -466,4 +467,4 @@ class KeyframePipeline:
 
     def trajectory(self) -> Trajectory:
         """Every frame's pose, re-attached to its keyframe as bundle adjustment left it."""
-        return self.record.trajectory(self.map.keyframe_poses)
+        return self.record.trajectory(self.map.keyframe_poses, self.map.snapshot(), self.map.K)

@@ -17,6 +17,9 @@ from twohr.config import TrackerConfig
 from twohr.geometry import invert_pose
 from twohr.trajectory import Trajectory, interpolate_poses, smooth_trajectory
 
+from .map import MapSnapshot
+from .optim import observation_errors, refine_pose
+
 #: Statuses whose pose was measured (the others coast on the motion model or wait for a first frame).
 TRACKED_STATUSES = ("init", "tracking", "relocalised", "reinitialised")
 #: Statuses with no pose at all: the camera has yet to be found in a map it was given (nothing is published).
@@ -51,6 +54,8 @@ class TrackResult:
     """(M, 2) keypoints of this frame matched to a landmark (inliers of the pose), when tracked"""
     observed_landmarks: np.ndarray | None = None
     """(M,) the landmark id of each of those keypoints"""
+    observed_depth: np.ndarray | None = None
+    """(M,) their measured depth (m; 0 = none), where the pose was measured from optical-flow tracks"""
 
     @property
     def tracked(self) -> bool:
@@ -97,6 +102,46 @@ def bridge_coasted(trajectory: Trajectory, measured: np.ndarray, max_gap_s: floa
     return Trajectory(trajectory.stamps, out)
 
 
+@dataclass
+class FrameObservations:
+    """The landmarks a frame's pose was measured from: image positions, landmark ids and depths (0 = none)."""
+
+    xy: np.ndarray
+    landmark: np.ndarray
+    depth: np.ndarray
+
+    @classmethod
+    def of(cls, result: TrackResult) -> FrameObservations | None:
+        """A tracked result's inlier observations, compactly (None where it carries no depths)."""
+        if result.observed_depth is None or not result.tracked:
+            return None
+        return cls(result.observed_xy.astype(np.float32), result.observed_landmarks.astype(np.int32),
+                   result.observed_depth.astype(np.float32))
+
+
+def remeasure_pose(K: np.ndarray, pose: np.ndarray, observed: FrameObservations, positions: np.ndarray,
+                   usable: np.ndarray, conf: TrackerConfig) -> np.ndarray | None:
+    """A frame's camera-to-world ``pose`` measured again from ``observed`` against landmark ``positions`` (after
+    bundle adjustment): robust refinement from ``pose``, the inliers re-classified and refined once more. None where
+    fewer than ``min_inliers`` remain or the pose would move more than ``max_jump_m`` (the map changed under it)."""
+    ids = observed.landmark.astype(np.int64)
+    ok = ids < len(positions)
+    ok[ok] = usable[ids[ok]]
+    points, xy, depth = positions[ids[ok]], observed.xy[ok].astype(np.float64), observed.depth[ok].astype(np.float64)
+    if len(points) < conf.min_inliers:
+        return None
+    T_cw = refine_pose(K, invert_pose(pose), points, xy, depth, conf.depth_noise, conf.huber_px)
+    reprojection, depth_error = observation_errors(K, T_cw, points, xy, depth, conf.depth_noise)
+    inliers = (reprojection < conf.ransac_reprojection_px) & (depth_error < conf.ransac_reprojection_px)
+    if inliers.sum() < conf.min_inliers:
+        return None
+    T_cw = refine_pose(K, T_cw, points[inliers], xy[inliers], depth[inliers], conf.depth_noise, conf.huber_px)
+    remeasured = invert_pose(T_cw)
+    if np.linalg.norm(remeasured[:3, 3] - pose[:3, 3]) > conf.max_jump_m:
+        return None
+    return remeasured
+
+
 def smoothed(trajectory: Trajectory, conf: TrackerConfig) -> Trajectory:
     """The refined trajectory under the motion smoother (``smoothing_acceleration``; 0 = as it is). Hand-held
     and robot cameras move smoothly at camera rate, while each frame's pose carries its own few millimetres of
@@ -126,6 +171,9 @@ class AnchoredTrajectory:
         self.anchors = array("q")
         self._relative = array("d")  # the top 3x4 of each frame's pose relative to its anchor, row after row
         self.measured = array("b")  # 0 where the pose only coasted on the motion model
+        self.observed: dict[int, FrameObservations] = {}
+        """frame number -> what its pose was measured from, for the latest ``refine_frames`` frames tracked by flow
+        (oldest first; keyframes leave it, bundle adjustment refines their poses)"""
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -137,9 +185,14 @@ class AnchoredTrajectory:
         poses[:, :3] = top
         return poses
 
-    def add(self, stamp: float, pose: np.ndarray, measured: bool, anchor: int, keyframe_poses: np.ndarray) -> None:
+    def add(self, stamp: float, pose: np.ndarray, measured: bool, anchor: int, keyframe_poses: np.ndarray,
+            observed: FrameObservations | None = None) -> None:
         """Record one frame's camera-to-world ``pose``, relative to keyframe ``anchor`` (-1: none yet) as
-        ``keyframe_poses`` has it now."""
+        ``keyframe_poses`` has it now, and what it was measured from (see ``refine_frames``)."""
+        if observed is not None and self.conf.refine_frames > 0:
+            self.observed[len(self.stamps)] = observed
+            if len(self.observed) > self.conf.refine_frames:
+                del self.observed[next(iter(self.observed))]
         self.stamps.append(stamp)
         self.anchors.append(anchor)
         relative = pose if anchor < 0 else invert_pose(keyframe_poses[anchor]) @ pose
@@ -161,16 +214,25 @@ class AnchoredTrajectory:
                     self.anchors[i + 1:] = array("q", [keyframe_id] * (len(self.stamps) - i - 1))
                 self.anchors[i] = keyframe_id
                 relative[i] = np.eye(4)[:3]
+                self.observed.pop(i, None)
                 self.measured[i] = measured
                 del relative  # the arrays cannot grow while a view of them is alive
                 return
             if self.stamps[i] < stamp:
                 return
 
-    def trajectory(self, keyframe_poses: np.ndarray) -> Trajectory:
-        """Every frame's pose re-attached to its keyframe in ``keyframe_poses`` (as bundle adjustment left them),
-        coasted gaps bridged where asked, then smoothed (:func:`smoothed`)."""
+    def trajectory(self, keyframe_poses: np.ndarray, landmarks: MapSnapshot | None = None,
+                   K: np.ndarray | None = None) -> Trajectory:
+        """Every frame's pose re-attached to its keyframe in ``keyframe_poses`` (as bundle adjustment left them);
+        with the map's ``landmarks`` and camera matrix ``K``, the frames kept in :attr:`observed` re-measured against
+        them (:func:`remeasure_pose`); coasted gaps bridged where asked, then smoothed (:func:`smoothed`)."""
         trajectory = reattach_to_keyframes(self.stamps, self.anchors, self.relative(), keyframe_poses)
+        if landmarks is not None and self.observed:
+            for i, observed in self.observed.items():
+                remeasured = remeasure_pose(K, trajectory.poses[i], observed, landmarks.landmark_positions,
+                                            landmarks.landmark_usable, self.conf)
+                if remeasured is not None:
+                    trajectory.poses[i] = remeasured
         if self.bridge_gaps:
             trajectory = bridge_coasted(trajectory, np.asarray(self.measured, bool))
         return smoothed(trajectory, self.conf)
