@@ -370,13 +370,17 @@ def session_latency(bus, gateway_url: str, sequence_name: str, frames: int = 60,
     with lock:
         mine = sorted(((t, p) for t, p in received if p.session_id == session_id), key=lambda tp: tp[0])
     latencies = [1000 * (t - p.frame_sent_at) for t, p in mine]
-    span = mine[-1][0] - min(p.frame_sent_at for _, p in mine) if mine else float("nan")
+    # throughput once the session runs: the first pose waits for the first map (and a replay at a rate waits for
+    # it before it plays on), which first_pose_s reports apart
+    span = mine[-1][0] - mine[0][0] if len(mine) > 1 else float("nan")
+    first_pose_s = mine[0][0] - min(p.frame_sent_at for _, p in mine) if mine else None
     sent = int(info.get("frames_sent") or frames)  # "frames" in the session info counts poses received
     return {"session": info, "frames": len(mine), "frame_indices": [p.frame_index for _, p in mine],
             "rate": rate, "dropped_percent": round(100 * (1 - len({p.frame_index for _, p in mine}) / max(1, sent)), 2),
             "latency_ms": {"p50": round(float(np.percentile(latencies, 50)), 1) if mine else None,
                            "p99": round(float(np.percentile(latencies, 99)), 1) if mine else None},
-            "fps": round(len(mine) / span, 3) if mine else 0.0}
+            "fps": round((len(mine) - 1) / span, 3) if len(mine) > 1 else 0.0,
+            "first_pose_s": round(first_pose_s, 2) if first_pose_s is not None else None}
 
 
 def bus_latency(sequence_root, config_overrides: dict, frames: int = 60, rate: float = 0.0,
@@ -420,4 +424,4 @@ def bus_latency(sequence_root, config_overrides: dict, frames: int = 60, rate: f
 
 def latency_summary(result: dict) -> dict:
     """The numbers of a :func:`session_latency` result, without the per-frame detail."""
-    return {k: result[k] for k in ("frames", "rate", "dropped_percent", "latency_ms", "fps")}
+    return {k: result[k] for k in ("frames", "rate", "dropped_percent", "latency_ms", "fps", "first_pose_s")}

@@ -73,7 +73,8 @@ def _bench(args: argparse.Namespace) -> int:
             "zenoh": {"fps_median": float(np.median([r["fps"] for r in bus_runs])),
                       "latency_p50_median": float(np.median([r["latency_ms"]["p50"] for r in bus_runs])),
                       "latency_p99_median": float(np.median([r["latency_ms"]["p99"] for r in bus_runs])),
-                      "dropped_percent_median": float(np.median([r["dropped_percent"] for r in bus_runs]))},
+                      "dropped_percent_median": float(np.median([r["dropped_percent"] for r in bus_runs])),
+                      "first_pose_s_median": float(np.median([r["first_pose_s"] or np.nan for r in bus_runs]))},
         }
         print(json.dumps(report["bus"], indent=2))
     elif args.view:
@@ -135,7 +136,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--view", action="store_true", help="CPU time per frame with the Foxglove live view (twohr run "
                    "--view, one viewer subscribed to every channel) against the same run without it")
     p.add_argument("--bus", action="store_true", help="frame->pose latency and FPS over Zenoh (twohr up as local "
-                   "processes) against in-process, same frames and config (--set overrides go to both)")
+                   "processes) against in-process, same frames and config (--set overrides go to both); FPS counts "
+                   "from the first pose to the last, and first_pose_s is the wait for the first map (a replay at "
+                   "--rate plays on once its first frame is answered)")
     p.add_argument("--gateway", default=None, metavar="URL",
                    help="with --bus: measure the system already running behind this gateway (e.g. the compose "
                    "stack, http://127.0.0.1:8080) instead of starting twohr up; its data root must hold --sequence")

@@ -66,6 +66,10 @@ class Pacer:
         self.t0_wall: float | None = None
         self.t0_stamp = 0.0
 
+    def restart(self) -> None:
+        """The next frame is due at once; the ones after it at the rate from there."""
+        self.t0_wall = None
+
     def wait(self, stamp: float, stop: threading.Event | None = None) -> None:
         if self.rate <= 0:
             return

@@ -3,7 +3,9 @@ relays frames that any camera driver publishes on ``twohr/<robot>/camera``.
 
 Flow control: at ``rate`` 0 the source plays as fast as the pipeline keeps up, keeping at most
 ``window`` frames in flight (sent but not yet answered by a pose); at ``rate`` > 0 it plays in
-(scaled) real time and the services' queues decide what is dropped.
+(scaled) real time and the services' queues decide what is dropped, once the first frame is answered: like a robot
+that waits for its first map before it moves, the replay does not count the session's start-up (the first
+keyframe, on a network that may be compiled and timed for it) as frames dropped.
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ from .core import Pacer, frame_payloads
 
 #: a camera session's status reports the frames relayed so far every this many frames
 RELAY_STATUS_EVERY = 15
+#: a paced replay waits at most this long for its first frame's answer before it plays on regardless
+FIRST_ANSWER_TIMEOUT_S = 15.0
 
 
 @dataclass
@@ -109,6 +113,11 @@ class SourceService(Service):
 
         def pace(stamp: float) -> None:
             if control.rate > 0:
+                if playback.sent == 1:  # the camera's clock starts once the first frame is answered
+                    with playback.progress:
+                        playback.progress.wait_for(lambda: playback.answered or playback.stop.is_set(),
+                                                   FIRST_ANSWER_TIMEOUT_S)
+                    pacer.restart()
                 pacer.wait(stamp, playback.stop)
                 return
             with playback.progress:  # credit-based flow control
