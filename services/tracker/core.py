@@ -40,8 +40,8 @@ from .motion import MotionModel
 from .optim import (
     MotionPrior,
     estimate_pose,
+    inliers_of,
     matched_pnp,
-    observation_errors,
     refine_pose,
     sample_depth,
 )
@@ -460,8 +460,7 @@ class Tracker:
         points_w = landmarks.positions[landmark]
         T_cw = refine_pose(self.K, estimate.T_cw, points_w, xy[kp], z[kp], conf.depth_noise, conf.huber_px,
                            prior=estimate.prior)
-        reproj, depth_err = observation_errors(self.K, T_cw, points_w, xy[kp], z[kp], conf.depth_noise)
-        inliers = (reproj < conf.ransac_reprojection_px) & (depth_err < conf.ransac_reprojection_px)
+        inliers = inliers_of(self.K, T_cw, points_w, xy[kp], z[kp], conf.ransac_reprojection_px, conf.depth_noise)
         if inliers.sum() < estimate.num_inliers:
             return estimate
         T_cw = refine_pose(self.K, T_cw, points_w[inliers], xy[kp[inliers]], z[kp[inliers]], conf.depth_noise,

@@ -466,5 +466,6 @@ class KeyframePipeline:
             self.masking.close()
 
     def trajectory(self) -> Trajectory:
-        """Every frame's pose, re-attached to its keyframe as bundle adjustment left it."""
+        """Every frame's pose, re-attached to its keyframe as bundle adjustment left it, the latest frames measured
+        again against the map's landmarks (``tracker.refine_frames``), smoothed."""
         return self.record.trajectory(self.map.keyframe_poses, self.map.snapshot(), self.map.K)

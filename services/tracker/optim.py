@@ -168,6 +168,14 @@ def observation_errors(K: np.ndarray, T_cw: np.ndarray, points_w: np.ndarray, xy
     return reproj, np.abs(res[:, 2])
 
 
+def inliers_of(K: np.ndarray, T_cw: np.ndarray, points_w: np.ndarray, xy: np.ndarray, z_meas: np.ndarray,
+               threshold_px: float, depth_noise: float) -> np.ndarray:
+    """The observations whose reprojection error and depth residual (see :func:`observation_errors`) are both under
+    ``threshold_px``."""
+    reproj, depth_err = observation_errors(K, T_cw, points_w, xy, z_meas, depth_noise)
+    return (reproj < threshold_px) & (depth_err < threshold_px)
+
+
 # ----------------------------------------------------------------------------- PnP and pose refinement
 
 
@@ -281,20 +289,17 @@ def estimate_pose(K: np.ndarray, points_w: np.ndarray, xy: np.ndarray, z_meas: n
         return None, np.zeros(count, bool), f"too few matches ({count} < {min_inliers})"
     if initial is not None:
         T_cw = refine_pose(K, initial, points_w, xy, z_meas, depth_noise, huber, prior=prior)
-        reproj, depth_err = observation_errors(K, T_cw, points_w, xy, z_meas, depth_noise)
-        inliers = (reproj < threshold_px) & (depth_err < threshold_px)
+        inliers = inliers_of(K, T_cw, points_w, xy, z_meas, threshold_px, depth_noise)
         if inliers.sum() >= max(min_inliers, trust_initial * count):
             T_cw = refine_pose(K, T_cw, points_w[inliers], xy[inliers], z_meas[inliers], depth_noise, huber,
                                prior=prior)
-            reproj, depth_err = observation_errors(K, T_cw, points_w, xy, z_meas, depth_noise)
-            return T_cw, (reproj < threshold_px) & (depth_err < threshold_px), ""
+            return T_cw, inliers_of(K, T_cw, points_w, xy, z_meas, threshold_px, depth_noise), ""
     T_cw, inliers = pnp_ransac(K, points_w, xy, threshold_px, ransac_iterations)
     if T_cw is None or inliers.sum() < min_inliers:
         return None, inliers, f"RANSAC found too few inliers ({int(inliers.sum())} of {count} matches)"
     for _ in range(2):
         T_cw = refine_pose(K, T_cw, points_w[inliers], xy[inliers], z_meas[inliers], depth_noise, huber, prior=prior)
-        reproj, depth_err = observation_errors(K, T_cw, points_w, xy, z_meas, depth_noise)
-        inliers = (reproj < threshold_px) & (depth_err < threshold_px)
+        inliers = inliers_of(K, T_cw, points_w, xy, z_meas, threshold_px, depth_noise)
         if inliers.sum() < min_inliers:
             return None, inliers, f"too few inliers after refinement ({int(inliers.sum())} < {min_inliers})"
     return T_cw, inliers, ""

@@ -41,7 +41,8 @@ class Schedule(Protocol):
         """After :meth:`finish`: bundle adjustment over the whole map, which refines :meth:`trajectory`."""
 
     def trajectory(self) -> Trajectory:
-        """Every frame's pose, re-attached to the keyframes as bundle adjustment left them, and smoothed."""
+        """Every frame's pose, re-attached to the keyframes as bundle adjustment left them (in the keyframes
+        schedule, the latest frames also measured again against the refined landmarks), and smoothed."""
 
     def map_snapshot(self, since: int = -1) -> MapSnapshot | None:
         """A copy of the map (landmarks, keyframe poses and stamps) as the per-frame path has it, or None while

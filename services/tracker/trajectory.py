@@ -18,7 +18,7 @@ from twohr.geometry import invert_pose
 from twohr.trajectory import Trajectory, interpolate_poses, smooth_trajectory
 
 from .map import MapSnapshot
-from .optim import observation_errors, refine_pose
+from .optim import inliers_of, refine_pose
 
 #: Statuses whose pose was measured (the others coast on the motion model or wait for a first frame).
 TRACKED_STATUSES = ("init", "tracking", "relocalised", "reinitialised")
@@ -131,8 +131,7 @@ def remeasure_pose(K: np.ndarray, pose: np.ndarray, observed: FrameObservations,
     if len(points) < conf.min_inliers:
         return None
     T_cw = refine_pose(K, invert_pose(pose), points, xy, depth, conf.depth_noise, conf.huber_px)
-    reprojection, depth_error = observation_errors(K, T_cw, points, xy, depth, conf.depth_noise)
-    inliers = (reprojection < conf.ransac_reprojection_px) & (depth_error < conf.ransac_reprojection_px)
+    inliers = inliers_of(K, T_cw, points, xy, depth, conf.ransac_reprojection_px, conf.depth_noise)
     if inliers.sum() < conf.min_inliers:
         return None
     T_cw = refine_pose(K, T_cw, points[inliers], xy[inliers], depth[inliers], conf.depth_noise, conf.huber_px)
