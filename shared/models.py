@@ -160,8 +160,10 @@ def model_path(name: str, kind: str | None = None) -> Path:
     return fetch(name)
 
 
-def session_options(threads: int):
-    """onnxruntime options every twohr network uses: ``threads`` intra-op threads, sequential, fully optimised."""
+def session_options(threads: int, varying_shapes: bool = False):
+    """onnxruntime options every twohr network uses: ``threads`` intra-op threads, sequential, fully optimised.
+    ``varying_shapes``: the inputs change shape from call to call (the matcher's candidate lists), so no memory
+    pattern is planned per shape (onnxruntime keeps one for every shape it saw)."""
     import onnxruntime as ort
 
     options = ort.SessionOptions()
@@ -169,6 +171,7 @@ def session_options(threads: int):
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    options.enable_mem_pattern = not varying_shapes
     return options
 
 
@@ -193,7 +196,8 @@ WHAT_IT_NEEDS = {
 }
 
 
-def ort_session(model: str | bytes, threads: int, backend: str = "onnxruntime", precision: str = "auto"):
+def ort_session(model: str | bytes, threads: int, backend: str = "onnxruntime", precision: str = "auto",
+                varying_shapes: bool = False):
     """An onnxruntime session for a model file path or serialised model bytes, on ``backend``'s execution
     providers (:data:`ORT_PROVIDERS`; TensorRT in fp16 unless ``precision`` is ``f32``); raises
     :class:`ModelError` when a GPU backend fell back to the CPU."""
@@ -206,16 +210,16 @@ def ort_session(model: str | bytes, threads: int, backend: str = "onnxruntime", 
         providers[0] = ("TensorrtExecutionProvider", {"trt_engine_cache_enable": True,
                                                       "trt_engine_cache_path": str(engines),
                                                       "trt_fp16_enable": precision != "f32"})
-    session = ort.InferenceSession(model, session_options(threads), providers=providers)
+    session = ort.InferenceSession(model, session_options(threads, varying_shapes), providers=providers)
     if session.get_providers()[0] != ORT_PROVIDERS[backend][0]:
         raise ModelError(f"backend {backend}: onnxruntime fell back to {session.get_providers()[0]}; it needs "
                          f"{WHAT_IT_NEEDS[backend]}")
     return session
 
 
-def cpu_session(model: str | bytes, threads: int):
-    """An onnxruntime CPU session for a model file path or serialised model bytes."""
-    return ort_session(model, threads, "onnxruntime")
+def cpu_session(model: str | bytes, threads: int, varying_shapes: bool = False):
+    """An onnxruntime CPU session for a model file path or serialised model bytes (see :func:`session_options`)."""
+    return ort_session(model, threads, "onnxruntime", varying_shapes=varying_shapes)
 
 
 @cache

@@ -58,7 +58,7 @@ def _check_descriptors(desc_a: np.ndarray, desc_b: np.ndarray) -> None:
 
 @cache
 def _session(path: str, threads: int) -> ort.InferenceSession:
-    return cpu_session(path, threads)
+    return cpu_session(path, threads, varying_shapes=True)  # candidate lists differ in length on every call
 
 
 def knn_candidates(desc_a: np.ndarray, desc_b: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
