@@ -112,8 +112,9 @@ class FrameObservations:
 
     @classmethod
     def of(cls, result: TrackResult) -> FrameObservations | None:
-        """A tracked result's inlier observations, compactly (None where it carries no depths)."""
-        if result.observed_depth is None or not result.tracked:
+        """A result's inlier observations, compactly (None unless optical flow tracked it: only then are depths
+        kept)."""
+        if result.observed_depth is None:
             return None
         return cls(result.observed_xy.astype(np.float32), result.observed_landmarks.astype(np.int32),
                    result.observed_depth.astype(np.float32))
