@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -127,19 +126,13 @@ class Mapper:
     def _detected_keyframe(self, job: KeyframeJob) -> MapUpdate:
         frame = job.frame
         t0 = time.perf_counter()
-        if self.stages.dynamic_mask is None:
-            keypoints = kept = self.stages.detect(frame)
-            t1 = t2 = time.perf_counter()
-        else:
-            # the keyframe's own mask, found while the detector runs (both networks release the GIL; over the bus
-            # they are two services): the job, and so the map's lag behind the camera, is YOLO's time shorter
-            with ThreadPoolExecutor(1, thread_name_prefix="keyframe-mask") as pool:
-                masking = pool.submit(self.stages.dynamic_mask, frame)
-                keypoints = self.stages.detect(frame)
-                t1 = time.perf_counter()
-                mask, _ = masking.result()
+        keypoints = self.stages.detect(frame)
+        t1 = time.perf_counter()
+        kept = keypoints
+        if self.stages.dynamic_mask is not None:
+            mask, _ = self.stages.dynamic_mask(frame)
             kept = drop_masked(keypoints, mask)
-            t2 = time.perf_counter()
+        t2 = time.perf_counter()
         tracker = self.tracker
         prediction = job.pose if tracker.initialised else None
         result = tracker.track(frame.stamp, kept, frame.depth, prediction=prediction, force_keyframe=True,
