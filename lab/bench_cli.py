@@ -74,7 +74,8 @@ def _bench(args: argparse.Namespace) -> int:
                       "latency_p50_median": float(np.median([r["latency_ms"]["p50"] for r in bus_runs])),
                       "latency_p99_median": float(np.median([r["latency_ms"]["p99"] for r in bus_runs])),
                       "dropped_percent_median": float(np.median([r["dropped_percent"] for r in bus_runs])),
-                      "first_pose_s_median": float(np.median([r["first_pose_s"] or np.nan for r in bus_runs]))},
+                      "first_pose_s_median": float(np.median([np.nan if r["first_pose_s"] is None else r["first_pose_s"]
+                                                               for r in bus_runs]))},
         }
         print(json.dumps(report["bus"], indent=2))
     elif args.view:
