@@ -7,13 +7,16 @@
 #
 # Steps, each skipped when it is not needed:
 #   1. no engine answers: install Debian's docker.io, docker-compose and debootstrap (as root) and
-#      start `dockerd --storage-driver=vfs --iptables=false --bridge=none` in the background;
+#      start `dockerd --storage-driver=D --iptables=false --bridge=none` in the background, D being
+#      overlay2 where this kernel mounts an overlay on Docker's disk (a probe mount), else vfs
+#      (TWOHR_DOCKER_STORAGE=vfs|overlay2 chooses);
 #   2. the official python:3.11-slim base cannot be pulled: build twohr-base:bookworm with
 #      debootstrap from the apt mirror and `docker import` it;
 #   3. build twohr:latest from the Dockerfile, trusting the host's CA bundle (the one the host's pip
 #      uses, else the system one) for hosts that reach PyPI through a TLS proxy.
 # CMD sees TWOHR_COMPOSE (the compose command with its -f files: docker-compose.host.yml in place
-# of docker-compose.override.yml when the engine has no bridge network) and TWOHR_BASE_IMAGE.
+# of docker-compose.override.yml when the engine has no bridge network) and TWOHR_BASE_IMAGE, and
+# COMPOSE_HTTP_TIMEOUT (default 600 s: under vfs, creating a container copies the whole image).
 # When no engine can be started the script prints one "SKIP" line and exits 0, so CI stays green
 # on hosts without Docker; any later failure is an error.
 set -euo pipefail
@@ -39,12 +42,35 @@ start_engine() {
             || skip "apt-get could not install docker.io (see $STATE/apt.log)"
     fi
     command -v docker >/dev/null || skip "no docker client after installing docker.io"
-    log "starting dockerd (vfs storage, no bridge); log in $STATE/dockerd.log"
-    dockerd --storage-driver=vfs --iptables=false --bridge=none >"$STATE/dockerd.log" 2>&1 &
-    echo $! >"$STATE/dockerd.pid"
-    for i in $(seq 60); do engine_answers && { log "engine up after ${i} s"; return; }; sleep 1; done
-    stop_engine
+    local driver
+    for driver in $(storage_drivers); do
+        log "starting dockerd ($driver storage, no bridge); log in $STATE/dockerd.log"
+        dockerd --storage-driver="$driver" --iptables=false --bridge=none >"$STATE/dockerd.log" 2>&1 &
+        echo $! >"$STATE/dockerd.pid"
+        for i in $(seq 60); do
+            engine_answers && { log "engine up after ${i} s"; return; }
+            kill -0 "$(cat "$STATE/dockerd.pid")" 2>/dev/null || break
+            sleep 1
+        done
+        log "dockerd with $driver storage did not answer (see $STATE/dockerd.log)"
+        stop_engine
+    done
     skip "dockerd did not answer within 60 s (see $STATE/dockerd.log)"
+}
+
+# overlay2 first where the kernel mounts an overlay on the disk that holds Docker's data: vfs works
+# anywhere but copies the whole image (about 1.2 GB) into every container it creates.
+storage_drivers() {
+    if [ -n "${TWOHR_DOCKER_STORAGE:-}" ]; then echo "$TWOHR_DOCKER_STORAGE"; return; fi
+    local probe=/var/lib/docker/twohr-overlay-probe
+    rm -rf "$probe" && mkdir -p "$probe"/{lower,upper,work,merged}
+    if mount -t overlay overlay -o "lowerdir=$probe/lower,upperdir=$probe/upper,workdir=$probe/work" \
+            "$probe/merged" 2>/dev/null; then
+        umount "$probe/merged"; echo "overlay2 vfs"
+    else
+        echo vfs
+    fi
+    rm -rf "$probe"
 }
 
 stop_engine() {
@@ -113,6 +139,7 @@ build_image() {
 }
 
 up() {
+    export COMPOSE_HTTP_TIMEOUT=${COMPOSE_HTTP_TIMEOUT:-600} DOCKER_CLIENT_TIMEOUT=${DOCKER_CLIENT_TIMEOUT:-600}
     start_engine
     TWOHR_BASE_IMAGE=$(base_image); export TWOHR_BASE_IMAGE
     TWOHR_COMPOSE=$(compose_command); export TWOHR_COMPOSE
@@ -127,5 +154,5 @@ case "${1:-}" in
         trap stop_engine EXIT
         up
         "$@" ;;
-    *) sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//'; [ "${1:-}" = -h ] || [ "${1:-}" = --help ]; exit ;;
+    *) awk 'NR > 1 && !/^#/ {exit} NR > 1' "$0" | sed 's/^# \{0,1\}//'; [ "${1:-}" = -h ] || [ "${1:-}" = --help ]; exit ;;
 esac

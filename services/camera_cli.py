@@ -15,6 +15,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+from twohr.bus import add_router_option
 from twohr.errors import TwohrError
 
 log = logging.getLogger(__name__)
@@ -70,7 +71,7 @@ def replay_payloads(sequence_dir: str, robot: str, rate: float, frames: int | No
 
 def _replay(sequence, robot: str, pacer: RatePacer, frames: int | None, start: int,
             period: float | None) -> Iterator[bytes]:
-    from twohr.ros2.convert import LIVE_SESSION
+    from twohr.keys import LIVE_SESSION
     from twohr_services.source.core import frame_payloads
 
     sent, offset = 0, 0.0
@@ -101,8 +102,8 @@ def _realsense_stream(rs, robot: str, width: int, height: int, fps: int, frames:
     import numpy as np
 
     from twohr.dataset import CameraIntrinsics
+    from twohr.keys import LIVE_SESSION
     from twohr.messages import FrameMsg, encode
-    from twohr.ros2.convert import LIVE_SESSION
 
     pipeline, config = rs.pipeline(), rs.config()
     config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
@@ -179,7 +180,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "time (for soak runs; stop with --frames or Ctrl-C)")
     p.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh client configuration to open the session "
                    "from (default: connect to $TWOHR_ZENOH_ROUTER or tcp/127.0.0.1:7447)")
-    p.add_argument("--router", help="router endpoint to connect to, instead of --zenoh-config")
+    add_router_option(p, help="router endpoint to connect to, instead of --zenoh-config")
     p.add_argument("--width", type=int, default=640, help="RealSense stream width (default 640)")
     p.add_argument("--height", type=int, default=480, help="RealSense stream height (default 480)")
     p.add_argument("--fps", type=int, default=30, help="RealSense frame rate (default 30)")

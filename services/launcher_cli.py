@@ -28,6 +28,8 @@ import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from twohr.bus import add_router_option
+
 PIPELINE_SERVICES = ["source", "detector", "yolo", "matcher", "tracker", "recorder"]
 
 
@@ -321,9 +323,9 @@ def _router(args: argparse.Namespace) -> int:
 
 
 def _health(args: argparse.Namespace) -> int:
-    from twohr.bus import BusConfig, open_session, query_health
+    from twohr.bus import bus_from_args, open_session, query_health
 
-    session = open_session(BusConfig(connect=[args.router]) if args.router else BusConfig())
+    session = open_session(bus_from_args(args))
     try:
         if args.bus_only:
             print("bus ok")
@@ -369,7 +371,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("health", help="ask services for their health counters over the bus (exit 1 if one is silent)")
     p.add_argument("names", nargs="*", help=f"services (default: {' '.join(PIPELINE_SERVICES)})")
-    p.add_argument("--router", default=None, help="Zenoh router endpoint (default $TWOHR_ZENOH_ROUTER)")
+    add_router_option(p)
     p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for each answer")
     p.add_argument("--bus-only", action="store_true", help="only check that the router accepts a session")
     p.set_defaults(func=_health)

@@ -32,6 +32,18 @@ def _env_password() -> SecretStr | None:
     return SecretStr(value) if value else None
 
 
+def add_router_option(parser, help: str = "Zenoh router endpoint to connect to (default $TWOHR_ZENOH_ROUTER)",
+                      **kwargs) -> None:
+    """``--router ENDPOINT``, the one option every process on the bus takes (an ``argparse`` parser)."""
+    parser.add_argument("--router", default=None, metavar="ENDPOINT", help=help, **kwargs)
+
+
+def bus_from_args(args) -> BusConfig:
+    """The :class:`BusConfig` of a process started with :func:`add_router_option`: ``--router`` when given, else
+    the environment's."""
+    return BusConfig(connect=[args.router]) if getattr(args, "router", None) else BusConfig()
+
+
 class RouterSecurity(BaseModel):
     """What a router checks: the ``user:password`` file, the access-control list, and TLS when given."""
 

@@ -13,6 +13,8 @@ MATCH_QUERY = "rpc/match"
 DETECT_QUERY = "rpc/detect"
 DYNAMICS_QUERY = "rpc/dynamics"
 RAW_CAMERA = "camera"
+#: the session id a camera driver puts on frames it publishes; the source relay replaces it with the live session's
+LIVE_SESSION = "live"
 #: every service answers a health query on ``twohr/_health/<name>`` with its counters
 HEALTH_PREFIX = f"{PREFIX}/_health"
 #: every service holds a liveliness token ``twohr/_alive/<name>`` while it is connected

@@ -35,6 +35,11 @@ _DTYPES = {"uint8", "uint16", "int32", "int64", "float32", "float64", "bool"}
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$"
 
 
+#: The world frame of poses: the map's name in a session with a map, '' for the robot's own frame (its first camera).
+FrameId = Annotated[str, Field(description="the world frame: the map's name in a session with a map, '' for the "
+                                           "robot's own frame (its first camera)")]
+
+
 class MessageError(TwohrError):
     """A payload that is not a valid twohr message."""
 
@@ -124,8 +129,7 @@ class PoseMsg(Message):
     is_keyframe: bool = False
     frame_sent_at: float = Field(0.0, description="when the source published the frame, for latency")
     elapsed_ms: dict[str, float] = Field(default_factory=dict)
-    frame_id: str = Field("", description="the frame of the pose: the map's name in a session with a map, '' for the "
-                          "robot's own frame (its first camera)")
+    frame_id: FrameId = ""
 
 
 class LandmarksMsg(Message):
@@ -144,6 +148,7 @@ class PathMsg(Message):
     schema_name: ClassVar[str] = "twohr.Path"
     required_arrays: ClassVar[tuple[str, ...]] = ("stamps", "poses")
     final: bool = False
+    frame_id: FrameId = ""
 
 
 class StatusMsg(Message):

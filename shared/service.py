@@ -28,7 +28,7 @@ from typing import Literal
 import zenoh
 
 from . import keys
-from .bus import BusConfig, open_session
+from .bus import BusConfig, add_router_option, bus_from_args, open_session
 from .config import PipelineConfig
 from .keys import ALIVE_PREFIX, HEALTH_PREFIX
 from .messages import ControlMsg, MessageError, StatusMsg, decode, encode, split
@@ -353,13 +353,19 @@ def declare_publisher(session: zenoh.Session, key: str, wait_for_subscribers: fl
     return publisher
 
 
-def serve(service_cls: type[Service], argv: list[str] | None = None, **kwargs) -> None:
-    """``python -m twohr_services.<name>``: parse ``--router`` and run the service until SIGINT/SIGTERM."""
+def service_parser(name: str, description: str | None = None):
+    """The command line of ``python -m twohr_services.<name>``, with the options every service takes (``--router``);
+    a service adds its own."""
     import argparse
 
-    parser = argparse.ArgumentParser(prog=f"python -m twohr_services.{service_cls.name}",
-                                     description=(service_cls.__doc__ or "").strip())
-    parser.add_argument("--router", default=None, help="Zenoh router endpoint (default $TWOHR_ZENOH_ROUTER)")
-    args = parser.parse_args(argv)
-    bus = BusConfig(connect=[args.router]) if args.router else BusConfig()
-    service_cls(bus, **kwargs).run_forever()
+
+    parser = argparse.ArgumentParser(prog=f"python -m twohr_services.{name}", description=description,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_router_option(parser)
+    return parser
+
+
+def serve(service_cls: type[Service], argv: list[str] | None = None, **kwargs) -> None:
+    """``python -m twohr_services.<name>``: parse the common options and run the service until SIGINT/SIGTERM."""
+    args = service_parser(service_cls.name, (service_cls.__doc__ or "").strip()).parse_args(argv)
+    service_cls(bus_from_args(args), **kwargs).run_forever()

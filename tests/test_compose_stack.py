@@ -92,7 +92,9 @@ def stack(tmp_path_factory, dev_sequence, model_mirror):
     router_port, gateway_port = free_port(), free_port()
     env = {**os.environ, "TWOHR_DATA": str(dev_sequence.parent), "TWOHR_MODELS": str(model_mirror),
            "TWOHR_RECORDINGS": str(recordings), "TWOHR_MAPS": str(maps), "TWOHR_ROUTER_PORT": str(router_port),
-           "TWOHR_GATEWAY_PORT": str(gateway_port), "TWOHR_API_TOKEN": TOKEN}
+           "TWOHR_GATEWAY_PORT": str(gateway_port), "TWOHR_API_TOKEN": TOKEN,
+           # docker-compose's 60 s default is short where creating a container copies the image (vfs)
+           "COMPOSE_HTTP_TIMEOUT": os.environ.get("COMPOSE_HTTP_TIMEOUT", "600")}
     t0 = time.time()
     healthy = False
     try:

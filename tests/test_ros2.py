@@ -315,6 +315,25 @@ def test_a_correction_becomes_map_to_odom_and_moves_the_map_frame_pose():
     assert outputs.robots["r1"].map_odom is None
 
 
+def test_a_session_in_a_named_map_publishes_poses_tf_and_corrections_in_that_maps_frame():
+    outputs = PoseOutputs(Ros2Config(path_every=10))
+    online = [pose.model_copy(update={"frame_id": "lab"}) for pose in poses(12)]
+    for pose in online:
+        out = by_topic(outputs.messages(pose))
+    map_odom, odom_camera = out["/r1/tf"].transforms
+    assert out["/r1/pose"].header.frame_id == "lab" and (map_odom.header.frame_id, map_odom.child_frame_id) == (
+        "lab", "odom")
+    assert out["/r1/odom"].header.frame_id == "odom" and odom_camera.header.frame_id == "odom"
+    fix = make_pose(np.eye(3), [0.0, 0.1, 0.0])
+    path, trajectory = correction_of({5: online_matrix(online[5]), 10: fix @ online_matrix(online[10])}, online)
+    corrected = outputs.corrections(path.model_copy(update={"frame_id": "lab"}), trajectory)[0][1]
+    assert corrected.header.frame_id == "lab" and [p.header.frame_id for p in corrected.poses] == ["lab", "lab"]
+    np.testing.assert_allclose(outputs.robots["r1"].map_odom, fix, atol=1e-12)
+    # a session without a map: the configured map frame
+    plain = outputs.corrections(*correction_of({10: online_matrix(online[10])}, online, robot="r2"))[0][1]
+    assert plain.header.frame_id == "map"
+
+
 def test_robot_state_stays_bounded_and_old_keyframes_do_not_anchor():
     outputs = PoseOutputs(Ros2Config(correction_window=50, path_max_poses=20, path_every=1))
     online = list(poses(400, keyframe_every=1))

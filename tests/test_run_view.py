@@ -1,5 +1,6 @@
 """`twohr run --view`: the in-process pipeline streams to a Foxglove WebSocket client while it runs."""
 
+import csv
 import json
 import subprocess
 import sys
@@ -30,7 +31,11 @@ def test_twohr_run_view_streams_every_channel(dev_sequence, tmp_path, foxglove_l
     for topic in ("/run/camera/image", "/run/camera/calibration", "/run/pose", "/tf"):
         assert counts.get(topic) == 90, (topic, counts)
     assert counts["/run/path"] == 18 and 1 <= counts["/run/map"] < 90, counts
-    assert counts["/run/camera/keypoints"] >= 80 and counts["/run/camera/dynamic_mask"] >= 60, counts
+    assert counts["/run/camera/keypoints"] >= 80, counts
+    # a mask with every frame tracked with one: how many depends on how soon YOLO's first answer came (the load)
+    with open(tmp_path / "run" / "stats.csv", newline="") as fh:
+        masked = sum(int(row["mask_age"]) >= 0 for row in csv.DictReader(fh))
+    assert 1 <= masked and counts["/run/camera/dynamic_mask"] == masked, (masked, counts)
     assert len(client.decode("/run/path").poses) == 86  # sent with every 5th pose
     cloud = client.decode("/run/map")
     assert len(cloud.data) // cloud.point_stride > 100

@@ -1,18 +1,17 @@
 """``python -m twohr_services.gateway``: serve the HTTP control API with uvicorn."""
 
-import argparse
 from pathlib import Path
 
 import uvicorn
 
-from twohr.bus import BusConfig
+from twohr.bus import bus_from_args
+from twohr.service import service_parser
 
 from .app import GatewaySettings, create_app
 
-parser = argparse.ArgumentParser(prog="python -m twohr_services.gateway", description="twohr HTTP gateway")
+parser = service_parser("gateway", "twohr HTTP gateway")
 parser.add_argument("--host", default="127.0.0.1")
 parser.add_argument("--port", type=int, default=8080)
-parser.add_argument("--router", default=None, help="Zenoh router endpoint (default $TWOHR_ZENOH_ROUTER)")
 parser.add_argument("--data-root", action="append", default=None, help="folder sequences may come from (repeatable)")
 parser.add_argument("--recordings", default="recordings", help="folder the recorder writes MCAP files to")
 parser.add_argument("--api-token", default=None, help="require 'Authorization: Bearer TOKEN' on /sessions "
@@ -28,7 +27,7 @@ settings = GatewaySettings(
     recordings=Path(args.recordings),
     **({"api_token": Path(args.api_token_file).read_text().strip()} if args.api_token_file else
        {"api_token": args.api_token} if args.api_token else {}),
-    bus=BusConfig(connect=[args.router]) if args.router else BusConfig(),
+    bus=bus_from_args(args),
     foxglove_host=args.host,
     foxglove_port=args.foxglove_port or None,
     maps=Path(args.maps) if args.maps else None,

@@ -10,16 +10,15 @@ and the session's status says so). At start, files that a killed recorder left u
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
 from pathlib import Path
 
 from twohr import keys
-from twohr.bus import BusConfig
+from twohr.bus import BusConfig, bus_from_args
 from twohr.mcapfile import recover
 from twohr.messages import ControlMsg, PathMsg, decode, split
-from twohr.service import Service
+from twohr.service import Service, service_parser
 
 from .core import RecordingOptions, SessionRecorder
 
@@ -110,8 +109,7 @@ class RecorderService(Service):
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m twohr_services.recorder", description=__doc__)
-    parser.add_argument("--router", default=None, help="Zenoh router endpoint (default $TWOHR_ZENOH_ROUTER)")
+    parser = service_parser("recorder", __doc__)
     parser.add_argument("--recordings", default="recordings", help="folder for the MCAP files")
     parser.add_argument("--max-session-gb", type=float, default=4.0, help="a session's recording ends at this size")
     parser.add_argument("--record-descriptors", action="store_true",
@@ -122,7 +120,7 @@ def main(argv: list[str] | None = None) -> None:
     recordings = Path(args.recordings)
     if problem := unwritable(recordings):
         parser.exit(2, f"recorder: error: {problem}\n")
-    bus = BusConfig(connect=[args.router]) if args.router else BusConfig()
+    bus = bus_from_args(args)
     options = RecordingOptions(record_descriptors=args.record_descriptors, record_frames=args.record_frames)
     RecorderService(bus, recordings, options=options,
                     max_session_bytes=int(args.max_session_gb * (1 << 30))).run_forever()

@@ -26,7 +26,7 @@ import zenoh
 from pydantic import ValidationError
 
 from twohr import keys
-from twohr.bus import BusConfig
+from twohr.bus import BusConfig, bus_from_args
 from twohr.config import read_yaml_mapping
 from twohr.errors import ConfigError, validation_problems
 from twohr.messages import PathMsg, PoseMsg, StatusMsg, decode, encode, path_trajectory
@@ -34,7 +34,7 @@ from twohr.ros2 import msgs
 from twohr.ros2.config import Ros2Config
 from twohr.ros2.convert import CameraAssembler, PoseOutputs, diagnostics
 from twohr.ros2.rmw import Attachment, NodeInfo, make_gid, topic_key, topic_key_any_hash
-from twohr.service import Service, declare_publisher
+from twohr.service import Service, declare_publisher, service_parser
 
 #: the camera input's roles and the message type each is subscribed with
 CAMERA_ROLES: tuple[tuple[str, type[msgs.RosMessage]], ...] = (
@@ -195,9 +195,7 @@ def load_config(args: argparse.Namespace) -> Ros2Config:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m twohr_services.ros2", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--router", default=None, help="Zenoh router endpoint (default $TWOHR_ZENOH_ROUTER)")
+    parser = service_parser("ros2", __doc__)
     parser.add_argument("--config", help="YAML or JSON file with the ros2 settings (a top-level 'ros2' key or not)")
     parser.add_argument("--domain", dest="domain_id", type=int, help="ROS_DOMAIN_ID (default 0)")
     parser.add_argument("--namespace", help="ROS namespace of each robot; {robot} is the robot id (default /{robot})")
@@ -212,6 +210,6 @@ def main(argv: list[str] | None = None) -> None:
         config = load_config(args)
     except ValueError as exc:
         parser.error(str(exc))  # one line, exit code 2
-    bus = BusConfig(connect=[args.router]) if args.router else BusConfig()
+    bus = bus_from_args(args)
     Ros2Service(bus, config).run_forever()
 

@@ -10,19 +10,18 @@ keyframe, on a network that may be compiled and timed for it) as frames dropped.
 
 from __future__ import annotations
 
-import argparse
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from twohr import keys
-from twohr.bus import BusConfig
+from twohr.bus import BusConfig, bus_from_args
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
 from twohr.messages import ControlMsg, FrameMsg, PoseMsg, StatusMsg, decode, encode, split
 from twohr.paths import resolve_under_roots
-from twohr.service import Service
+from twohr.service import Service, service_parser
 
 from .core import Pacer, frame_payloads
 
@@ -150,11 +149,10 @@ class SourceService(Service):
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m twohr_services.source", description=__doc__)
-    parser.add_argument("--router", default=None, help="Zenoh router endpoint (default $TWOHR_ZENOH_ROUTER)")
+    parser = service_parser("source", __doc__)
     parser.add_argument("--data-root", action="append", default=None, help="folder sequences may come from")
     parser.add_argument("--window", type=int, default=2, help="frames in flight at rate 0")
     args = parser.parse_args(argv)
-    bus = BusConfig(connect=[args.router]) if args.router else BusConfig()
+    bus = bus_from_args(args)
     roots = [Path(r) for r in args.data_root] if args.data_root else None
     SourceService(bus, roots, args.window).run_forever()

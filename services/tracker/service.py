@@ -209,7 +209,7 @@ class TrackerService(Service):
             track.schedule.close()
         header = track.last_header
         message = PathMsg(session_id=session_id, robot_id=header.robot_id, frame_index=header.frame_index,
-                          stamp=header.stamp, final=True)
+                          stamp=header.stamp, final=True, frame_id=track.map_name)
         self.publish(keys.key(header.robot_id, "path"), encode(message, path_arrays(refined)))
         config = self.session_configs.get(session_id)
         if config is not None and config.loop_closing.vocabulary:
@@ -336,7 +336,8 @@ class TrackerService(Service):
             self.publish(keys.key(header.robot_id, "landmarks"),
                          encode(LandmarksMsg(**ids), {"points": snapshot.points.astype(np.float32)}))
         keyframes = Trajectory(snapshot.keyframe_stamps, snapshot.keyframe_poses)
-        self.publish(keys.key(header.robot_id, "path"), encode(PathMsg(**ids, final=False), path_arrays(keyframes)))
+        path = PathMsg(**ids, final=False, frame_id=track.map_name)
+        self.publish(keys.key(header.robot_id, "path"), encode(path, path_arrays(keyframes)))
 
     def _publish_pose(self, header: FrameMsg, result: TrackResult, stats: FrameStats, frame_id: str = "") -> None:
         pose = PoseMsg(session_id=header.session_id, robot_id=header.robot_id, frame_index=header.frame_index,

@@ -15,13 +15,12 @@ import numpy as np
 
 from ..dataset import CameraIntrinsics
 from ..geometry import invert_pose, make_pose, quat_to_rot, rot_to_quat
+from ..keys import LIVE_SESSION
 from ..messages import FrameMsg, MessageError, PathMsg, PoseMsg, StatusMsg
 from ..trajectory import Trajectory
 from . import msgs
 from .config import Ros2CameraInput, Ros2Config
 
-#: the session id a camera driver puts on frames it publishes; the source relay replaces it with the live session's
-LIVE_SESSION = "live"
 #: depth units per metre of the frames made from ROS images (16UC1 is millimetres by REP 118)
 ROS_DEPTH_FACTOR = 1000.0
 #: a corrected keyframe and an online pose are the same frame when their stamps are this close (s)
@@ -146,7 +145,7 @@ class PoseOutputs:
         session's end) as one nav_msgs/Path on ``corrected_topic``, in the map frame. A live one (not ``final``)
         of the robot's current session also moves map -> odom: see :meth:`correct`."""
         robot = path.robot_id
-        map_frame = self.config.frame(robot, self.config.map_frame)
+        map_frame = path.frame_id or self.config.frame(robot, self.config.map_frame)  # a named map's own frame
         state = self.robots.get(robot)
         if not path.final and state is not None and state.session_id == path.session_id:
             self.correct(state, trajectory)
