@@ -29,8 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from twohr.bus import add_router_option
-
-PIPELINE_SERVICES = ["source", "detector", "yolo", "matcher", "tracker", "recorder"]
+from twohr.keys import PIPELINE_SERVICES
 
 
 def _die_with_parent() -> None:
@@ -214,7 +213,7 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
         client = open_session(system.bus("client"))
         try:
             optional = ["ros2"] if ros2_domain is not None else []
-            wait_for_services(client, PIPELINE_SERVICES + optional, timeout=timeout)
+            wait_for_services(client, [*PIPELINE_SERVICES, *optional], timeout=timeout)
         finally:
             client.close()
         _wait_http(f"http://{host}:{port}/healthz", timeout)
@@ -330,7 +329,7 @@ def _health(args: argparse.Namespace) -> int:
         if args.bus_only:
             print("bus ok")
             return 0
-        names = args.names or PIPELINE_SERVICES
+        names = args.names or list(PIPELINE_SERVICES)
         answers = {name: query_health(session, name, timeout=args.timeout) for name in names}
     finally:
         session.close()

@@ -5,6 +5,8 @@ from __future__ import annotations
 import re
 
 PREFIX = "twohr"
+#: The services every session's pipeline needs, in the order a stack starts them (the ros2 bridge is optional).
+PIPELINE_SERVICES = ("source", "detector", "yolo", "matcher", "tracker", "recorder")
 #: Data streams every robot publishes.
 STREAMS = ("frames", "keypoints", "dynamics", "matches", "pose", "landmarks", "path", "status")
 #: Control and request keys (not recorded as data streams).

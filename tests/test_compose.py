@@ -7,8 +7,8 @@ from pathlib import Path
 import yaml
 
 from conftest import REPO
+from twohr.keys import PIPELINE_SERVICES
 from twohr_services.cli import build_parser
-from twohr_services.launcher_cli import PIPELINE_SERVICES
 
 COMPOSE = yaml.safe_load((REPO / "docker-compose.yml").read_text())
 

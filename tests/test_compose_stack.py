@@ -19,8 +19,8 @@ import pytest
 from conftest import REPO
 from twohr.bus import BusConfig, free_port, open_session
 from twohr.errors import TwohrError
+from twohr.keys import PIPELINE_SERVICES
 from twohr_lab.bench import latency_summary, session_latency
-from twohr_services.launcher_cli import PIPELINE_SERVICES
 from twohr_services.recorder.core import topic_counts
 
 COMPOSE = os.environ.get("TWOHR_COMPOSE")

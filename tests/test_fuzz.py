@@ -271,7 +271,7 @@ def rss_mb(pid: int) -> float:
 
 def health_of_all(system) -> dict[str, dict | None]:
     from twohr.bus import open_session, query_health
-    from twohr_services.launcher_cli import PIPELINE_SERVICES
+    from twohr.keys import PIPELINE_SERVICES
 
     session = open_session(system.bus("client"))
     try:

@@ -28,13 +28,14 @@ from twohr.bus import BusConfig, query_health
 from twohr.config import PipelineConfig, load_config
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError, validation_problems
+from twohr.keys import PIPELINE_SERVICES
 from twohr.mapfile import MapEntry, MapFileError, MapStore, read_map
 from twohr.mcapfile import is_finalised, partial_marker
 from twohr.models import get_spec
 from twohr.paths import resolve_under_roots
 from twohr.trajectory import tum_text
 
-from .bus import SERVICES, GatewayBus
+from .bus import GatewayBus
 from .page import mount_page
 from .sessions import ACTIVE, MapRequest, PoseOut, Session, SessionInfo, SessionRequest, SessionTable
 
@@ -172,7 +173,7 @@ def create_app(settings: GatewaySettings) -> FastAPI:
     def healthz() -> dict:
         """Gateway liveness plus each service's counters (null when a service does not answer)."""
         zsession = bus.session
-        services = {name: query_health(zsession, name, timeout=0.5) for name in SERVICES} if zsession else {}
+        services = {name: query_health(zsession, name, timeout=0.5) for name in PIPELINE_SERVICES} if zsession else {}
         return {"status": "ok", "services": services}
 
     @app.post("/sessions", status_code=201, response_model=SessionInfo, dependencies=[Depends(require_token)],

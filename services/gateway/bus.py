@@ -16,6 +16,7 @@ from twohr.config import PipelineConfig
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
 from twohr.evaluation import evaluate
+from twohr.keys import PIPELINE_SERVICES
 from twohr.mapfile import MapFileError, MapStore
 from twohr.messages import ControlMsg, MessageError, PathMsg, PoseMsg, StatusMsg, decode, encode, path_trajectory
 from twohr.service import declare_publisher
@@ -26,7 +27,6 @@ from .sessions import Session, SessionTable
 log = logging.getLogger("twohr.gateway")
 
 #: the pipeline services every session needs
-SERVICES = ["source", "detector", "yolo", "matcher", "tracker", "recorder"]
 
 
 class GatewayBus:
@@ -98,7 +98,7 @@ class GatewayBus:
 
     def missing_services(self) -> list[str]:
         """The pipeline services whose liveliness token is not up."""
-        return [name for name in SERVICES if name not in self.alive]
+        return [name for name in PIPELINE_SERVICES if name not in self.alive]
 
     def send_control(self, session: Session, command: str, config: PipelineConfig | None = None) -> None:
         """Publish a start or stop of ``session`` on ``twohr/<robot>/control``. After a stop, the tracker sends the
@@ -178,7 +178,7 @@ class GatewayBus:
             self.alive.add(name)
             return
         self.alive.discard(name)
-        if name in SERVICES:  # an optional service (the ros2 bridge) is not part of a session's pipeline
+        if name in PIPELINE_SERVICES:  # an optional service (the ros2 bridge) is not part of a session's pipeline
             for session in self.table.fail_active(f"the {name} service stopped during the session"):
                 self._fail(session)
 
