@@ -2,8 +2,8 @@
 
     .venv/bin/python -m twohr_lab.architecture --out runs/architecture
 
-A room is ``twohr`` (shared), each service package of ``twohr_services``, the composition root (the
-top-level modules of ``twohr_services``: cli, pipeline, launcher) and each part of ``twohr_lab``.
+A room is ``twohr`` (shared), each service package of ``twohr_services``, the composition root ``twohr_app``
+(app/: the command line, the in-process pipeline, the supervisor) and each part of ``twohr_lab``.
 Writes ``import_graph.md`` (the edges, and the sideways imports between services, which must be none)
 and exits 1 when a service imports another.
 """
@@ -16,12 +16,14 @@ from pathlib import Path
 
 from .stamp import stamp_line
 
-PACKAGES = ("twohr", "twohr_services", "twohr_lab")
+PACKAGES = ("twohr", "twohr_services", "twohr_app", "twohr_lab")
 
 
 def rooms(graph) -> dict[str, list[str]]:
-    """Room name -> its modules. Service packages are rooms; loose top-level modules form the composition root."""
-    out: dict[str, list[str]] = {"twohr": sorted(graph.find_descendants("twohr") | {"twohr"})}
+    """Room name -> its modules: the common library and the composition root are one room each, every service
+    package and every part of the lab is one."""
+    out: dict[str, list[str]] = {top: sorted(graph.find_descendants(top) | {top})
+                                 for top in ("twohr", "twohr_app") if top in graph.modules}
     for top in ("twohr_services", "twohr_lab"):
         if top not in graph.modules:
             continue

@@ -1,6 +1,6 @@
 """``twohr bench``: throughput, per-stage latency and memory of the pipeline, and the ablation table.
 
-A lab study over :mod:`twohr_services.pipeline` (``run_sequence``, the front end). Timings are medians
+A lab study over :mod:`twohr_app.pipeline` (``run_sequence``, the front end). Timings are medians
 over several runs, each against a baseline measured in the same process at the same time (this machine is shared).
 """
 
@@ -21,7 +21,7 @@ from twohr.evaluation import evaluate
 from twohr.machine import machine
 from twohr.models import REPO_ROOT
 from twohr.trajectory import Trajectory
-from twohr_services.pipeline import FrontEnd, StageOutput, run_sequence
+from twohr_app.pipeline import FrontEnd, StageOutput, run_sequence
 
 #: The ablation variants: name -> config overrides on top of the user's config.
 ABLATIONS: dict[str, dict[str, object]] = {
@@ -179,7 +179,7 @@ def view_cost(sequence, config: PipelineConfig, frames: int = 60, start: int = 0
     import sys
 
     from twohr.foxglove_convert import topics
-    from twohr_services.live_run import PipelineLiveView
+    from twohr_app.live_view import PipelineLiveView
 
     stop = min(len(sequence), start + frames)
     cpu_ms: dict[str, list[float]] = {"without_view": [], "with_view": []}
@@ -393,7 +393,7 @@ def bus_latency(sequence_root, config_overrides: dict, frames: int = 60, rate: f
     import tempfile
 
     from twohr.bus import free_port
-    from twohr_services.launcher_cli import start_system
+    from twohr_app.supervisor import start_system
 
     router, port = f"tcp/127.0.0.1:{free_port()}", free_port()
     recordings = tempfile.mkdtemp(prefix="twohr_bench_")

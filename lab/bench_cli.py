@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 
 from twohr.paths import DEV_SEQUENCE
-from twohr_services.pipeline_cli import add_run_options, load_config_and_sequence
+from twohr_app.commands.run import add_run_options, load_config_and_sequence
 
 from .stamp import provenance, stamp_line
 
@@ -49,7 +49,7 @@ def _bench(args: argparse.Namespace) -> int:
             raise ConfigError("--robots takes a count of 1 or more, and more than 1 only without --gateway")
 
         from twohr.config import merge_overrides
-        from twohr_services.pipeline import run_sequence
+        from twohr_app.pipeline import run_sequence
 
         overrides = merge_overrides({}, args.set or [])
         frames = args.frames or 60

@@ -108,7 +108,7 @@ def camera_session(system, client_config: Path, url: str, sequence, robot: str, 
             next_sample = t0
             for _ in range(camera_runs):
                 camera = subprocess.Popen(
-                    [sys.executable, "-m", "twohr_services.cli", "camera", "--replay", str(sequence.root), "--rate",
+                    [sys.executable, "-m", "twohr_app", "camera", "--replay", str(sequence.root), "--rate",
                      "30", "--robot", robot, "--zenoh-config", str(client_config), "--frames", str(per_run),
                      *(["--loop"] if per_run > len(sequence) else [])], stdout=subprocess.DEVNULL)
                 while camera.poll() is None:
@@ -159,9 +159,9 @@ def live_runs(sequence, frames: int, busy_counts: list[int], repeats: int, progr
               camera_runs: int = 1, config_overrides: dict | None = None) -> list[dict]:
     """Start ``twohr up`` once and run :func:`camera_session` ``repeats`` times per busy count (each session with
     ``config_overrides``)."""
-    from twohr.access import write_client_config
     from twohr.bus import free_port
-    from twohr_services.launcher_cli import start_system
+    from twohr_app.access import write_client_config
+    from twohr_app.supervisor import start_system
 
     router, port = f"tcp/127.0.0.1:{free_port()}", free_port()
     with tempfile.TemporaryDirectory(prefix="twohr-live-") as scratch:

@@ -3,7 +3,7 @@
 A process joins the bus as a role (``TWOHR_ZENOH_USER``) with that role's password
 (``TWOHR_ZENOH_PASSWORD``, or a file named by ``TWOHR_ZENOH_PASSWORD_FILE``), or from a whole Zenoh
 client config file (``TWOHR_ZENOH_CONFIG``, as ``twohr up --write-client-config`` writes). The router
-checks both, and its access-control list (``twohr.access``) decides what each role may do.
+checks both, and its access-control list (made by the composition root) decides what each role may do.
 
 Kept light (no numpy or OpenCV): container health checks import only this module."""
 
@@ -132,7 +132,7 @@ def start_router(listen: list[str] | None = None, security: RouterSecurity | Non
     """A Zenoh router inside this process, listening on ``listen`` (default tcp/127.0.0.1:7447); with
     ``security`` it admits only its users and enforces their access-control list. With ``connect`` it links to
     the routers there (retrying until they answer), presenting ``user`` and ``password``: the ``router`` role
-    of their stack (see ``twohr.access``)."""
+    of their stack (see ``twohr_app.access``, which makes them)."""
     return open_session(BusConfig(mode="router", connect=connect or [], listen=listen or [DEFAULT_ROUTER],
                                   user=user, password=password, config_file=None, tls_root_ca=None,
                                   security=security))

@@ -62,7 +62,7 @@ def _write_private(path: Path, text: str) -> None:
 
 def _server_host(args: argparse.Namespace) -> int:
     """The router, the services and the gateway on this host's address; writes what the robot's router needs."""
-    from twohr_services.launcher_cli import start_system
+    from twohr_app.supervisor import start_system
 
     t0 = time.monotonic()
     system = start_system(f"tcp/{SERVER}:{ROUTER_PORT}", [args.data_root], args.recordings, SERVER, GATEWAY_PORT,
@@ -83,8 +83,8 @@ def _robot_router(args: argparse.Namespace) -> int:
     ``--link-timeout``."""
     from pydantic import SecretStr
 
-    from twohr.access import access_control
     from twohr.bus import RouterSecurity, start_router
+    from twohr_app.access import access_control
 
     t0 = time.monotonic()
     security = RouterSecurity(users_file=Path(args.users), access_control=access_control(uplinks=[args.uplink_zid]))
@@ -291,7 +291,7 @@ def hosts(tmp_path_factory, dev_sequence):
     reason = netns_unavailable()
     if reason:
         pytest.skip(f"cannot make network namespaces: {reason}")
-    from twohr.access import Credentials, client_config
+    from twohr_app.access import Credentials, client_config
 
     tmp = tmp_path_factory.mktemp("across_hosts")
     net = Hosts(tmp)
@@ -370,8 +370,8 @@ def gateway(method: str, path: str, hosts, **kwargs):
 def test_a_linked_router_gets_what_a_client_gets_and_its_uplink_the_mirror():
     from pydantic import SecretStr
 
-    from twohr.access import access_control, role_grants, uplink_grants
     from twohr.bus import BusConfig, RouterSecurity
+    from twohr_app.access import access_control, role_grants, uplink_grants
 
     grants = role_grants()
     assert grants["router"] == grants["client"]

@@ -1,5 +1,6 @@
-"""The rooms stay rooms: no service imports another sideways, the runtime never imports the lab, and no
-generated results live inside the services."""
+"""The rooms stay rooms. Imports point one way through four layers, ``twohr`` (shared/) < the service rooms
+(services/) < the composition root (app/) < the lab (lab/); no service imports another sideways; services/ holds
+only service rooms; no generated results live inside the services; functions stay short where people read first."""
 
 from __future__ import annotations
 
@@ -8,6 +9,10 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 SERVICES = REPO / "services"
+#: Each layer may import the layers below it, never one above. Tests are left out: a room's tests may compose it
+#: with others through the composition root (the tracker's tests run the in-process pipeline).
+LAYERS = {"twohr": (0, REPO / "shared"), "twohr_services": (1, SERVICES), "twohr_app": (2, REPO / "app"),
+          "twohr_lab": (3, REPO / "lab")}
 
 
 def imported_modules(source: str, module: str) -> set[str]:
@@ -67,14 +72,68 @@ def test_no_service_imports_another_service():
     assert not problems, problems
 
 
-def test_the_runtime_does_not_import_the_lab():
-    """No service module imports the lab, the command line (services/cli.py) included: the lab adds its
-    subcommands through the ``twohr.commands`` entry-point group."""
-    for path in sorted(SERVICES.rglob("*.py")):
-        if "tests" in path.parts:
+def product_modules():
+    """(package, module name, path) of every module of the four layers, tests left out; a package's
+    ``__init__`` keeps its ``.__init__`` suffix so that its relative imports resolve against the package."""
+    for package, (_, folder) in LAYERS.items():
+        for path in sorted(folder.rglob("*.py")):
+            relative = path.relative_to(folder)
+            if "tests" in relative.parts or "__pycache__" in relative.parts:
+                continue
+            yield package, ".".join([package, *relative.with_suffix("").parts]), path
+
+
+def upward_imports(package: str, module: str, source: str) -> list[str]:
+    """The imports of ``module`` (in layer ``package``) of a module in a higher layer."""
+    rank = LAYERS[package][0]
+    return sorted(name for name in imported_modules(source, module)
+                  if name.split(".")[0] in LAYERS and LAYERS[name.split(".")[0]][0] > rank)
+
+
+def test_the_layer_check_sees_an_upward_import():
+    assert upward_imports("twohr_services", "twohr_services.tracker.core", "from twohr_app.pipeline import x")
+    assert upward_imports("twohr", "twohr.keys", "import twohr_services.tracker")
+    assert upward_imports("twohr_app", "twohr_app.commands.run", "def f():\n    from twohr_lab import bench\n")
+    assert not upward_imports("twohr_app", "twohr_app.commands.run", "from ..pipeline import run_sequence\n"
+                              "from twohr_services.tracker import core\nfrom twohr import keys")
+    assert not upward_imports("twohr_lab", "twohr_lab.bench", "from twohr_app.pipeline import run_sequence")
+
+
+def test_imports_point_one_way_through_the_layers():
+    """shared < services < the composition root < the lab: no service imports the composition root, and nothing
+    at run time imports the lab (it adds its commands through the ``twohr.commands`` entry-point group)."""
+    modules = list(product_modules())
+    assert {package for package, _, _ in modules} == set(LAYERS)
+    problems = [f"{path.relative_to(REPO)} imports {name}" for package, module, path in modules
+                for name in upward_imports(package, module, path.read_text())]
+    assert not problems, problems
+
+
+def test_services_holds_only_service_rooms():
+    """The front door is easy to find: no module lies loose in services/, and the common library keeps no
+    service's own package (the ROS 2 bridge lives in its room)."""
+    loose = [p.name for p in SERVICES.iterdir() if p.is_file() and p.name != "__init__.py"]
+    assert not loose, loose
+    assert all((p / "__init__.py").is_file() for p in SERVICES.iterdir() if p.is_dir() and p.name != "__pycache__")
+
+
+def long_functions(folder: Path, limit: int = 80) -> list[str]:
+    """``path:line name (n lines)`` of every function under ``folder`` longer than ``limit`` lines, tests aside."""
+    found = []
+    for path in sorted(folder.rglob("*.py")):
+        if "tests" in path.relative_to(folder).parts:
             continue
-        module = ".".join(["twohr_services", *path.relative_to(SERVICES).with_suffix("").parts])
-        assert not any(n.split(".")[0] == "twohr_lab" for n in imported_modules(path.read_text(), module)), path
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                length = node.end_lineno - node.lineno + 1
+                if length > limit:
+                    found.append(f"{path.relative_to(REPO)}:{node.lineno} {node.name} ({length} lines)")
+    return found
+
+
+def test_no_function_in_the_gateway_or_the_composition_root_is_longer_than_80_lines():
+    assert long_functions(SERVICES / "tracker", limit=30)  # the check can fail
+    assert not long_functions(SERVICES / "gateway") + long_functions(REPO / "app")
 
 
 def test_no_file_under_services_names_the_lab_package():
@@ -91,7 +150,7 @@ def test_the_lab_still_adds_its_commands():
     import argparse
     from importlib.metadata import entry_points
 
-    from twohr_services.cli import COMMAND_GROUP, build_parser
+    from twohr_app.cli import COMMAND_GROUP, build_parser
 
     assert {entry.name for entry in entry_points(group=COMMAND_GROUP)} >= {"20-bench", "30-features", "40-yolo",
                                                                           "50-matcher"}

@@ -10,7 +10,7 @@ from twohr import keys
 from twohr.bus import open_session
 from twohr.dataset import CAMERA_PRESETS, RGBDSequence
 from twohr.messages import FrameMsg, decode
-from twohr_services.cli import main
+from twohr_app.cli import main
 
 
 def test_replay_publishes_frames_with_intrinsics(bus_config, zenoh_router, dev_sequence, tmp_path):
@@ -44,7 +44,7 @@ def test_replay_publishes_frames_with_intrinsics(bus_config, zenoh_router, dev_s
 
 
 def run_cli(*args):
-    return subprocess.run([sys.executable, "-m", "twohr_services.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "twohr_app", *args], capture_output=True, text=True,
                           timeout=60)
 
 

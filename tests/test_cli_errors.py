@@ -18,7 +18,7 @@ TRUNCATED = 6
 
 
 def twohr(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "twohr_services.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "twohr_app", *args], capture_output=True, text=True,
                           timeout=600)
 
 

@@ -8,7 +8,7 @@ import yaml
 
 from conftest import REPO
 from twohr.keys import PIPELINE_SERVICES
-from twohr_services.cli import build_parser
+from twohr_app.cli import build_parser
 
 COMPOSE = yaml.safe_load((REPO / "docker-compose.yml").read_text())
 

@@ -12,12 +12,12 @@ import pytest
 from pydantic import SecretStr
 
 from twohr import keys
-from twohr.access import access_control, role_grants
 from twohr.bus import BusConfig, free_port, open_session, wait_for_services
 from twohr.errors import TwohrError
 from twohr.messages import ControlMsg, PoseMsg, StatusMsg, encode
 from twohr.trajectory import read_tum
-from twohr_services.launcher_cli import start_system
+from twohr_app.access import access_control, role_grants
+from twohr_app.supervisor import start_system
 from twohr_services.recorder.core import read_messages
 
 TOKEN = "test-token-1"

@@ -207,7 +207,7 @@ ROBOT = "fuzzbot"
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory, dev_sequence):
     from twohr.bus import free_port
-    from twohr_services.launcher_cli import start_system
+    from twohr_app.supervisor import start_system
 
     recordings = tmp_path_factory.mktemp("recordings")
     system = start_system(f"tcp/127.0.0.1:{free_port()}", [str(dev_sequence.parent)], str(recordings), "127.0.0.1",
@@ -288,9 +288,9 @@ def test_malformed_payloads_on_every_key_each_role_may_publish(stack, dev_sequen
     """Each role, with its own credentials, sends every malformed payload on every key it may publish (and asks
     every query it may ask with them). No process dies, every service still answers its health query, and every
     query is answered at once (with an error), not left to time out."""
-    from twohr.access import role_grants
     from twohr.bus import open_session
     from twohr.service import declare_publisher
+    from twohr_app.access import role_grants
 
     system = stack["system"]
     pids = children(system)

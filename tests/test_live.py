@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from twohr.access import write_client_config
 from twohr.bus import BusConfig, free_port, open_session
 from twohr.dataset import RGBDSequence
 from twohr.evaluation import evaluate
 from twohr.service import PER_FRAME_NICE
 from twohr.trajectory import read_tum
-from twohr_services.launcher_cli import start_system
+from twohr_app.access import write_client_config
+from twohr_app.supervisor import start_system
 
 FRAMES = 150
 POSE_TYPE = "geometry_msgs::msg::dds_::PoseStamped_"
@@ -43,7 +43,7 @@ def play_camera(client: httpx.Client, live_stack: dict, dev_sequence, robot: str
     """`twohr camera --replay` at 30 Hz into a running camera session; returns the session's state once the last
     frames' poses are in."""
     camera = subprocess.run(
-        [sys.executable, "-m", "twohr_services.cli", "camera", "--replay", str(dev_sequence), "--rate", "30",
+        [sys.executable, "-m", "twohr_app", "camera", "--replay", str(dev_sequence), "--rate", "30",
          "--robot", robot, "--zenoh-config", str(live_stack["client_config"]), "--frames", str(frames)],
         capture_output=True, text=True, timeout=300)
     assert camera.returncode == 0, camera.stderr

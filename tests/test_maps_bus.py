@@ -18,7 +18,7 @@ from twohr.evaluation import evaluate
 from twohr.mapfile import MapStore, read_map, verify_bytes
 from twohr.messages import PoseMsg, decode
 from twohr.trajectory import Trajectory, read_tum
-from twohr_services.launcher_cli import start_system
+from twohr_app.supervisor import start_system
 
 FAST = {"detector.input_scale": 0.5}
 

@@ -51,7 +51,7 @@ def test_unknown_model_and_wrong_kind():
 
 
 def _twohr(*args, env=None):
-    return subprocess.run([sys.executable, "-m", "twohr_services.cli", *args], capture_output=True, text=True, env=env)
+    return subprocess.run([sys.executable, "-m", "twohr_app", *args], capture_output=True, text=True, env=env)
 
 
 def test_cli_one_line_errors(tmp_path, model_mirror):

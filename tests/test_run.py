@@ -12,12 +12,12 @@ import numpy as np
 from twohr.config import load_config
 from twohr.dataset import RGBDSequence
 from twohr.trajectory import read_tum
-from twohr_services.pipeline import run_sequence
+from twohr_app.pipeline import run_sequence
 
 
 def test_twohr_run_on_a_short_real_segment(dev_sequence, tmp_path):
     out = tmp_path / "run"
-    result = subprocess.run([sys.executable, "-m", "twohr_services.cli", "run", "--sequence", str(dev_sequence),
+    result = subprocess.run([sys.executable, "-m", "twohr_app", "run", "--sequence", str(dev_sequence),
                              "--out", str(out), "--frames", "10", "--set", "detector.input_scale=0.5", "--quiet"],
                             capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr
@@ -52,7 +52,7 @@ def test_bad_frames_are_reported_not_fatal(synthetic_sequence, tmp_path):
 
 
 def test_every_keypoint_masked_is_reported(synthetic_sequence):
-    from twohr_services.pipeline import FrontEnd, StageOutput
+    from twohr_app.pipeline import FrontEnd, StageOutput
 
     seq = RGBDSequence(synthetic_sequence)
     config = load_config(None, {"detector.features": "orb", "matcher.method": "mutual_nn",

@@ -10,13 +10,13 @@ import sys
 import numpy as np
 
 from twohr.trajectory import read_tum
-from twohr_services.run_report import flags_for, frame_flags
+from twohr_app.report import flags_for, frame_flags
 from twohr_services.tracker.stages import FrameStats
 
 
 def test_run_writes_a_linked_html_report(dev_sequence, tmp_path):
     out = tmp_path / "run"
-    result = subprocess.run([sys.executable, "-m", "twohr_services.cli", "run", "--sequence", str(dev_sequence),
+    result = subprocess.run([sys.executable, "-m", "twohr_app", "run", "--sequence", str(dev_sequence),
                              "--out", str(out), "--frames", "60", "--quiet"], capture_output=True, text=True,
                             timeout=600)
     assert result.returncode == 0, result.stderr
@@ -62,7 +62,7 @@ def test_report_without_ground_truth(synthetic_sequence, tmp_path):
     shutil.copytree(synthetic_sequence, copy)
     (copy / "groundtruth.txt").unlink()
     out = tmp_path / "run"
-    result = subprocess.run([sys.executable, "-m", "twohr_services.cli", "run", "--sequence", str(copy), "--out",
+    result = subprocess.run([sys.executable, "-m", "twohr_app", "run", "--sequence", str(copy), "--out",
                              str(out), "--frames", "20", "--quiet", "--set", "yolo.enabled=false", "--set",
                              "detector.features=orb"], capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr

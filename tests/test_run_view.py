@@ -11,7 +11,7 @@ from twohr.bus import free_port
 
 def test_twohr_run_view_streams_every_channel(dev_sequence, tmp_path, foxglove_listener):
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "twohr_services.cli", "run", "--sequence", str(dev_sequence),
+    proc = subprocess.Popen([sys.executable, "-m", "twohr_app", "run", "--sequence", str(dev_sequence),
                              "--out", str(tmp_path / "run"), "--frames", "90", "--quiet", "--view", "--view-port",
                              str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -44,7 +44,7 @@ def test_twohr_run_view_streams_every_channel(dev_sequence, tmp_path, foxglove_l
 
 def test_bench_view_measures_the_live_view_against_the_same_run(dev_sequence, tmp_path):
     out = tmp_path / "bench"
-    result = subprocess.run([sys.executable, "-m", "twohr_services.cli", "bench", "--view", "--sequence",
+    result = subprocess.run([sys.executable, "-m", "twohr_app", "bench", "--view", "--sequence",
                              str(dev_sequence), "--frames", "20", "--runs", "1", "--quiet", "--out", str(out)],
                             capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr

@@ -17,8 +17,8 @@ from twohr.config import load_config
 from twohr.dataset import RGBDSequence
 from twohr.messages import PoseMsg, decode
 from twohr.trajectory import read_tum
-from twohr_services.launcher_cli import start_system
-from twohr_services.pipeline import run_sequence
+from twohr_app.pipeline import run_sequence
+from twohr_app.supervisor import start_system
 from twohr_services.recorder.core import topic_counts
 
 FRAMES = 60

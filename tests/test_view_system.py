@@ -31,7 +31,7 @@ def stack(dev_sequence, tmp_path_factory):
     """`twohr up` as a user starts it, on free ports."""
     recordings = tmp_path_factory.mktemp("view_recordings")
     router, port, fox = f"tcp/127.0.0.1:{free_port()}", free_port(), free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "twohr_services.cli", "up", "--router", router, "--port", str(port),
+    proc = subprocess.Popen([sys.executable, "-m", "twohr_app", "up", "--router", router, "--port", str(port),
                              "--data-root", str(dev_sequence.parent), "--foxglove-port", str(fox), "--recordings",
                              str(recordings)], stdout=subprocess.PIPE, text=True)
     lines = []

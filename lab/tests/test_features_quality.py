@@ -9,6 +9,7 @@ import pytest
 
 from twohr.config import DetectorConfig
 from twohr.dataset import RGBDSequence
+from twohr_app.cli import main
 from twohr_lab.features.bench import benchmark_detector, markdown_bench
 from twohr_lab.features.plots import plot_study
 from twohr_lab.features.quality import (
@@ -21,7 +22,6 @@ from twohr_lab.features.quality import (
     plan_pairs,
     restrict,
 )
-from twohr_services.cli import main
 
 
 def test_plan_pairs():

@@ -10,8 +10,8 @@ import sys
 import numpy as np
 import pytest
 
+from twohr_app.cli import build_parser, main
 from twohr_lab.tracking import accuracy, sensitivity, vo_bench
-from twohr_services.cli import build_parser, main
 
 #: Fast settings for the synthetic sequences: ORB keypoints, no YOLO.
 FAST = ["--set", "detector.features=orb", "--set", "yolo.enabled=false", "--set", "pipeline.synchronous=true"]
@@ -29,7 +29,7 @@ def _subparsers(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()):
 def test_version_prints_the_installed_version():
     from importlib.metadata import version
 
-    done = subprocess.run([sys.executable, "-m", "twohr_services.cli", "--version"], capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-m", "twohr_app", "--version"], capture_output=True, text=True)
     assert done.returncode == 0 and done.stdout.strip() == f"twohr {version('twohr')}"
 
 

@@ -6,7 +6,7 @@ import json
 
 import cv2
 
-from twohr_services.cli import main
+from twohr_app.cli import main
 
 
 def test_eval_writes_per_frame_stats(dev_sequence, tmp_path, capsys):

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from twohr.config import MatcherConfig
+from twohr_app.cli import main
 from twohr_lab.matching.cli import benchmark_matcher
 from twohr_lab.matching.evaluation import evaluate_matchers
-from twohr_services.cli import main
 from twohr_services.matcher.core import build_matcher, mutual_nn, ratio_test
 
 

@@ -7,7 +7,7 @@ import sys
 
 
 def _twohr(*args, env):
-    return subprocess.run([sys.executable, "-m", "twohr_services.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "twohr_app", *args], capture_output=True, text=True,
                           timeout=300, env=env)
 
 

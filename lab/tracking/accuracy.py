@@ -48,7 +48,7 @@ def run_metrics(sequence, config, start: int = 0, step: int = 1, frames: int | N
     """One run of the pipeline (``frames`` frames from ``start``, every ``step``-th; None = to the end) and its
     figures against the camera-frame ground truth."""
     from twohr.evaluation import evaluate
-    from twohr_services.pipeline import run_sequence
+    from twohr_app.pipeline import run_sequence
     from twohr_services.tracker.trajectory import TRACKED_STATUSES
 
     stop = None if frames is None else start + frames * step

@@ -37,7 +37,7 @@ def parse_sweep(item: str) -> tuple[str, list]:
 def run_point(sequence, config: PipelineConfig, start: int, stop: int | None, step: int, fronts=None) -> dict:
     """ATE (online and refined, camera-frame ground truth), untracked frames, keyframes and ms/frame of one run."""
     from twohr.evaluation import evaluate
-    from twohr_services.pipeline import run_sequence
+    from twohr_app.pipeline import run_sequence
     from twohr_services.tracker.trajectory import TRACKED_STATUSES
 
     front_cache = None

@@ -14,7 +14,7 @@ from twohr.features import Keypoints, Matches
 
 @dataclass
 class Stages:
-    """Where the networks of a schedule run: in this process (``twohr_services.pipeline.local_stages``) or in the
+    """Where the networks of a schedule run: in this process (``twohr_app.pipeline.local_stages``) or in the
     detector, yolo and matcher services, asked over the bus (the tracker service builds those). Every stage takes
     the :class:`~twohr.dataset.Frame` it works for: a local stage reads its images, a remote one sends its
     message and names it in the request."""

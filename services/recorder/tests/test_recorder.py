@@ -170,14 +170,14 @@ def test_twohr_eval_scores_a_recording(dev_sequence, tmp_path):
     rec.close()
     gt_file = tmp_path / "gt.txt"
     write_tum(gt_file, gt)
-    result = subprocess.run([sys.executable, "-m", "twohr_services.cli", "eval", "--gt", str(gt_file), "--est",
+    result = subprocess.run([sys.executable, "-m", "twohr_app", "eval", "--gt", str(gt_file), "--est",
                              str(tmp_path / "gt.mcap")], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     rmse = float(re.search(r"RMSE ([0-9.e-]+) m", result.stdout).group(1))
     assert rmse < 1e-6 and "paired 100 of 100" in result.stdout, result.stdout
     empty = SessionRecorder(tmp_path / "empty.mcap")
     empty.close()
-    result = subprocess.run([sys.executable, "-m", "twohr_services.cli", "eval", "--gt", str(gt_file), "--est",
+    result = subprocess.run([sys.executable, "-m", "twohr_app", "eval", "--gt", str(gt_file), "--est",
                              str(tmp_path / "empty.mcap")], capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and "poses of exactly one robot" in result.stderr
 

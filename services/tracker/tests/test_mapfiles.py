@@ -120,7 +120,7 @@ def test_a_tracker_in_a_loaded_map_has_no_pose_where_the_map_is_not(orb_syntheti
 
 
 def _twohr(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "twohr_services.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "twohr_app", *args], capture_output=True, text=True,
                           timeout=600)
 
 

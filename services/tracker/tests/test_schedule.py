@@ -10,7 +10,7 @@ from twohr.config import load_config
 from twohr.dataset import RGBDSequence
 from twohr.evaluation import evaluate, static_trajectory
 from twohr.geometry import make_pose
-from twohr_services.pipeline import local_stages
+from twohr_app.pipeline import local_stages
 from twohr_services.tracker.every_frame import EveryFrameSchedule
 from twohr_services.tracker.keyframes import KeyframePipeline
 from twohr_services.tracker.map import Map

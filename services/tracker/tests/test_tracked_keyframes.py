@@ -7,7 +7,7 @@ import pytest
 from twohr.config import load_config
 from twohr.dataset import RGBDSequence
 from twohr.evaluation import evaluate, static_trajectory
-from twohr_services.pipeline import run_sequence
+from twohr_app.pipeline import run_sequence
 from twohr_services.tracker.flow import new_corners, on_flat_depth
 from twohr_services.tracker.map import Map
 

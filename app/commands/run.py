@@ -30,10 +30,10 @@ def write_run(out: Path, sequence, config, result) -> dict:
     from twohr.evaluation import evaluate
     from twohr.machine import machine
     from twohr.trajectory import write_tum
+    from twohr_services.tracker.trajectory import TRACKED_STATUSES
 
-    from .pipeline import stats_rows
-    from .run_report import keyframe_indices, plot_run_timeline, plot_run_trajectory, write_report_html
-    from .tracker.trajectory import TRACKED_STATUSES
+    from ..pipeline import stats_rows
+    from ..report import keyframe_indices, plot_run_timeline, plot_run_trajectory, write_report_html
 
     out.mkdir(parents=True, exist_ok=True)
     write_tum(out / "trajectory.txt", result.trajectory, header=f"twohr {sequence.name}: refined, camera-to-world")
@@ -127,7 +127,7 @@ def _check_map_options(args: argparse.Namespace) -> None:
     if args.map and args.save_map and Path(args.map).resolve() == Path(args.save_map).resolve():
         raise TwohrError("--save-map must name a new file: a map is never overwritten in place")
     if args.save_map:
-        from .tracker.mapfiles import map_name
+        from twohr_services.tracker.mapfiles import map_name
 
         map_name(args.save_map)  # a name a map can have, before the run rather than after it
 
@@ -136,7 +136,7 @@ def _load_map(args: argparse.Namespace, config, sequence) -> tuple:
     """The map given by ``--map`` and what to report of it: (Map or None, its header or None, summary dict)."""
     if not args.map:
         return None, None, {}
-    from .tracker.mapfiles import load_map
+    from twohr_services.tracker.mapfiles import load_map
 
     world, header, seconds = load_map(args.map, config, sequence.camera)
     print(f"map {header.name}: {header.keyframes} keyframes, {header.landmarks} landmarks, loaded in "
@@ -147,7 +147,7 @@ def _load_map(args: argparse.Namespace, config, sequence) -> tuple:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from .pipeline import run_sequence
+    from ..pipeline import run_sequence
 
     _check_map_options(args)
     config, sequence = load_config_and_sequence(args)
@@ -158,7 +158,7 @@ def _run(args: argparse.Namespace) -> int:
     if getattr(args, "view", False):
         from twohr.foxglove_live import view_url
 
-        from .live_run import PipelineLiveView
+        from ..live_view import PipelineLiveView
 
         view = PipelineLiveView(sequence, args.view_host, args.view_port)
         print(f"live view: {view_url(args.view_host, view.view.port)}", flush=True)
@@ -172,7 +172,7 @@ def _run(args: argparse.Namespace) -> int:
     if map_summary:
         summary["map"] = {**map_summary, **_found_in_map(result)}
     if args.save_map:
-        from .tracker.mapfiles import save_map
+        from twohr_services.tracker.mapfiles import save_map
 
         built_by = f"twohr run {sequence.name} frames {frames.start}-{frames.stop - 1}"
         header, size, seconds = save_map(args.save_map, result.map, config, built_by, parent=loaded)
@@ -264,8 +264,7 @@ def loops_against_ground_truth(loops: list[dict], ground_truth) -> dict:
 
     from twohr.config import SAME_PLACE_DEG, SAME_PLACE_M
     from twohr.trajectory import interpolate_poses
-
-    from .tracker.optim import pose_difference
+    from twohr_services.tracker.optim import pose_difference
 
     false_accepts = 0
     for loop in loops:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, Field
 
-from .keys import ALIVE_PREFIX, HEALTH_PREFIX, MAPS_PREFIX, PREFIX
+from twohr.keys import ALIVE_PREFIX, HEALTH_PREFIX, MAPS_PREFIX, PREFIX
 
 
 def _robots(*streams: str) -> list[str]:
@@ -200,3 +200,11 @@ def write_client_config(path: Path, endpoint: str, credentials: Credentials, rol
         fh.write("// twohr: a Zenoh client of the twohr router, with its credentials. Keep it private.\n")
         json.dump(client_config(endpoint, role, credentials.passwords[role]), fh, indent=2)
     return path
+
+
+def is_loopback(endpoint: str) -> bool:
+    """Whether a Zenoh endpoint (``tcp/HOST:PORT``) or a bare host is reachable from this host only."""
+    host = endpoint.split("/", 1)[-1]
+    host = host.rsplit(":", 1)[0] if "/" in endpoint else host
+    host = host.strip("[]")
+    return host in ("localhost", "::1") or host.startswith("127.")

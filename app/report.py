@@ -14,13 +14,12 @@ import numpy as np
 
 from twohr.plots import plot_timeline, plot_trajectories, plot_trajectory
 from twohr.trajectory import Trajectory
-
-from .tracker.stages import FrameStats
-from .tracker.trajectory import TRACKED_STATUSES
+from twohr_services.tracker.stages import FrameStats
+from twohr_services.tracker.trajectory import TRACKED_STATUSES
 
 
 def keyframe_indices(result) -> set[int] | None:
-    """The frames that became keyframes, from a :class:`~twohr_services.pipeline.RunResult`'s keyframe jobs
+    """The frames that became keyframes, from a :class:`~twohr_app.pipeline.RunResult`'s keyframe jobs
     (the camera-rate schedule; there a frame's ``keyframe`` stat only says it asked for one); None: use the stats."""
     return {job.index for job in result.keyframe_log if job.keyframe} if result.keyframe_log else None
 

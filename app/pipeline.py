@@ -20,15 +20,14 @@ from twohr.dataset import CameraIntrinsics, Frame
 from twohr.features import Keypoints
 from twohr.trajectory import Trajectory
 from twohr.workers import prefetch
-
-from .detector.core import build_detector
-from .matcher.core import build_matcher
-from .tracker.loops import LoopLog
-from .tracker.map import Map
-from .tracker.schedule import Schedule, build_schedule
-from .tracker.stages import FrameStats, KeyframeLog, Stages
-from .tracker.trajectory import TRACKED_STATUSES, TrackResult, online_trajectory
-from .yolo.masks import DynamicMasker
+from twohr_services.detector.core import build_detector
+from twohr_services.matcher.core import build_matcher
+from twohr_services.tracker.loops import LoopLog
+from twohr_services.tracker.map import Map
+from twohr_services.tracker.schedule import Schedule, build_schedule
+from twohr_services.tracker.stages import FrameStats, KeyframeLog, Stages
+from twohr_services.tracker.trajectory import TRACKED_STATUSES, TrackResult, online_trajectory
+from twohr_services.yolo.masks import DynamicMasker
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """``twohr run --view``: the in-process pipeline on a Foxglove live view, as the gateway shows a session.
 
-Composition root, like :mod:`twohr_services.pipeline`: it reads the pipeline's per-frame results and hands
+Composition root, like :mod:`twohr_app.pipeline`: it reads the pipeline's per-frame results and hands
 them to the shared converter (:mod:`twohr.foxglove_convert`) and server (:class:`twohr.foxglove_live.LiveView`).
 """
 
@@ -9,14 +9,13 @@ from __future__ import annotations
 from twohr.dataset import Frame, RGBDSequence
 from twohr.foxglove_live import LiveView
 from twohr.geometry import rot_to_quat
-
-from .tracker.schedule import Schedule
-from .tracker.stages import FrameStats
-from .tracker.trajectory import TrackResult
+from twohr_services.tracker.schedule import Schedule
+from twohr_services.tracker.stages import FrameStats
+from twohr_services.tracker.trajectory import TrackResult
 
 
 class PipelineLiveView:
-    """An ``on_frame`` callback for :func:`~twohr_services.pipeline.run_sequence` that streams each frame's image,
+    """An ``on_frame`` callback for :func:`~twohr_app.pipeline.run_sequence` that streams each frame's image,
     tracked keypoints, dynamic mask, pose, path and (when a keyframe changed it) the map to a :class:`LiveView`."""
 
     def __init__(self, sequence: RGBDSequence, host: str = "127.0.0.1", port: int = 8765,

@@ -1,0 +1,1 @@
+"""One module per ``twohr`` command, each with a ``register(subparsers)`` function (see :mod:`twohr_app.cli`)."""

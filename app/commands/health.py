@@ -1,0 +1,35 @@
+"""``twohr health``: ask services for their health counters over the bus (exit 1 if one is silent)."""
+
+from __future__ import annotations
+
+import argparse
+
+from twohr.bus import add_router_option
+from twohr.keys import PIPELINE_SERVICES
+
+
+def _health(args: argparse.Namespace) -> int:
+    from twohr.bus import bus_from_args, open_session, query_health
+
+    session = open_session(bus_from_args(args))
+    try:
+        if args.bus_only:
+            print("bus ok")
+            return 0
+        names = args.names or list(PIPELINE_SERVICES)
+        answers = {name: query_health(session, name, timeout=args.timeout) for name in names}
+    finally:
+        session.close()
+    for name, health in answers.items():
+        print(f"{name:10} " + ("NOT ANSWERING" if health is None else
+                               " ".join(f"{k}={v}" for k, v in health.items() if k != "service")))
+    return 0 if all(h is not None for h in answers.values()) else 1
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("health", help="ask services for their health counters over the bus (exit 1 if one is silent)")
+    p.add_argument("names", nargs="*", help=f"services (default: {' '.join(PIPELINE_SERVICES)})")
+    add_router_option(p)
+    p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for each answer")
+    p.add_argument("--bus-only", action="store_true", help="only check that the router accepts a session")
+    p.set_defaults(func=_health)

@@ -1,0 +1,99 @@
+"""``twohr up``: the router, every service and the gateway as local processes, until Ctrl-C.
+
+Secure by default: the router listens on loopback unless told otherwise, admits only the users ``twohr up``
+generated for its own processes (one per role, passwords in a private folder that is removed at exit), and
+enforces each role's access-control list (``twohr_app.access``). The HTTP API needs a bearer token
+(``--api-token``) whenever the gateway listens beyond loopback; one is generated and printed if none is given.
+Outside clients (camera drivers, other robots, ROS 2 nodes) join with the client config that
+``--write-client-config`` writes. ``docker-compose.yml`` mirrors the same topology.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+from twohr.keys import PIPELINE_SERVICES
+
+from ..access import is_loopback
+from ..supervisor import start_system
+
+
+def _up(args: argparse.Namespace) -> int:
+    import secrets
+
+    from twohr.errors import TwohrError
+
+    from ..access import write_client_config
+
+    if not args.insecure and not is_loopback(args.router) and not args.expose:
+        raise TwohrError(f"--router {args.router} is reachable from other hosts: add --expose to mean it "
+                         "(other hosts then join with the --write-client-config file)")
+    # the gateway on loopback serves only this host's users; anywhere else it needs a token
+    token = args.api_token or (None if args.insecure or is_loopback(args.host) else secrets.token_urlsafe(18))
+    t0 = time.monotonic()
+    print(f"starting router on {args.router} and services {', '.join(PIPELINE_SERVICES)} + gateway …", flush=True)
+    try:
+        system = start_system(args.router, args.data_root or [str(Path.cwd())], args.recordings, args.host,
+                              args.port, token, args.timeout, secure=not args.insecure,
+                              ros2_domain=args.ros2_domain, foxglove_port=args.foxglove_port or None,
+                              record_descriptors=args.record_descriptors, maps=args.maps)
+    except (TimeoutError, RuntimeError) as exc:
+        raise TwohrError(str(exc)) from None
+    print(f"all healthy in {time.monotonic() - t0:.1f} s — gateway http://{args.host}:{args.port} "
+          f"(docs at /docs); poses on twohr/<robot>/pose; Ctrl-C stops everything", flush=True)
+    if args.insecure:
+        print("WARNING: --insecure: the bus admits anyone who reaches it and the HTTP API has no token",
+              file=sys.stderr, flush=True)
+    else:
+        if token and not args.api_token:
+            print(f"HTTP API token (generated): {token}   use: -H 'Authorization: Bearer {token}'", flush=True)
+        client_config = write_client_config(Path(args.write_client_config), args.router, system.credentials)
+        print(f"Zenoh client config for outside clients: {client_config}", flush=True)
+    if args.foxglove_port:
+        from twohr.foxglove_live import view_url
+
+        print(f"live view: {view_url(args.host, args.foxglove_port)}", flush=True)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        stop.wait()
+    finally:
+        print("stopping …", flush=True)
+        system.stop()
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("up", help="start the router, every service and the gateway as local processes",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--router", default="tcp/127.0.0.1:7447", help="endpoint the Zenoh router listens on")
+    p.add_argument("--data-root", action="append", help="folder sequences may come from (repeatable; default .)")
+    p.add_argument("--recordings", default="recordings", help="folder for MCAP recordings")
+    p.add_argument("--maps", default=None, metavar="DIR", help="the map store: sessions build, localize in and "
+                   "extend the maps in this folder (POST /sessions with \"map\", GET /maps; served on "
+                   "twohr/maps/<name>); kept across restarts")
+    p.add_argument("--host", default="127.0.0.1", help="gateway host")
+    p.add_argument("--port", type=int, default=8080, help="gateway port")
+    p.add_argument("--api-token", default=None, help="bearer token the HTTP API requires (default: none on a "
+                   "loopback --host; on any other host one is generated and printed)")
+    p.add_argument("--write-client-config", default="runs/up/zenoh-client.json5", metavar="FILE",
+                   help="where to write the Zenoh client config (router endpoint and credentials) that outside "
+                   "clients, camera drivers and ROS 2 nodes use (default: %(default)s, private to you)")
+    p.add_argument("--ros2-domain", type=int, default=None, metavar="ID",
+                   help="also run the ros2 service: poses as ROS 2 topics (PoseStamped, Odometry, tf, Path) over "
+                   "rmw_zenoh in this domain, which ROS 2 nodes with the client config can read")
+    p.add_argument("--expose", action="store_true", help="allow a --router endpoint that other hosts can reach")
+    p.add_argument("--insecure", action="store_true", help="no bus authentication, access control or API token "
+                   "(local experiments only)")
+    p.add_argument("--foxglove-port", type=int, default=8765,
+                   help="Foxglove WebSocket live view on the gateway host (default 8765; 0 turns it off)")
+    p.add_argument("--record-descriptors", action="store_true",
+                   help="keep the raw keypoint descriptors in every recording (large)")
+    p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for every service to be healthy")
+    p.set_defaults(func=_up)

@@ -1,0 +1,223 @@
+"""The stack as local processes: a Zenoh router inside this process, every service as a supervised child
+(``python -m twohr_services.<name>``) and the HTTP gateway.
+
+:func:`start_system` waits until every part answers its health query; :class:`ProcessGroup` restarts a child
+that crashes (with backoff) and stops them all together (SIGTERM, then SIGKILL after a grace). ``twohr up``
+(:mod:`twohr_app.commands.up`) runs it until Ctrl-C; the tests and the lab's live benches start it directly.
+``docker-compose.yml`` mirrors the same topology.
+
+Secure by default: the router admits only the users generated here for the stack's own processes (one per
+role, passwords in a private folder that is removed at exit) and enforces each role's access-control list
+(:mod:`twohr_app.access`).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from twohr.keys import PIPELINE_SERVICES
+
+
+def _die_with_parent() -> None:
+    """In a child, before exec: on Linux, have the kernel send SIGTERM when ``twohr up`` dies, even by SIGKILL,
+    so that no service outlives its supervisor."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+@dataclass
+class Child:
+    """One supervised process: how to start it, and its restart history."""
+
+    name: str
+    args: list[str]
+    env: dict[str, str]
+    proc: subprocess.Popen | None = None
+    started_at: float = 0.0
+    restarts: int = 0
+    due: float | None = None  # when a crashed child is started again
+
+    def start(self) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", *self.args], env=self.env, preexec_fn=_die_with_parent)
+        self.started_at = time.monotonic()
+        self.due = None
+
+
+@dataclass
+class ProcessGroup:
+    """Child processes that are supervised together: a crashed one is restarted after a backoff (1 s, doubling
+    up to ``max_backoff`` while it keeps crashing within ``stable_after`` s of its start), and all are stopped
+    together, in reverse start order."""
+
+    max_backoff: float = 30.0
+    stable_after: float = 60.0
+    children: list[Child] = field(default_factory=list)
+    stopping: threading.Event = field(default_factory=threading.Event)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def start(self, name: str, args: list[str], env: dict[str, str]) -> subprocess.Popen:
+        child = Child(name, args, env)
+        child.start()
+        with self.lock:
+            self.children.append(child)
+        return child.proc
+
+    def pid(self, name: str) -> int:
+        return next(c.proc.pid for c in self.children if c.name == name)
+
+    def dead(self) -> list[tuple[str, int]]:
+        return [(c.name, c.proc.returncode) for c in self.children if c.proc.poll() is not None]
+
+    def supervise_once(self) -> list[str]:
+        """Schedule restarts of crashed children and start those that are due; returns the names restarted."""
+        now, restarted = time.monotonic(), []
+        with self.lock:
+            for child in self.children:
+                if self.stopping.is_set() or child.proc.poll() is None:
+                    continue
+                if child.due is None:
+                    if now - child.started_at > self.stable_after:
+                        child.restarts = 0
+                    backoff = min(self.max_backoff, 2.0 ** child.restarts)
+                    child.due = now + backoff
+                    print(f"twohr: {child.name} exited with code {child.proc.returncode}; restarting in "
+                          f"{backoff:.0f} s", file=sys.stderr, flush=True)
+                elif now >= child.due:
+                    child.restarts += 1
+                    child.start()
+                    restarted.append(child.name)
+        return restarted
+
+    def supervise(self, interval: float = 0.5) -> threading.Thread:
+        """Run :meth:`supervise_once` on a background thread until :meth:`stop`."""
+        def loop() -> None:
+            while not self.stopping.wait(interval):
+                self.supervise_once()
+        thread = threading.Thread(target=loop, name="supervisor", daemon=True)
+        thread.start()
+        return thread
+
+    def stop(self, grace: float = 10.0) -> None:
+        self.stopping.set()
+        with self.lock:
+            procs = [c.proc for c in self.children]
+        for proc in reversed(procs):
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + grace
+        for proc in procs:
+            try:
+                proc.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+def _wait_http(url: str, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            with urllib.request.urlopen(url, timeout=1) as response:
+                if response.status == 200:
+                    return
+        except OSError:
+            time.sleep(0.2)
+    raise TimeoutError(f"gateway did not answer at {url} within {timeout:.0f} s")
+
+
+@dataclass
+class System:
+    """A running stack: the in-process router, the supervised children, and the credentials of its roles."""
+
+    router: object  # the router's zenoh.Session
+    group: ProcessGroup
+    endpoint: str
+    credentials: object | None = field(repr=False)  # twohr_app.access.Credentials; None when started insecure
+    secrets_dir: Path | None = None
+
+    def bus(self, role: str = "client"):
+        """A BusConfig that joins this stack as ``role``."""
+        from pydantic import SecretStr
+
+        from twohr.bus import BusConfig
+
+        password = self.credentials.passwords[role] if self.credentials else None
+        return BusConfig(connect=[self.endpoint], user=role if password else None,
+                         password=SecretStr(password) if password else None, config_file=None)
+
+    def stop(self) -> None:
+        self.group.stop()
+        self.router.close()
+        if self.secrets_dir is not None:
+            shutil.rmtree(self.secrets_dir, ignore_errors=True)
+
+
+def start_system(router: str, data_roots: list[str], recordings: str, host: str, port: int,
+                 api_token: str | None = None, timeout: float = 120.0, log_level: str = "INFO",
+                 secure: bool = True, ros2_domain: int | None = None, foxglove_port: int | None = None,
+                 record_descriptors: bool = False, maps: str | None = None) -> System:
+    """Start the router, the services and the gateway; returns the :class:`System` once every part is healthy.
+    With ``secure`` (the default) the router admits only generated per-role credentials and enforces the
+    access-control list; ``api_token`` (None: no token) guards the HTTP API. ``foxglove_port`` turns on the
+    gateway's Foxglove live view on ``host``; ``ros2_domain`` starts the ros2 service, which speaks ROS 2 over
+    rmw_zenoh in that domain. ``maps``: the map store's folder (the gateway serves it)."""
+    from twohr.bus import RouterSecurity, start_router, wait_for_services
+
+    from .access import Credentials, access_control
+
+    credentials = secrets_dir = security = None
+    if secure:
+        credentials = Credentials.generate(api_token)
+        secrets_dir = Path(tempfile.mkdtemp(prefix="twohr-secrets-"))
+        credentials.save(secrets_dir)
+        security = RouterSecurity(users_file=secrets_dir / "users.txt", access_control=access_control(ros2_domain or 0))
+    router_session = start_router([router], security)
+    system = System(router_session, ProcessGroup(), router, credentials, secrets_dir)
+    base_env = {k: v for k, v in os.environ.items() if not k.startswith("TWOHR_ZENOH_")}
+    base_env |= {"TWOHR_ZENOH_ROUTER": router, "TWOHR_LOG_LEVEL": log_level}
+
+    def env(role: str) -> dict[str, str]:
+        if credentials is None:
+            return base_env
+        return base_env | {"TWOHR_ZENOH_USER": role, "TWOHR_ZENOH_PASSWORD_FILE": str(secrets_dir / f"{role}.password")}
+
+    try:
+        roots = [arg for root in data_roots for arg in ("--data-root", root)]
+        for name in PIPELINE_SERVICES:
+            extra = {"source": roots, "recorder": ["--recordings", recordings] + (
+                ["--record-descriptors"] if record_descriptors else [])}.get(name, [])
+            system.group.start(name, [f"twohr_services.{name}", *extra], env(name))
+        gateway_args = ["twohr_services.gateway", "--host", host, "--port", str(port), "--recordings", recordings,
+                        *roots, "--foxglove-port", str(foxglove_port or 0), *(["--maps", maps] if maps else [])]
+        gateway_env = env("gateway") | ({"TWOHR_API_TOKEN": api_token} if api_token else {})
+        system.group.start("gateway", gateway_args, gateway_env)
+        if ros2_domain is not None:
+            system.group.start("ros2", ["twohr_services.ros2", "--domain", str(ros2_domain)], env("ros2"))
+        from twohr.bus import open_session
+
+        client = open_session(system.bus("client"))
+        try:
+            optional = ["ros2"] if ros2_domain is not None else []
+            wait_for_services(client, [*PIPELINE_SERVICES, *optional], timeout=timeout)
+        finally:
+            client.close()
+        _wait_http(f"http://{host}:{port}/healthz", timeout)
+        if system.group.dead():
+            raise RuntimeError(f"processes exited during start-up: {system.group.dead()}")
+    except BaseException:
+        system.stop()
+        raise
+    system.group.supervise()
+    return system
