@@ -30,9 +30,10 @@ from schemathesis.core.failures import Failure, FailureGroup
 from twohr import keys
 from twohr.bus import free_port, open_session
 from twohr.dataset import RGBDSequence
+from twohr.keys import PIPELINE_SERVICES
 from twohr.mapfile import write_map
 from twohr.mcapfile import MCAP_MAGIC
-from twohr_services.gateway.app import SERVICES, GatewaySettings, create_app
+from twohr_services.gateway.app import GatewaySettings, create_app
 
 TOKEN = "fuzz-token-1"
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance]
@@ -45,7 +46,7 @@ def gateway(zenoh_router, dev_sequence, tmp_path_factory, tiny_map):
 
     bus = BusConfig(connect=[zenoh_router])
     stand_in = open_session(bus)
-    tokens = [stand_in.liveliness().declare_token(f"{keys.ALIVE_PREFIX}/{name}") for name in SERVICES]
+    tokens = [stand_in.liveliness().declare_token(f"{keys.ALIVE_PREFIX}/{name}") for name in PIPELINE_SERVICES]
     recordings = tmp_path_factory.mktemp("recordings")
     maps = tmp_path_factory.mktemp("maps")  # a map store with one map, for the /maps routes and session maps
     write_map(maps / "lab.map", tiny_map("lab", RGBDSequence(dev_sequence).camera))

@@ -1,5 +1,7 @@
 """``python -m twohr_services.gateway``: serve the HTTP control API with uvicorn."""
 
+from __future__ import annotations
+
 from pathlib import Path
 
 import uvicorn
@@ -7,29 +9,47 @@ import uvicorn
 from twohr.bus import bus_from_args
 from twohr.service import service_parser
 
-from .app import GatewaySettings, create_app
+from .app import create_app
+from .settings import GatewaySettings
 
-parser = service_parser("gateway", "twohr HTTP gateway")
-parser.add_argument("--host", default="127.0.0.1")
-parser.add_argument("--port", type=int, default=8080)
-parser.add_argument("--data-root", action="append", default=None, help="folder sequences may come from (repeatable)")
-parser.add_argument("--recordings", default="recordings", help="folder the recorder writes MCAP files to")
-parser.add_argument("--api-token", default=None, help="require 'Authorization: Bearer TOKEN' on /sessions "
-                    "(default $TWOHR_API_TOKEN)")
-parser.add_argument("--api-token-file", default=None, help="read the token from this file (as compose does)")
-parser.add_argument("--maps", default=None, help="the map store's folder (served on twohr/maps/<name> and /maps); "
-                    "default none")
-parser.add_argument("--foxglove-port", type=int, default=8765,
-                    help="port of the Foxglove WebSocket live view on --host (default 8765; 0 turns it off)")
-args = parser.parse_args()
-settings = GatewaySettings(
-    data_roots=[Path(r) for r in (args.data_root or ["data"])],
-    recordings=Path(args.recordings),
-    **({"api_token": Path(args.api_token_file).read_text().strip()} if args.api_token_file else
-       {"api_token": args.api_token} if args.api_token else {}),
-    bus=bus_from_args(args),
-    foxglove_host=args.host,
-    foxglove_port=args.foxglove_port or None,
-    maps=Path(args.maps) if args.maps else None,
-)
-uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
+
+def build_parser():
+    """The gateway's command line: the options every service takes (``--router``) and its own."""
+    parser = service_parser("gateway", "twohr HTTP gateway")
+    parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--port", type=int, default=8080)
+    parser.add_argument("--data-root", action="append", default=None,
+                        help="folder sequences may come from (repeatable)")
+    parser.add_argument("--recordings", default="recordings", help="folder the recorder writes MCAP files to")
+    parser.add_argument("--api-token", default=None, help="require 'Authorization: Bearer TOKEN' on /sessions "
+                        "(default $TWOHR_API_TOKEN)")
+    parser.add_argument("--api-token-file", default=None, help="read the token from this file (as compose does)")
+    parser.add_argument("--maps", default=None, help="the map store's folder (served on twohr/maps/<name> and "
+                        "/maps); default none")
+    parser.add_argument("--foxglove-port", type=int, default=8765,
+                        help="port of the Foxglove WebSocket live view on --host (default 8765; 0 turns it off)")
+    return parser
+
+
+def settings_from_args(args) -> GatewaySettings:
+    """The gateway's settings from its parsed command line."""
+    return GatewaySettings(
+        data_roots=[Path(r) for r in (args.data_root or ["data"])],
+        recordings=Path(args.recordings),
+        **({"api_token": Path(args.api_token_file).read_text().strip()} if args.api_token_file else
+           {"api_token": args.api_token} if args.api_token else {}),
+        bus=bus_from_args(args),
+        foxglove_host=args.host,
+        foxglove_port=args.foxglove_port or None,
+        maps=Path(args.maps) if args.maps else None,
+    )
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Parse ``argv`` (default: the process's arguments) and serve the gateway until it is stopped."""
+    args = build_parser().parse_args(argv)
+    uvicorn.run(create_app(settings_from_args(args)), host=args.host, port=args.port, log_level="info")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,33 @@
+"""The gateway's configuration (``GatewaySettings``): the flags of ``python -m twohr_services.gateway``."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from pydantic import BaseModel, Field
+
+from twohr.bus import BusConfig
+
+
+class GatewaySettings(BaseModel):
+    """Gateway configuration (command-line flags of ``python -m twohr_services.gateway``)."""
+
+    data_roots: list[Path] = Field(default_factory=lambda: [Path("data")])
+    recordings: Path = Path("recordings")
+    api_token: str | None = Field(default_factory=lambda: os.environ.get("TWOHR_API_TOKEN") or None,
+                                  description="if set, requests need 'Authorization: Bearer <token>'")
+    bus: BusConfig = Field(default_factory=BusConfig)
+    idle_timeout: float = Field(15.0, gt=0, description="a session whose source is done and that gets no pose "
+                                "for this long is finished")
+    start_timeout: float = Field(180.0, gt=0, description="a session with no pose this long after its start fails")
+    stall_timeout: float = Field(45.0, gt=0, description="a running session with no pose for this long fails")
+    refine_timeout: float = Field(30.0, gt=0, description="after a session ends, how long its refined trajectory "
+                                  "(from the tracker) is waited for before the online poses are served instead")
+    keep_ended: int = Field(200, ge=1, description="ended sessions kept in the table (the oldest are forgotten)")
+    max_request_bytes: int = Field(256 * 1024, ge=1024, description="larger request bodies get 413")
+    foxglove_host: str = Field("127.0.0.1", description="interface of the Foxglove live view")
+    foxglove_port: int | None = Field(None, ge=0, le=65535, description="Foxglove live view port; None = off")
+    maps: Path | None = Field(None, description="the map store's folder (served on twohr/maps/<name> and /maps); "
+                              "None = no map store")
+    max_map_bytes: int = Field(512 * 1024 * 1024, ge=1024, description="larger map uploads get 413")
