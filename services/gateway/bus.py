@@ -1,12 +1,14 @@
 """The gateway's side of the bus: it follows poses, statuses and service liveliness into the session table,
 sends control messages, and ends sessions: finished (with their ATE), or failed when a service they need dies,
-rejects their config, or the pipeline stalls. No HTTP here; the routes in ``app.py`` call it."""
+rejects their config, or the pipeline stalls. It also keeps the map store on the bus (``--maps``). No HTTP here; the
+routers in ``routes/`` call it."""
 
 from __future__ import annotations
 
 import logging
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import zenoh
 
@@ -26,7 +28,9 @@ from .sessions import Session, SessionTable
 
 log = logging.getLogger("twohr.gateway")
 
-#: the pipeline services every session needs
+#: threads that read and save map files for the map store's queries: a save waiting on the store (another save, a
+#: slow disk) takes one, and reads and other saves go on in the others
+MAP_STORE_WORKERS = 4
 
 
 class GatewayBus:
@@ -42,6 +46,7 @@ class GatewayBus:
         self._live: BusLiveView | None = None
         self._stop = threading.Event()
         self._monitor: threading.Thread | None = None
+        self._map_store: ThreadPoolExecutor | None = None
 
     def start(self) -> None:
         """Open the session, follow poses, statuses and liveliness, and start the session monitor."""
@@ -53,14 +58,17 @@ class GatewayBus:
             self.session.liveliness().declare_subscriber(f"{keys.ALIVE_PREFIX}/*", self._on_liveliness,
                                                          history=True)]
         if self.settings.maps is not None:  # the map store: read by trackers and clients, written by trackers
-            self._subscribers += [self.session.declare_queryable(f"{keys.MAPS_PREFIX}/*", self._on_map_read),
-                                  self.session.declare_queryable(f"{keys.MAPS_PREFIX}/*/save", self._on_map_save)]
+            self._map_store = ThreadPoolExecutor(MAP_STORE_WORKERS, thread_name_prefix="map-store")
+            self._subscribers += [
+                self.session.declare_queryable(f"{keys.MAPS_PREFIX}/*", self._handed_on(self._read_map)),
+                self.session.declare_queryable(f"{keys.MAPS_PREFIX}/*/save", self._handed_on(self._save_map))]
         if self.settings.foxglove_port:
             self._live = BusLiveView(self.session, self.settings.foxglove_host, self.settings.foxglove_port)
         self._monitor = threading.Thread(target=self._watch, name="session-monitor", daemon=True)
         self._monitor.start()
 
     def close(self) -> None:
+        """Stop the monitor and the live view, answer the map queries already taken, and close the session."""
         self._stop.set()
         if self._monitor is not None:
             self._monitor.join(timeout=2)
@@ -68,10 +76,34 @@ class GatewayBus:
             self._live.close()
         for sub in self._subscribers:
             sub.undeclare()
+        if self._map_store is not None:  # no new queries come: the ones taken are answered before the session goes
+            self._map_store.shutdown(wait=True)
         if self.session is not None:
             self.session.close()
 
-    def _on_map_read(self, query: zenoh.Query) -> None:
+    def _handed_on(self, answer):
+        """A queryable callback that hands each query to the map store's workers, which run ``answer(query)``: the
+        file I/O stays off Zenoh's callback thread, which takes the next query at once. The query object travels
+        with the work (it is answered there) and is dropped once answered, which ends it for the caller."""
+        def callback(query: zenoh.Query) -> None:
+            try:
+                self._map_store.submit(self._answer, answer, query)
+            except RuntimeError:  # shut down: the gateway is closing
+                query.reply_err(b"the gateway is closing")
+                query.drop()
+        return callback
+
+    @staticmethod
+    def _answer(answer, query: zenoh.Query) -> None:
+        """Run ``answer(query)`` on a worker; whatever it raises is logged (the query is ended either way)."""
+        try:
+            answer(query)
+        except Exception:
+            log.exception("map store query %s failed", query.key_expr)
+        finally:
+            query.drop()
+
+    def _read_map(self, query: zenoh.Query) -> None:
         """``twohr/maps/<name>``: the latest version's bytes of a map in the store."""
         try:
             name = keys.parse_map_key(query.key_expr)
@@ -81,7 +113,7 @@ class GatewayBus:
         except (ValueError, MapFileError, OSError) as exc:  # a key naming no single map, a bad file
             query.reply_err(str(exc).encode())
 
-    def _on_map_save(self, query: zenoh.Query) -> None:
+    def _save_map(self, query: zenoh.Query) -> None:
         """``twohr/maps/<name>/save`` with a map file's bytes: checked, kept as the map's next version."""
         name = str(query.key_expr)
         try:
