@@ -106,8 +106,8 @@ def _list(args: argparse.Namespace) -> int:
 def _eval(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from twohr_services.tracker.optim import pose_difference
     from twohr_services.tracker.places import Vocabulary, vocabulary_path
+    from twohr_services.tracker.pose import pose_difference
 
     vocabulary = Vocabulary.load(vocabulary_path(args.name))
     frames = _frames(args)

@@ -16,7 +16,7 @@ from twohr_lab.tracking.consistency import (
     initial_points,
     main,
 )
-from twohr_services.tracker.optim import observation_residuals
+from twohr_services.tracker.pose import observation_residuals
 
 K = CAMERA_PRESETS["bonn"].matrix
 

@@ -28,8 +28,8 @@ from twohr.features import drop_masked, mutual_nn
 from twohr.geometry import backproject, invert_pose
 from twohr.paths import DEV_SEQUENCE
 from twohr.trajectory import Trajectory
-from twohr_services.tracker.core import Tracker
-from twohr_services.tracker.optim import pnp_ransac, sample_depth
+from twohr_services.tracker.pose import pnp_ransac, sample_depth
+from twohr_services.tracker.tracking import Tracker
 from twohr_services.tracker.trajectory import AnchoredTrajectory
 
 from ..bench import FrontCache

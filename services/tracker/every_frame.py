@@ -1,6 +1,6 @@
 """The every-frame schedule, as in the paper: 2HR detection -> dynamic mask -> matching -> the keyframe job, on
 every frame. Kept for the paper's ablations (``twohr bench --ablations``); the default is the camera-rate
-schedule (:mod:`.keyframes`)."""
+schedule (:mod:`.keyframe_schedule`)."""
 
 from __future__ import annotations
 
@@ -13,10 +13,10 @@ from twohr.dataset import CameraIntrinsics, Frame
 from twohr.features import drop_masked
 from twohr.trajectory import Trajectory
 
-from .core import Tracker
 from .loops import LoopLog
 from .map import Map, MapSnapshot
 from .stages import FrameStats, KeyframeLog, Stages
+from .tracking import Tracker
 from .trajectory import AnchoredTrajectory, TrackResult
 
 

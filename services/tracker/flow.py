@@ -11,7 +11,7 @@ Per frame (:meth:`FrameTracker.track`):
 4. :meth:`FrameTracker.wants_keyframe` asks for a keyframe when the tracks thin out, the camera leaves
    the keyframes behind, tracking is lost, or at least every ``keyframe_max_interval`` frames.
 
-Keyframes are built off this path (the keyframe job: :class:`~.core.Tracker` on 2HR keypoints, descriptor
+Keyframes are built off this path (the keyframe job: :class:`~.tracking.Tracker` on 2HR keypoints, descriptor
 matching and bundle adjustment, in the mapping worker); each one comes back as a :class:`MapUpdate` whose
 :class:`~.map.MapSnapshot` refreshes the landmark positions and whose observations re-seed the tracks. The
 per-frame record of poses is the schedule's (:class:`~.trajectory.AnchoredTrajectory`).
@@ -33,7 +33,7 @@ from twohr.geometry import backproject, invert_pose, project, transform_points
 from .loops import LoopQuery
 from .map import MapSnapshot
 from .motion import MotionModel
-from .optim import estimate_pose, sample_depth
+from .pose import estimate_pose, sample_depth
 from .trajectory import TrackResult, near_any_keyframe
 
 

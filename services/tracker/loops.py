@@ -31,8 +31,8 @@ from twohr.features import Matches
 from twohr.geometry import invert_pose
 
 from .map import Map
-from .optim import matched_pnp, pose_difference, refine_pose
 from .places import PlaceIndex, Vocabulary
+from .pose import matched_pnp, pose_difference, refine_pose
 
 MatchFn = Callable[[np.ndarray, np.ndarray], Matches]
 log = logging.getLogger("twohr.loops")

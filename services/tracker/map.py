@@ -17,7 +17,7 @@ from twohr.dataset import CameraIntrinsics
 from twohr.geometry import invert_pose, transform_points
 from twohr.mapfile import MapArrays
 
-from .optim import bundle_adjust
+from .bundle_adjustment import bundle_adjust
 
 
 @dataclass

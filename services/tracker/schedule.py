@@ -12,7 +12,7 @@ from twohr.dataset import CameraIntrinsics, Frame
 from twohr.trajectory import Trajectory
 
 from .every_frame import EveryFrameSchedule
-from .keyframes import KeyframePipeline
+from .keyframe_schedule import KeyframePipeline
 from .loops import LoopLog
 from .map import Map, MapSnapshot
 from .stages import FrameStats, KeyframeLog, Stages

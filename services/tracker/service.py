@@ -10,25 +10,30 @@ does); in ``every_frame`` they are asked for every frame, in turn.
 Live corrections: whenever a keyframe changes the map, the keyframes' poses after bundle adjustment go out on
 ``twohr/<robot>/path`` (``PathMsg``, ``final`` False). When a session ends, its refined trajectory of every frame
 (final bundle adjustment, re-anchoring, smoothing, as ``twohr run`` writes ``trajectory.txt``) goes out on the same
-key with ``final`` True; the gateway serves it as the session's trajectory.
+key with ``final`` True; the gateway serves it as the session's trajectory. That end of a session (and the saving of
+its map) runs on the service's finishing thread, never on the per-frame one: a session that stops holds up no other
+robot's frames.
 """
 
 from __future__ import annotations
 
 import collections
 import logging
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 import zenoh
 
 from twohr import keys
+from twohr.config import PipelineConfig
 from twohr.dataset import Frame
 from twohr.errors import TwohrError
 from twohr.features import Keypoints, Matches
 from twohr.geometry import rot_to_quat
-from twohr.mapfile import MapFile, MapFileError, encode_map, read_map
+from twohr.mapfile import MapFile, MapFileError, MapHeader, encode_map, read_map
 from twohr.messages import (
     ControlMsg,
     DynamicsMsg,
@@ -45,7 +50,7 @@ from twohr.messages import (
     path_arrays,
     received_frame,
 )
-from twohr.service import Service, serve
+from twohr.service import Service, declare_publisher, serve
 from twohr.trajectory import Trajectory
 
 from .mapfiles import map_file, usable_map
@@ -157,7 +162,9 @@ class SessionTrack:
     health: SessionHealth = field(default_factory=SessionHealth)
     map_name: str = ""  # the session's map: its poses are in this frame ("" = the robot's own)
     map_mode: str = ""
-    loaded: MapFile | None = None  # the map to localize in or extend, as fetched from the map store
+    parent: MapHeader | None = None
+    """the header of the map it localizes in or extends, as fetched (the map's next version names it); the file's
+    arrays are not kept: the schedule's map was built from them"""
     stamp_shift: float = 0.0  # added to the camera's stamps since they went back in time
     last_stamp: float = float("-inf")
 
@@ -187,20 +194,50 @@ class TrackerService(Service):
         self.tracks: dict[str, SessionTrack] = {}
         self.paced: dict[str, bool] = {}
         self.maps: dict[str, ControlMsg] = {}  # sessions with a map, by id: their start (name, mode)
-        self.loaded: dict[str, MapFile] = {}  # the maps fetched for them
+        self.loaded: dict[str, MapFile] = {}  # the maps fetched for them, until their first frame builds the Map
+        self.finishing = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracker-finishing")
+        """the ends of sessions, one after another, off the per-frame thread"""
+        self._declaring = threading.Lock()  # both threads publish: one publisher per key
 
     def subscriptions(self) -> list[str]:
         return [keys.all_robots("frames")]
 
+    def run(self, stop: threading.Event | None = None) -> None:
+        """Serve until ``stop`` is set; sessions still finishing then finish, their final paths and maps sent before
+        the bus session closes."""
+        super().run(_FinishingFirst(stop or self.stopping, self.finishing))
+
+    def publish(self, key: str, payload: bytes) -> None:
+        """Publish on ``key`` from the per-frame or the finishing thread."""
+        with self._declaring:
+            if key not in self._publishers:
+                self._publishers[key] = declare_publisher(self.session, key)
+        self._publishers[key].put(payload)
+
     def on_session_stop(self, session_id: str) -> None:
-        """The session ended: its refined trajectory (after the keyframe work left, the final bundle adjustment,
-        re-anchoring and smoothing, as ``twohr run`` makes it) goes out on ``path`` as the final path."""
+        """The session ended: it is handed to the finishing thread (:meth:`_finish`); its frames still coming are
+        ignored from now on, as its config goes with this stop."""
         self.paced.pop(session_id, None)
         self.loaded.pop(session_id, None)
         control = self.maps.pop(session_id, None)
         track = self.tracks.pop(session_id, None)
         if track is None:
             return
+        self.finishing.submit(self._finish, session_id, track, control, self.session_configs.get(session_id))
+
+    def _finish(self, session_id: str, track: SessionTrack, control: ControlMsg | None,
+                config: PipelineConfig | None) -> None:
+        """On the finishing thread: the session's refined trajectory (after the keyframe work left, the final bundle
+        adjustment, re-anchoring and smoothing, as ``twohr run`` makes it) goes out on ``path`` as the final path;
+        then its map is saved where the session builds or extends one."""
+        try:
+            self._finish_session(session_id, track, control, config)
+        except Exception:  # the thread goes on with the next session
+            self.counters.add("errors")
+            self.log.exception("session %s: the end of the session failed", session_id)
+
+    def _finish_session(self, session_id: str, track: SessionTrack, control: ControlMsg | None,
+                        config: PipelineConfig | None) -> None:
         try:
             track.schedule.finish()
             track.schedule.refine()
@@ -211,7 +248,6 @@ class TrackerService(Service):
         message = PathMsg(session_id=session_id, robot_id=header.robot_id, frame_index=header.frame_index,
                           stamp=header.stamp, final=True, frame_id=track.map_name)
         self.publish(keys.key(header.robot_id, "path"), encode(message, path_arrays(refined)))
-        config = self.session_configs.get(session_id)
         if config is not None and config.loop_closing.vocabulary:
             loops = track.schedule.loop_log
             self.report(header, "loops", f"{loops.closed} loops closed", detected=loops.detected,
@@ -237,7 +273,8 @@ class TrackerService(Service):
                 build_schedule(config, header.camera, stages, live=self.paced.get(header.session_id, True),
                                world=world), header,
                 map_name=control.map_name if control else "", map_mode=control.map_mode if control else "",
-                loaded=stored)
+                parent=stored.header if stored else None)
+            self.loaded.pop(header.session_id, None)  # the session tracks in the Map built from it
         return self.tracks[header.session_id]
 
     def _fetch_map(self, control: ControlMsg) -> MapFile:
@@ -258,7 +295,7 @@ class TrackerService(Service):
         try:
             stored = map_file(track.schedule.map, control.config, control.map_name,
                               built_by=f"session {control.session_id} (robot {control.robot_id})",
-                              parent=track.loaded.header if track.loaded else None)
+                              parent=track.parent)
             payload = encode_map(stored)
         except MapFileError as exc:
             self.report(control, "error", f"map {control.map_name} not saved: {exc}")
@@ -358,6 +395,20 @@ class TrackerService(Service):
                 self.loaded[control.session_id] = self._fetch_map(control)
         # paced by the camera (a real-rate replay or a live camera): the source never waits for poses
         self.paced[control.session_id] = control.rate > 0 or not control.sequence
+
+
+class _FinishingFirst:
+    """The stop event the service shell's loop watches: once ``stop`` is set, the sessions still finishing finish
+    first (the shell closes the bus session when its loop ends)."""
+
+    def __init__(self, stop: threading.Event, finishing: ThreadPoolExecutor) -> None:
+        self.stop, self.finishing = stop, finishing
+
+    def is_set(self) -> bool:
+        if not self.stop.is_set():
+            return False
+        self.finishing.shutdown(wait=True)
+        return True
 
 
 def main(argv: list[str] | None = None) -> None:

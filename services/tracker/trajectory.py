@@ -18,7 +18,7 @@ from twohr.geometry import invert_pose
 from twohr.trajectory import Trajectory, interpolate_poses, smooth_trajectory
 
 from .map import MapSnapshot
-from .optim import inliers_of, refine_pose
+from .pose import inliers_of, refine_pose
 
 #: Statuses whose pose was measured (the others coast on the motion model or wait for a first frame).
 TRACKED_STATUSES = ("init", "tracking", "relocalised", "reinitialised")

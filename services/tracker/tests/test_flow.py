@@ -11,7 +11,7 @@ from twohr.evaluation import evaluate, static_trajectory
 from twohr.geometry import invert_pose, make_pose, project, so3_exp_batch, transform_points
 from twohr.trajectory import Trajectory
 from twohr_app.pipeline import local_stages, run_sequence
-from twohr_services.tracker.keyframes import KeyframePipeline
+from twohr_services.tracker.keyframe_schedule import KeyframePipeline
 from twohr_services.tracker.map import MapSnapshot
 from twohr_services.tracker.trajectory import AnchoredTrajectory, FrameObservations, smoothed
 

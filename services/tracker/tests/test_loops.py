@@ -6,8 +6,8 @@ import pytest
 from twohr.config import LoopClosingConfig
 from twohr.geometry import make_pose, so3_exp
 from twohr_services.tracker.loops import optimise_pose_graph
-from twohr_services.tracker.optim import pose_difference
 from twohr_services.tracker.places import PlaceIndex, Vocabulary, VocabularyError, vocabulary_path
+from twohr_services.tracker.pose import pose_difference
 
 
 def _unit(v):

@@ -16,11 +16,11 @@ from twohr.dataset import RGBDSequence
 from twohr.evaluation import evaluate
 from twohr.mapfile import MapFileError, read_header, read_map, verify_bytes
 from twohr.trajectory import Trajectory, read_tum
-from twohr_services.tracker.core import Tracker
 from twohr_services.tracker.mapfiles import load_map, save_map
-from twohr_services.tracker.optim import pose_difference
+from twohr_services.tracker.pose import pose_difference
+from twohr_services.tracker.tracking import Tracker
 
-from .test_tracker_core import SYNTHETIC, feed, truth_in_first_camera
+from .test_tracking import SYNTHETIC, feed, truth_in_first_camera
 
 ORB = load_config(None, {"detector.features": "orb", "yolo.enabled": False, "matcher.method": "mutual_nn"})
 ORB = ORB.model_copy(update={"tracker": SYNTHETIC})

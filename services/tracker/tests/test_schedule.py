@@ -12,7 +12,7 @@ from twohr.evaluation import evaluate, static_trajectory
 from twohr.geometry import make_pose
 from twohr_app.pipeline import local_stages
 from twohr_services.tracker.every_frame import EveryFrameSchedule
-from twohr_services.tracker.keyframes import KeyframePipeline
+from twohr_services.tracker.keyframe_schedule import KeyframePipeline
 from twohr_services.tracker.map import Map
 from twohr_services.tracker.motion import MotionModel
 from twohr_services.tracker.schedule import Schedule, build_schedule

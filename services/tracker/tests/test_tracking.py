@@ -12,9 +12,9 @@ from twohr.evaluation import evaluate
 from twohr.features import Keypoints
 from twohr.geometry import invert_pose
 from twohr.trajectory import Trajectory
-from twohr_services.tracker.core import Tracker, TrackerInputError
 from twohr_services.tracker.map import hold_gauge
-from twohr_services.tracker.optim import pose_difference
+from twohr_services.tracker.pose import pose_difference
+from twohr_services.tracker.tracking import Tracker, TrackerInputError
 from twohr_services.tracker.trajectory import TrackResult
 
 # The synthetic depth is exact (0.2 mm quantisation), so the tracker is told its sensor is precise.

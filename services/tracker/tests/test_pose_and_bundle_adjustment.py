@@ -5,17 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from twohr.geometry import invert_pose, project, transform_points
-from twohr_services.tracker.optim import (
-    MotionPrior,
-    bundle_adjust,
-    pnp_ransac,
-    pose_difference,
-    refine_pose,
-    sample_depth,
-    so3_exp_batch,
-    so3_log,
-)
+from twohr.geometry import invert_pose, project, so3_exp_batch, so3_log, transform_points
+from twohr_services.tracker.bundle_adjustment import bundle_adjust
+from twohr_services.tracker.pose import MotionPrior, pnp_ransac, pose_difference, refine_pose, sample_depth
 
 K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
 
