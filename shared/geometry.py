@@ -1,54 +1,41 @@
 """Rigid-body geometry: quaternions, SE(3) matrices, batched SO(3) helpers, Umeyama alignment and the Huber loss.
 
 Conventions: poses are 4x4 camera-to-world matrices; quaternions are (qx, qy, qz, qw)
-as in the TUM format.
+as in the TUM format (scipy's default order). Quaternions, rotation vectors and their matrices are
+converted by ``scipy.spatial.transform.Rotation``, vectorised.
 """
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 
 def quat_to_rot(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices from quaternions (..., 4) in (x, y, z, w) order; normalises first."""
+    """Rotation matrices (..., 3, 3) from quaternions (..., 4) in (x, y, z, w) order; normalises first.
+
+    A zero or non-finite quaternion gives a NaN matrix (scipy would raise)."""
     q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    r = np.empty(q.shape[:-1] + (3, 3))
-    r[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    r[..., 0, 1] = 2 * (x * y - z * w)
-    r[..., 0, 2] = 2 * (x * z + y * w)
-    r[..., 1, 0] = 2 * (x * y + z * w)
-    r[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    r[..., 1, 2] = 2 * (y * z - x * w)
-    r[..., 2, 0] = 2 * (x * z - y * w)
-    r[..., 2, 1] = 2 * (y * z + x * w)
-    r[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return r
+    flat = q.reshape(-1, 4)
+    ok = np.isfinite(flat).all(axis=1) & (np.linalg.norm(flat, axis=1) > 0)
+    if ok.all():
+        return Rotation.from_quat(flat).as_matrix().reshape(q.shape[:-1] + (3, 3))
+    out = np.full((len(flat), 3, 3), np.nan)
+    out[ok] = Rotation.from_quat(flat[ok]).as_matrix()
+    return out.reshape(q.shape[:-1] + (3, 3))
 
 
 def rot_to_quat(r: np.ndarray) -> np.ndarray:
-    """Quaternions (x, y, z, w) with w >= 0 from rotation matrices (..., 3, 3)."""
+    """Quaternions (..., 4) in (x, y, z, w) order with w >= 0 from rotation matrices (..., 3, 3).
+
+    A non-finite matrix gives a NaN quaternion; a matrix that is no rotation (det <= 0) raises ValueError."""
     r = np.asarray(r, dtype=np.float64)
     flat = r.reshape(-1, 3, 3)
-    out = np.empty((flat.shape[0], 4))
-    for i, m in enumerate(flat):
-        t = np.trace(m)
-        if t > 0:
-            s = 2.0 * np.sqrt(t + 1.0)
-            out[i] = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-        elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-            s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-            out[i] = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-        elif m[1, 1] > m[2, 2]:
-            s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-            out[i] = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-        else:
-            s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-            out[i] = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    out /= np.linalg.norm(out, axis=1, keepdims=True)
-    out[out[:, 3] < 0] *= -1
+    ok = np.isfinite(flat).all(axis=(1, 2))
+    if ok.all():
+        return Rotation.from_matrix(flat).as_quat(canonical=True).reshape(r.shape[:-2] + (4,))
+    out = np.full((len(flat), 4), np.nan)
+    out[ok] = Rotation.from_matrix(flat[ok]).as_quat(canonical=True)
     return out.reshape(r.shape[:-2] + (4,))
 
 
@@ -88,23 +75,13 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 
 def so3_exp_batch(omega: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) from axis-angle vectors (..., 3) (Rodrigues, stable near zero).
-
-    Not bit-identical to :func:`so3_exp` (other operation order and small-angle branch)."""
-    omega = np.asarray(omega, dtype=np.float64)
-    theta = np.linalg.norm(omega, axis=-1)[..., None, None]
-    k = skew(omega)
-    small = theta < 1e-8
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5, (1 - np.cos(safe)) / safe**2)
-    return np.eye(3) + a * k + b * (k @ k)
+    """Rotation matrices (..., 3, 3) from axis-angle vectors (..., 3) (scipy's Rodrigues, stable near zero)."""
+    return Rotation.from_rotvec(np.asarray(omega, dtype=np.float64)).as_matrix()
 
 
 def so3_log(r: np.ndarray) -> np.ndarray:
-    """Axis-angle vector (3,) of one rotation matrix (inverse of Rodrigues)."""
-    rvec, _ = cv2.Rodrigues(np.asarray(r, dtype=np.float64))
-    return rvec.reshape(3)
+    """Axis-angle vectors (..., 3), angle in [0, pi], of rotation matrices (..., 3, 3) (inverse of Rodrigues)."""
+    return Rotation.from_matrix(np.asarray(r, dtype=np.float64)).as_rotvec()
 
 
 def huber_weights(res: np.ndarray, threshold: float) -> np.ndarray:
@@ -121,14 +98,11 @@ def huber_loss(res: np.ndarray, threshold: float) -> np.ndarray:
 
 
 def so3_exp(omega: np.ndarray) -> np.ndarray:
-    """Rotation matrix from an axis-angle 3-vector (Rodrigues)."""
+    """Rotation matrix from one axis-angle 3-vector (Rodrigues); :func:`so3_exp_batch` for many."""
     omega = np.asarray(omega, dtype=np.float64)
-    theta = np.linalg.norm(omega)
-    k = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
-    if theta < 1e-12:
-        return np.eye(3) + k
-    k /= theta
-    return np.eye(3) + np.sin(theta) * k + (1 - np.cos(theta)) * (k @ k)
+    if omega.shape != (3,):
+        raise ValueError(f"so3_exp takes one 3-vector, got shape {omega.shape}; so3_exp_batch takes many")
+    return so3_exp_batch(omega)
 
 
 def nearest_rotation(m: np.ndarray) -> np.ndarray:

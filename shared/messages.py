@@ -25,7 +25,6 @@ from pydantic import BaseModel, Field, ValidationError
 from .config import PipelineConfig
 from .dataset import CameraIntrinsics, Frame, depth_in_metres, undistorted
 from .errors import TwohrError
-from .geometry import make_pose, quat_to_rot
 from .trajectory import Trajectory
 
 MAGIC = b"2HR"
@@ -351,8 +350,7 @@ def path_trajectory(arrays: dict[str, np.ndarray]) -> Trajectory:
             len(rows) and np.linalg.norm(rows[:, 3:], axis=1).min() < 1e-9):
         raise MessageError(f"a path needs stamps (N,) and finite poses (N, 7) with unit quaternions, got "
                            f"{stamps.shape} and {rows.shape}")
-    poses = [make_pose(quat_to_rot(row[3:]), row[:3]) for row in rows]
-    return Trajectory(stamps, np.array(poses).reshape(-1, 4, 4))
+    return Trajectory.from_tum_array(np.column_stack([stamps, rows]))
 
 
 def pose_trajectory(poses: list[PoseMsg]) -> Trajectory:
@@ -364,5 +362,5 @@ def pose_trajectory(poses: list[PoseMsg]) -> Trajectory:
               if not (np.isfinite(row).all() and np.linalg.norm(row[:4]) > 1e-9)]
     if broken:
         raise MessageError(f"the poses of frames {broken[:5]} have a zero or non-finite orientation or position")
-    matrices = [make_pose(quat_to_rot(np.array(p.orientation)), p.position) for p in ordered]
-    return Trajectory(np.array([p.stamp for p in ordered]), np.array(matrices).reshape(-1, 4, 4))
+    stamps = np.array([p.stamp for p in ordered], np.float64)
+    return Trajectory.from_tum_array(np.column_stack([stamps, values[:, 4:], values[:, :4]]))

@@ -16,7 +16,7 @@ import numpy as np
 import yaml
 
 from .dataset import CameraIntrinsics
-from .geometry import make_pose, so3_exp
+from .geometry import so3_exp_batch
 from .trajectory import Trajectory, write_tum
 
 ROOM_MIN = np.array([-2.5, -1.5, -1.5])
@@ -68,13 +68,12 @@ def camera_path(spec: SyntheticSpec) -> Trajectory:
     """A smooth hand-held-like path: a loop in x-y with gentle yaw and pitch, looking down +z."""
     t = np.arange(spec.frames) / spec.fps
     phase = 2 * np.pi * t / max(t[-1], 1e-6) if spec.frames > 1 else np.zeros(1)
-    poses = []
-    for p in phase:
-        r = spec.path_radius
-        position = np.array([r * np.sin(p), 0.5 * r * np.sin(2 * p), 0.3 * np.sin(p / 2)])
-        rotation = so3_exp(np.array([0.08 * np.sin(2 * p), 0.25 * np.sin(p), 0.05 * np.sin(p)]))
-        poses.append(make_pose(rotation, position))
-    return Trajectory(spec.start_stamp + t, np.array(poses))
+    r = spec.path_radius
+    poses = np.tile(np.eye(4), (len(phase), 1, 1))
+    poses[:, :3, 3] = np.stack([r * np.sin(phase), 0.5 * r * np.sin(2 * phase), 0.3 * np.sin(phase / 2)], axis=1)
+    poses[:, :3, :3] = so3_exp_batch(np.stack([0.08 * np.sin(2 * phase), 0.25 * np.sin(phase), 0.05 * np.sin(phase)],
+                                              axis=1))
+    return Trajectory(spec.start_stamp + t, poses)
 
 
 def _ray_box(origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray, inside: bool):

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .errors import DatasetError
 from .geometry import quat_to_rot, rot_to_quat
@@ -120,25 +121,14 @@ def interpolate_poses(trajectory: Trajectory, stamps: np.ndarray,
     span = times[upper] - times[lower]
     valid = (stamps >= times[lower]) & (stamps <= times[upper]) & (span <= max_gap) & (span > 0)
     alpha = np.where(valid, (stamps - times[lower]) / np.where(span > 0, span, 1.0), 0.0)
-    q0 = rot_to_quat(trajectory.poses[lower, :3, :3])
-    q1 = rot_to_quat(trajectory.poses[upper, :3, :3])
-    poses[:, :3, :3] = quat_to_rot(_slerp(q0, q1, alpha))
+    # slerp on each stamp's own pair of poses: r0 exp(alpha log(r0^-1 r1)), the formula of scipy's Slerp, which
+    # takes one list of keys instead (and no repeated stamp)
+    r0 = Rotation.from_matrix(trajectory.poses[lower, :3, :3])
+    r1 = Rotation.from_matrix(trajectory.poses[upper, :3, :3])
+    poses[:, :3, :3] = (r0 * Rotation.from_rotvec(alpha[:, None] * (r0.inv() * r1).as_rotvec())).as_matrix()
     t0, t1 = trajectory.poses[lower, :3, 3], trajectory.poses[upper, :3, 3]
     poses[:, :3, 3] = (1 - alpha[:, None]) * t0 + alpha[:, None] * t1
     return poses, valid
-
-
-def _slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    dot = np.sum(q0 * q1, axis=1)
-    q1 = np.where(dot[:, None] < 0, -q1, q1)
-    dot = np.abs(dot)
-    theta = np.arccos(np.clip(dot, -1.0, 1.0))
-    small = theta < 1e-8
-    sin = np.where(small, 1.0, np.sin(theta))
-    w0 = np.where(small, 1 - alpha, np.sin((1 - alpha) * theta) / sin)
-    w1 = np.where(small, alpha, np.sin(alpha * theta) / sin)
-    q = w0[:, None] * q0 + w1[:, None] * q1
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def smooth_trajectory(trajectory: Trajectory, acceleration: float, angular_acceleration: float,

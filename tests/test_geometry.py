@@ -16,7 +16,8 @@ from twohr.geometry import (
     so3_log,
     umeyama,
 )
-from twohr_services.tracker.optim import depth_residual, normal_equations, schur_layout, solve_schur
+from twohr_services.tracker.bundle_adjustment import normal_equations, schur_layout, solve_schur
+from twohr_services.tracker.pose import depth_residual
 
 
 def random_rotations(n, seed=0):
@@ -147,3 +148,24 @@ def test_schur_solver_matches_a_dense_solve_of_the_normal_equations(dim, damping
     assert step_pose.shape == (n_free, dim) and step_point.shape == (n_points, 3)
     assert np.allclose(step_pose.reshape(-1), dense[:dim * n_free], rtol=1e-9, atol=1e-11)
     assert np.allclose(step_point.reshape(-1), dense[dim * n_free:], rtol=1e-9, atol=1e-11)
+
+
+def test_rotation_helpers_take_batches_and_agree():
+    """so3_log takes (..., 3, 3) as so3_exp_batch takes (..., 3), up to 180 degrees; so3_exp is the same map;
+    quaternions are (x, y, z, w) with w >= 0; a zero quaternion or a NaN matrix gives NaN, not an exception."""
+    rng = np.random.default_rng(5)
+    axes = rng.normal(size=(4, 6, 3))
+    omegas = axes / np.linalg.norm(axes, axis=-1, keepdims=True) * rng.uniform(0, np.pi - 1e-6, (4, 6, 1))
+    rotations = so3_exp_batch(omegas)
+    assert np.allclose(so3_log(rotations), omegas, atol=1e-9)
+    assert np.array_equal(so3_exp(omegas[1, 2]), rotations[1, 2])
+    q = rot_to_quat(rotations)
+    assert q.shape == (4, 6, 4) and np.all(q[..., 3] >= 0)
+    assert np.allclose(q[..., :3] / np.sin(np.linalg.norm(omegas, axis=-1, keepdims=True) / 2),
+                       omegas / np.linalg.norm(omegas, axis=-1, keepdims=True))
+    assert np.allclose(quat_to_rot(q), rotations, atol=1e-12)
+    half_turn = rot_to_quat(quat_to_rot([0.0, 0.6, 0.8, 0.0]))
+    assert np.allclose(np.abs(half_turn), [0.0, 0.6, 0.8, 0.0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        assert np.isnan(quat_to_rot(np.array([[0.0, 0, 0, 0], [0, 0, 0, 1]]))[0]).all()
+        assert np.isnan(rot_to_quat(np.full((3, 3), np.nan))).all()

@@ -11,7 +11,6 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, Field, model_validator
 
-from twohr.geometry import make_pose, quat_to_rot
 from twohr.mapfile import NAME_PATTERN
 from twohr.messages import ID_PATTERN, PathMsg, PoseMsg, StatusMsg
 from twohr.trajectory import Trajectory
@@ -138,8 +137,7 @@ class PoseRecord:
         """The poses as a camera-to-world trajectory, ordered by frame."""
         rows = self._rows[:self._count]
         rows = rows[np.argsort(rows[:, 0], kind="stable")]
-        poses = [make_pose(quat_to_rot(row[5:9]), row[2:5]) for row in rows]
-        return Trajectory(rows[:, 1].copy(), np.array(poses).reshape(-1, 4, 4))
+        return Trajectory.from_tum_array(rows[:, 1:9])  # stamp, position, quaternion
 
 
 @dataclass
