@@ -16,27 +16,16 @@ from pathlib import Path
 
 import numpy as np
 
-from twohr.config import PipelineConfig, load_config, merge_overrides
+from twohr.config import PRESETS, PipelineConfig, load_config, merge_overrides
 from twohr.evaluation import evaluate
 from twohr.machine import machine
 from twohr.models import REPO_ROOT
 from twohr.trajectory import Trajectory
 from twohr_app.pipeline import FrontEnd, StageOutput, run_sequence
 
-#: The ablation variants: name -> config overrides on top of the user's config.
-ABLATIONS: dict[str, dict[str, object]] = {
-    "ORB + mutual NN": {"detector.features": "orb", "yolo.enabled": False, "matcher.method": "mutual_nn"},
-    "R2D2 raw + mutual NN": {"detector.features": "r2d2", "yolo.enabled": False, "matcher.method": "mutual_nn"},
-    "2HR + mutual NN": {"detector.features": "2hr", "yolo.enabled": False, "matcher.method": "mutual_nn"},
-    "2HR + YOLO + mutual NN": {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "mutual_nn"},
-    "2HR + YOLO + Siamese (full)": {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "siamese"},
-    "full, integer keypoints": {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "siamese",
-                                "detector.subpixel": False},
-    "full, no trajectory smoothing": {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "siamese",
-                                      "tracker.smoothing_acceleration": 0},
-    "full, no final bundle adjustment": {"detector.features": "2hr", "yolo.enabled": True,
-                                         "matcher.method": "siamese", "tracker.final_ba_iterations": 0},
-}
+#: The ablation variants: the table's row -> config overrides on top of the user's config. They are the product's
+#: named presets (``twohr run --preset NAME`` runs one row alone).
+ABLATIONS: dict[str, dict[str, object]] = {preset.label: preset.overrides for preset in PRESETS.values()}
 
 
 def peak_rss_mib() -> float:
@@ -97,7 +86,7 @@ def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 
                baseline: PipelineConfig | None = None, progress: bool = True) -> dict:
     """Run the pipeline ``runs`` times over the same frames; each run is paired with a run of ``baseline``
     (default: the ORB ablation) so that the ratio survives a noisy machine."""
-    baseline = baseline or load_config(None, ABLATIONS["ORB + mutual NN"])
+    baseline = baseline or load_config(preset="orb")
     stop = min(len(sequence), start + frames)
     results = {"pipeline": [], "baseline": []}
     orbslam3 = orbslam3_files()

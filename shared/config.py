@@ -103,6 +103,9 @@ class MatcherConfig(Section):
                              "validation pairs by `twohr matcher train`, see services/matcher/MODEL_CARD.md)")
     ratio: float = Field(0.8, gt=0, le=1, description="Lowe ratio for method=ratio")
     threads: int = Field(1, ge=1, le=64, description="onnxruntime intra-op threads for the Siamese head")
+    max_pairs_per_call: int = Field(4096, ge=64, description="one onnxruntime call scores at most this many "
+                                    "candidate pairs, with as many descriptors of each side; a larger query (a "
+                                    "whole-map relocalisation) runs in chunks, so memory stays flat")
 
 
 class TrackerConfig(Section):
@@ -371,9 +374,50 @@ def read_yaml_mapping(path: str | Path, what: str) -> dict[str, Any]:
     return data
 
 
-def load_config(path: str | Path | None = None, overrides: dict[str, Any] | list[str] | None = None) -> PipelineConfig:
-    """Defaults, then a YAML file, then overrides; any invalid or unknown key raises :class:`ConfigError`."""
+class Preset(BaseModel):
+    """A named configuration of the product: overrides on top of the defaults (and of a ``--config`` file)."""
+
+    model_config = ConfigDict(frozen=True)
+    label: str = Field(description="the row of the paper's ablation table it stands for")
+    overrides: dict[str, Any] = Field(description="dotted keys, as --set takes them")
+
+
+_FULL = {"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "siamese"}
+
+#: The paper's ablation rows as named presets (``twohr run --preset NAME``; ``twohr bench --ablations`` runs
+#: them all). ``full`` is the product's default design, spelled out.
+PRESETS: dict[str, Preset] = {
+    "orb": Preset(label="ORB + mutual NN",
+                  overrides={"detector.features": "orb", "yolo.enabled": False, "matcher.method": "mutual_nn"}),
+    "r2d2": Preset(label="R2D2 raw + mutual NN",
+                   overrides={"detector.features": "r2d2", "yolo.enabled": False, "matcher.method": "mutual_nn"}),
+    "2hr": Preset(label="2HR + mutual NN",
+                  overrides={"detector.features": "2hr", "yolo.enabled": False, "matcher.method": "mutual_nn"}),
+    "2hr-yolo": Preset(label="2HR + YOLO + mutual NN",
+                       overrides={"detector.features": "2hr", "yolo.enabled": True, "matcher.method": "mutual_nn"}),
+    "full": Preset(label="2HR + YOLO + Siamese (full)", overrides=_FULL),
+    "full-integer-keypoints": Preset(label="full, integer keypoints", overrides={**_FULL, "detector.subpixel": False}),
+    "full-no-smoothing": Preset(label="full, no trajectory smoothing",
+                                overrides={**_FULL, "tracker.smoothing_acceleration": 0}),
+    "full-no-final-ba": Preset(label="full, no final bundle adjustment",
+                               overrides={**_FULL, "tracker.final_ba_iterations": 0}),
+}
+
+
+def preset_overrides(name: str) -> dict[str, Any]:
+    """The overrides of preset ``name``; :class:`ConfigError` naming the presets for an unknown one."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}: choose one of {', '.join(PRESETS)}")
+    return dict(PRESETS[name].overrides)
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | list[str] | None = None,
+                preset: str | None = None) -> PipelineConfig:
+    """Defaults, then a YAML file, then a named preset (:data:`PRESETS`), then overrides; any invalid or unknown
+    key raises :class:`ConfigError`."""
     data: dict[str, Any] = read_yaml_mapping(path, "sections") if path is not None else {}
+    if preset is not None:
+        merge_overrides(data, preset_overrides(preset))
     merge_overrides(data, overrides or [])
     try:
         return PipelineConfig.model_validate(data)

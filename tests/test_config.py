@@ -35,3 +35,23 @@ def test_bad_overrides_are_clear(override, match):
 def test_missing_config_file(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "absent.yaml")
+
+
+def test_presets_sit_between_the_file_and_the_overrides(tmp_path):
+    from twohr.config import PRESETS
+
+    path = tmp_path / "c.yaml"
+    path.write_text("detector:\n  features: r2d2\n  max_keypoints: 800\n")
+    cfg = load_config(path, ["matcher.method=siamese"], preset="orb")
+    assert cfg.detector.features == "orb" and cfg.yolo.enabled is False  # the preset over the file
+    assert cfg.detector.max_keypoints == 800  # what the preset does not name stays the file's
+    assert cfg.matcher.method == "siamese"  # --set over the preset
+    full = load_config(preset="full")
+    assert (full.detector.features, full.yolo.enabled, full.matcher.method) == ("2hr", True, "siamese")
+    assert load_config(preset="full-no-final-ba").tracker.final_ba_iterations == 0
+    assert len({p.label for p in PRESETS.values()}) == len(PRESETS)  # one table row each
+
+
+def test_an_unknown_preset_names_the_known_ones():
+    with pytest.raises(ConfigError, match="unknown preset 'fast'.*orb.*full"):
+        load_config(preset="fast")

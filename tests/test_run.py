@@ -8,6 +8,7 @@ import sys
 
 import cv2
 import numpy as np
+import yaml
 
 from twohr.config import load_config
 from twohr.dataset import RGBDSequence
@@ -33,6 +34,24 @@ def test_twohr_run_on_a_short_real_segment(dev_sequence, tmp_path):
     # 10 frames (1/3 s) of a hand-held camera: the estimate must stay within a few centimetres
     assert summary["ate"]["ate"]["rmse"] < 0.05
     assert (out / "trajectory.png").stat().st_size > 10_000
+
+
+def test_an_ablation_row_runs_from_the_product_command(dev_sequence, tmp_path):
+    """``twohr run --preset orb``: the ablation table's ORB row, with --set still on top of it."""
+    out = tmp_path / "orb"
+    result = subprocess.run([sys.executable, "-m", "twohr_app", "run", "--sequence", str(dev_sequence), "--out",
+                             str(out), "--frames", "10", "--preset", "orb", "--set", "tracker.final_ba_iterations=0",
+                             "--quiet"], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    config = yaml.safe_load((out / "config.yaml").read_text())
+    assert (config["detector"]["features"], config["yolo"]["enabled"], config["matcher"]["method"]) == (
+        "orb", False, "mutual_nn")
+    assert config["tracker"]["final_ba_iterations"] == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 10 and summary["ate"]["ate"]["rmse"] < 0.05
+    bad = subprocess.run([sys.executable, "-m", "twohr_app", "run", "--sequence", str(dev_sequence), "--preset",
+                          "fastest"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "invalid choice: 'fastest'" in bad.stderr and "Traceback" not in bad.stderr
 
 
 def test_bad_frames_are_reported_not_fatal(synthetic_sequence, tmp_path):

@@ -7,6 +7,7 @@ import csv
 import json
 from pathlib import Path
 
+from twohr.config import PRESETS
 from twohr.paths import DEV_SEQUENCE
 
 
@@ -16,7 +17,7 @@ def load_config_and_sequence(args: argparse.Namespace):
     from twohr.config import load_config
     from twohr.dataset import RGBDSequence
 
-    config = load_config(args.config, args.set or [])
+    config = load_config(args.config, args.set or [], preset=args.preset)
     if args.camera:
         config.camera = args.camera
     sequence = RGBDSequence(args.sequence, camera=config.camera)
@@ -216,6 +217,9 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sequence", required=True, help="TUM-layout RGB-D folder (rgb.txt, depth.txt, images)")
     p.add_argument("--out", default=None, help="output folder (default runs/<sequence name>)")
     p.add_argument("--config", default=None, help="YAML pipeline config (see twohr.config.PipelineConfig)")
+    p.add_argument("--preset", default=None, choices=list(PRESETS), metavar="NAME",
+                   help="a named configuration, applied over --config and under --set: the paper's ablation rows ("
+                   + "; ".join(f"{name}: {preset.label}" for name, preset in PRESETS.items()) + ")")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a config value, e.g. --set detector.max_keypoints=1000 (repeatable)")
     p.add_argument("--camera", default=None, help="camera preset (tum_fr1, tum_fr2, tum_fr3, bonn)")
@@ -264,7 +268,7 @@ def loops_against_ground_truth(loops: list[dict], ground_truth) -> dict:
 
     from twohr.config import SAME_PLACE_DEG, SAME_PLACE_M
     from twohr.trajectory import interpolate_poses
-    from twohr_services.tracker.optim import pose_difference
+    from twohr_services.tracker.pose import pose_difference
 
     false_accepts = 0
     for loop in loops:

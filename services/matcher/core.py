@@ -56,26 +56,38 @@ def _check_descriptors(desc_a: np.ndarray, desc_b: np.ndarray) -> None:
         raise ValueError(f"descriptors differ: {desc_a.shape} {desc_a.dtype} vs {desc_b.shape} {desc_b.dtype}")
 
 
+#: score-matrix entries (float32) that :func:`knn_candidates` holds at once: 16 MB
+KNN_BLOCK = 1 << 22
+
+
 @cache
 def _session(path: str, threads: int) -> ort.InferenceSession:
     return cpu_session(path, threads, varying_shapes=True)  # candidate lists differ in length on every call
 
 
-def knn_candidates(desc_a: np.ndarray, desc_b: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Candidate pairs (idx_a, idx_b), each of A's descriptors with its ``k`` nearest in B (Euclidean)."""
+def knn_candidates(desc_a: np.ndarray, desc_b: np.ndarray, k: int,
+                   block: int = KNN_BLOCK) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate pairs (idx_a, idx_b), each of A's descriptors with its ``k`` nearest in B (Euclidean).
+
+    The (Na, Nb) score matrix is built ``block`` entries at a time (whole rows of A), so a whole-map query
+    needs no more memory than a small one."""
     k = min(k, len(desc_b))
     a = desc_a.astype(np.float32, copy=False)
     b = desc_b.astype(np.float32, copy=False)
-    # nearest = largest a.b - |b|^2 / 2 (|a - b|^2 without the row constant |a|^2). k rounds of argmax and
-    # masking beat a full argpartition of the (Na, Nb) matrix for small k (3 ms vs 8 ms at 1000 x 1000)
-    score = a @ b.T
-    score -= 0.5 * (b * b).sum(1)[None, :]
-    rows = np.arange(len(a))
+    half_norm = 0.5 * (b * b).sum(1)
     nearest = np.empty((len(a), k), np.int64)
-    for j in range(k):
-        nearest[:, j] = score.argmax(1)
-        score[rows, nearest[:, j]] = -np.inf
-    return np.repeat(rows, k), nearest.reshape(-1)
+    step = max(1, block // max(len(b), 1))
+    for start in range(0, len(a), step):
+        # nearest = largest a.b - |b|^2 / 2 (|a - b|^2 without the row constant |a|^2). k rounds of argmax and
+        # masking beat a full argpartition of the (Na, Nb) matrix for small k (3 ms vs 8 ms at 1000 x 1000)
+        score = a[start:start + step] @ b.T
+        score -= half_norm[None, :]
+        rows = np.arange(len(score))
+        for j in range(k):
+            best = score.argmax(1)
+            nearest[start:start + step, j] = best
+            score[rows, best] = -np.inf
+    return np.repeat(np.arange(len(a)), k), nearest.reshape(-1)
 
 
 def mutual_best(idx_a: np.ndarray, idx_b: np.ndarray, scores: np.ndarray) -> np.ndarray:
@@ -98,7 +110,8 @@ class SiameseMatcher:
     """The paper's Siamese matcher: k-NN candidates scored by the learned head, mutual best and score >= tau.
 
     1. candidates: each descriptor of A with its ``conf.candidates`` nearest descriptors of B;
-    2. the Siamese network scores all candidates in one onnxruntime call;
+    2. the Siamese network scores the candidates, at most ``conf.max_pairs_per_call`` of them per onnxruntime
+       call;
     3. a pair is kept when it is the best-scoring candidate of its ``a`` *and* of its ``b`` and its
        score is at least ``conf.threshold``.
 
@@ -121,9 +134,26 @@ class SiameseMatcher:
         self._warned_binary = False
 
     def score(self, desc_a: np.ndarray, desc_b: np.ndarray, idx_a: np.ndarray, idx_b: np.ndarray) -> np.ndarray:
-        """Siamese similarity in [0, 1] of the pairs ``(desc_a[idx_a], desc_b[idx_b])``."""
+        """Siamese similarity in [0, 1] of the pairs ``(desc_a[idx_a], desc_b[idx_b])``.
+
+        One onnxruntime call takes at most ``conf.max_pairs_per_call`` pairs and as many descriptors of each side.
+        A larger query (a whole-map relocalisation) runs in chunks of pairs, each with only the descriptors it
+        uses: the same scores, and the session's memory stays bounded whatever the query's size."""
         if len(idx_a) == 0:
             return np.zeros(0, np.float32)
+        cap = self.conf.max_pairs_per_call
+        if len(idx_a) <= cap and len(desc_a) <= cap and len(desc_b) <= cap:
+            return self._run(desc_a, desc_b, idx_a, idx_b)
+        idx_a, idx_b = np.asarray(idx_a), np.asarray(idx_b)
+        scores = np.empty(len(idx_a), np.float32)
+        for start in range(0, len(idx_a), cap):
+            chunk = slice(start, start + cap)
+            used_a, local_a = np.unique(idx_a[chunk], return_inverse=True)
+            used_b, local_b = np.unique(idx_b[chunk], return_inverse=True)
+            scores[chunk] = self._run(desc_a[used_a], desc_b[used_b], local_a, local_b)
+        return scores
+
+    def _run(self, desc_a: np.ndarray, desc_b: np.ndarray, idx_a: np.ndarray, idx_b: np.ndarray) -> np.ndarray:
         return self.session.run(["scores"], {
             "desc_a": np.ascontiguousarray(desc_a, np.float32), "desc_b": np.ascontiguousarray(desc_b, np.float32),
             "idx_a": np.ascontiguousarray(idx_a, np.int64), "idx_b": np.ascontiguousarray(idx_b, np.int64),

@@ -138,3 +138,53 @@ def test_build_matcher_returns_each_method():
         np.testing.assert_array_equal(m.idx_b, reference.idx_b)
     m = build_matcher(MatcherConfig(method="siamese"))(a, b)
     assert np.mean(m.idx_a == m.idx_b) > 0.95 and len(m) > 90
+
+
+class _ShapeLog:
+    """The real onnxruntime session, noting the input shapes of every call."""
+
+    def __init__(self, session) -> None:
+        self.session, self.calls = session, []
+
+    def run(self, outputs, feeds):
+        self.calls.append({name: value.shape for name, value in feeds.items()})
+        return self.session.run(outputs, feeds)
+
+
+def test_a_whole_map_query_runs_in_bounded_chunks_with_unchanged_matches():
+    """A relocalisation against 20k map descriptors: no onnxruntime call sees more than the cap, same matches."""
+    rng = np.random.default_rng(7)
+    world = unit_vectors(rng, 20_000)
+    frame = noisy_copy(rng, world[rng.choice(20_000, 1500, replace=False)], 0.03)
+    matcher = SiameseMatcher()
+    cap = matcher.conf.max_pairs_per_call
+    reference = SiameseMatcher(MatcherConfig(max_pairs_per_call=100_000)).match(frame, world)  # one call
+    matcher.session = log = _ShapeLog(matcher.session)
+    m = matcher.match(frame, world)
+    assert len(log.calls) == -(-1500 * matcher.conf.candidates // cap)
+    assert all(max(shape[0] for shape in call.values()) <= cap for call in log.calls)
+    np.testing.assert_array_equal(m.idx_a, reference.idx_a)
+    np.testing.assert_array_equal(m.idx_b, reference.idx_b)
+    np.testing.assert_array_equal(m.scores, reference.scores)
+    assert len(m) > 1200
+    log.calls.clear()
+    matcher.match(frame[:300], world[:2000])  # below the cap: one call with the whole arrays, as ever
+    assert log.calls == [{"desc_a": (300, 128), "desc_b": (2000, 128), "idx_a": (900,), "idx_b": (900,)}]
+
+
+def test_knn_candidates_of_a_whole_map_query_need_bounded_memory():
+    """The (Na, Nb) distance matrix of a 1500 x 20k query would be 120 MB; it is built a block at a time."""
+    import tracemalloc
+
+    rng = np.random.default_rng(8)
+    a, b = unit_vectors(rng, 1500), unit_vectors(rng, 20_000)
+    tracemalloc.start()
+    try:
+        idx_a, idx_b = knn_candidates(a, b, 3)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 50e6
+    small_a, small_b = knn_candidates(a[:200], b, 3, block=30_000)  # one row of A at a time: the same candidates
+    np.testing.assert_array_equal(small_a, idx_a[:600])
+    np.testing.assert_array_equal(small_b, idx_b[:600])
