@@ -22,7 +22,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, Field
 
-from twohr.keys import ALIVE_PREFIX, HEALTH_PREFIX, MAPS_PREFIX, PREFIX
+from twohr.keys import ALIVE_PREFIX, HEALTH_PREFIX, MAPS_PREFIX, PREFIX, RAW_CAMERA, key
 
 
 def _robots(*streams: str) -> list[str]:
@@ -37,6 +37,9 @@ class Grants(BaseModel):
     serve: list[str] = Field(default_factory=list, description="keys it may answer queries on")
     ask: list[str] = Field(default_factory=list, description="keys it may query")
     watch_liveliness: bool = Field(False, description="may follow which services are alive")
+    matching: list[str] | None = Field(None, description="subscriber declarations it may learn of, so that it sends "
+                                       "what it publishes at all (default: its publish keys); a robot learns of "
+                                       "every camera subscriber, since they subscribe to all cameras at once")
 
 
 SERVICE_ROLES = ("source", "detector", "yolo", "matcher", "tracker", "recorder")
@@ -102,7 +105,8 @@ def role_rules(role: str, grants: Grants) -> list[dict]:
     serve = grants.serve + own
     if grants.publish:
         rules += [_rule(f"{role}-pub", ["put", "delete"], "ingress", grants.publish),
-                  _rule(f"{role}-pub-match", ["declare_subscriber"], "egress", grants.publish)]
+                  _rule(f"{role}-pub-match", ["declare_subscriber"], "egress",
+                        grants.publish if grants.matching is None else grants.matching)]
     if grants.subscribe:
         rules += [_rule(f"{role}-sub", ["declare_subscriber"], "ingress", grants.subscribe),
                   _rule(f"{role}-sub-data", ["put", "delete"], "egress", grants.subscribe)]
@@ -123,24 +127,43 @@ def role_rules(role: str, grants: Grants) -> list[dict]:
     return rules
 
 
-def access_control(ros2_domain: int = 0, uplinks: list[str] | None = None) -> dict:
-    """The router's ``access_control`` section: deny by default, allow what :func:`role_grants` lists. A robot's
-    own router that links to the stack's router lists that router's Zenoh ids as ``uplinks`` and grants it
-    :func:`uplink_grants`: the router that dials is the one that authenticates (as ``router``), so the router
-    dialled is known here by its id alone."""
-    rules, subjects, policies = [], [], []
+def robot_grants(robot: str, ros2_domain: int = 0) -> Grants:
+    """What robot ``robot`` may do on a fleet's bus: what a ``client`` may, but publish only its own camera and the
+    ROS 2 topics of its own namespace (``/<robot>/...``)."""
+    client = role_grants(ros2_domain)["client"]
+    own = [key(robot, RAW_CAMERA), f"{ros2_domain}/{robot}/**", f"@ros2_lv/{ros2_domain}/**"]
+    return client.model_copy(update={"publish": own, "matching": client.publish})
+
+
+def _policy(subject: dict, rules: list[dict]) -> tuple[list[dict], dict, dict]:
+    return rules, subject, {"id": f"{subject['id']}-policy", "rules": [r["id"] for r in rules],
+                            "subjects": [subject["id"]]}
+
+
+def access_control(ros2_domain: int = 0, uplinks: list[str] | None = None, robots: list[str] | None = None) -> dict:
+    """The router's ``access_control`` section: deny by default, allow what :func:`role_grants` lists.
+
+    Without ``robots``, each role is known by its user name, and every outside client shares the ``client`` role.
+    With ``robots`` (a fleet's stack), each service role and each robot is known by its certificate's common name
+    and its user name together, and robot ``r`` gets :func:`robot_grants`; there is no shared ``client`` or
+    ``router`` role. A robot's own router that links to the stack's router lists that router's Zenoh ids as
+    ``uplinks`` and grants it :func:`uplink_grants`: the router that dials is the one that authenticates, so the
+    router dialled is known here by its id alone."""
+    parts = []
     for role, grants in role_grants(ros2_domain).items():
-        mine = role_rules(role, grants)
-        rules += mine
-        subjects.append({"id": role, "usernames": [role]})
-        policies.append({"id": f"{role}-policy", "rules": [r["id"] for r in mine], "subjects": [role]})
+        if robots is None:
+            parts.append(_policy({"id": role, "usernames": [role]}, role_rules(role, grants)))
+        elif role not in ("client", "router"):
+            parts.append(_policy({"id": role, "cert_common_names": [role], "usernames": [role]},
+                                 role_rules(role, grants)))
+    for robot in robots or []:
+        subject = {"id": f"robot-{robot}", "cert_common_names": [robot], "usernames": [robot]}
+        parts.append(_policy(subject, role_rules(subject["id"], robot_grants(robot, ros2_domain))))
     if uplinks:
-        mine = role_rules("uplink", uplink_grants(ros2_domain))
-        rules += mine
-        subjects.append({"id": "uplink", "zids": list(uplinks)})
-        policies.append({"id": "uplink-policy", "rules": [r["id"] for r in mine], "subjects": ["uplink"]})
-    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
-            "policies": policies}
+        parts.append(_policy({"id": "uplink", "zids": list(uplinks)},
+                             role_rules("uplink", uplink_grants(ros2_domain))))
+    return {"enabled": True, "default_permission": "deny", "rules": [r for rules, _, _ in parts for r in rules],
+            "subjects": [subject for _, subject, _ in parts], "policies": [policy for _, _, policy in parts]}
 
 
 class Credentials(BaseModel):
@@ -175,7 +198,7 @@ class Credentials(BaseModel):
         return cls.model_validate_json(Path(path).read_text())
 
 
-def client_config(endpoint: str, user: str, password: str, tls_root_ca: str | None = None) -> dict:
+def client_config(endpoint: str, user: str, password: str) -> dict:
     """A Zenoh client configuration for ``user`` on the router at ``endpoint`` (what ``--write-client-config``
     writes and what ``BusConfig.from_file`` reads)."""
     conf: dict = {
@@ -186,8 +209,6 @@ def client_config(endpoint: str, user: str, password: str, tls_root_ca: str | No
         # that sent through shared memory left its pool (about 19 MB) mapped in each receiver for good
         "transport": {"auth": {"usrpwd": {"user": user, "password": password}}, "shared_memory": {"enabled": False}},
     }
-    if tls_root_ca:
-        conf["transport"]["link"] = {"tls": {"root_ca_certificate": tls_root_ca}}
     return conf
 
 

@@ -18,7 +18,7 @@ from importlib.metadata import entry_points
 from twohr.errors import TwohrError
 from twohr.paths import DEV_SEQUENCE
 
-from .commands import camera, eval, health, maps, models, router, run, synth, up
+from .commands import camera, eval, health, keys, maps, models, router, run, synth, up
 
 Register = Callable[[argparse._SubParsersAction], None]
 
@@ -29,6 +29,7 @@ COMMANDS: list[tuple[str, Register]] = [
     ("60-up", up.register),
     ("62-health", health.register),
     ("64-router", router.register),
+    ("66-keys", keys.register),
     ("70-camera", camera.register),
     ("80-eval", eval.register),
     ("85-synth", synth.register),

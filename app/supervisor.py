@@ -27,6 +27,8 @@ from pathlib import Path
 
 from twohr.keys import PIPELINE_SERVICES
 
+from .fleet import Fleet
+
 
 def _die_with_parent() -> None:
     """In a child, before exec: on Linux, have the kernel send SIGTERM when ``twohr up`` dies, even by SIGKILL,
@@ -125,11 +127,15 @@ class ProcessGroup:
                 proc.wait()
 
 
-def _wait_http(url: str, timeout: float) -> None:
+def _wait_http(base: str, timeout: float, fleet: Fleet | None = None) -> None:
+    import ssl
+
+    url = f"{base}/healthz"
+    context = ssl.create_default_context(cafile=str(fleet.folder / "ca.crt")) if fleet else None
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         try:
-            with urllib.request.urlopen(url, timeout=1) as response:
+            with urllib.request.urlopen(url, timeout=1, context=context) as response:
                 if response.status == 200:
                     return
         except OSError:
@@ -138,82 +144,138 @@ def _wait_http(url: str, timeout: float) -> None:
 
 
 @dataclass
-class System:
-    """A running stack: the in-process router, the supervised children, and the credentials of its roles."""
+class StackAccess:
+    """How the stack's own processes prove who they are: nothing (insecure), per-role passwords generated for this
+    run (kept in a private folder removed at exit), or a fleet's keys (each process its own key folder)."""
 
-    router: object  # the router's zenoh.Session
-    group: ProcessGroup
-    endpoint: str
-    credentials: object | None = field(repr=False)  # twohr_app.access.Credentials; None when started insecure
+    credentials: object | None = field(default=None, repr=False)  # twohr_app.access.Credentials
     secrets_dir: Path | None = None
+    keys: Fleet | None = None
 
-    def bus(self, role: str = "client"):
-        """A BusConfig that joins this stack as ``role``."""
+    @classmethod
+    def generated(cls, api_token: str | None) -> StackAccess:
+        from .access import Credentials
+
+        credentials = Credentials.generate(api_token)
+        secrets_dir = Path(tempfile.mkdtemp(prefix="twohr-secrets-"))
+        credentials.save(secrets_dir)
+        return cls(credentials=credentials, secrets_dir=secrets_dir)
+
+    def env(self, role: str) -> dict[str, str]:
+        """The environment that makes a child process join as ``role``."""
+        if self.keys is not None:
+            return {"TWOHR_ZENOH_KEYS": str(self.keys.service_folder(role))}
+        if self.credentials is not None:
+            return {"TWOHR_ZENOH_USER": role, "TWOHR_ZENOH_PASSWORD_FILE": str(self.secrets_dir / f"{role}.password")}
+        return {}
+
+    def bus(self, role: str, endpoint: str):
+        """A BusConfig that joins the stack at ``endpoint`` as ``role``."""
         from pydantic import SecretStr
 
         from twohr.bus import BusConfig
 
+        if self.keys is not None:
+            return BusConfig(connect=[endpoint], identity=self.keys.identity(role), config_file=None, user=None,
+                             password=None)
         password = self.credentials.passwords[role] if self.credentials else None
-        return BusConfig(connect=[self.endpoint], user=role if password else None,
+        return BusConfig(connect=[endpoint], user=role if password else None, identity=None,
                          password=SecretStr(password) if password else None, config_file=None)
+
+    def close(self) -> None:
+        if self.secrets_dir is not None:
+            shutil.rmtree(self.secrets_dir, ignore_errors=True)
+
+
+@dataclass
+class System:
+    """A running stack: its router (a Zenoh session, or a :class:`~twohr_app.fleet_router.FleetRouter` on a fleet's
+    keys), the supervised children, and how its processes join."""
+
+    router: object
+    group: ProcessGroup
+    endpoint: str
+    access: StackAccess
+
+    @property
+    def credentials(self):
+        return self.access.credentials
+
+    def bus(self, role: str = "client"):
+        """A BusConfig that joins this stack as ``role`` (a service role's key folder on a fleet's keys)."""
+        return self.access.bus(role, self.endpoint)
 
     def stop(self) -> None:
         self.group.stop()
         self.router.close()
-        if self.secrets_dir is not None:
-            shutil.rmtree(self.secrets_dir, ignore_errors=True)
+        self.access.close()
+
+
+def _start_router(endpoint: str, access: StackAccess, ros2_domain: int):
+    from twohr.bus import RouterSecurity, start_router
+
+    from .access import access_control
+
+    if access.keys is not None:
+        from .fleet_router import FleetRouter
+
+        return FleetRouter(access.keys.service_folder("router"), [endpoint], ros2_domain)
+    if access.credentials is None:
+        return start_router([endpoint])
+    return start_router([endpoint], RouterSecurity(users_file=access.secrets_dir / "users.txt",
+                                                   access_control=access_control(ros2_domain)))
+
+
+def _endpoint_host(endpoint: str) -> str:
+    return endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]")
 
 
 def start_system(router: str, data_roots: list[str], recordings: str, host: str, port: int,
                  api_token: str | None = None, timeout: float = 120.0, log_level: str = "INFO",
                  secure: bool = True, ros2_domain: int | None = None, foxglove_port: int | None = None,
-                 record_descriptors: bool = False, maps: str | None = None) -> System:
+                 record_descriptors: bool = False, maps: str | None = None, keys: str | Path | None = None,
+                 hosts: list[str] | None = None) -> System:
     """Start the router, the services and the gateway; returns the :class:`System` once every part is healthy.
     With ``secure`` (the default) the router admits only generated per-role credentials and enforces the
-    access-control list; ``api_token`` (None: no token) guards the HTTP API. ``foxglove_port`` turns on the
+    access-control list; with ``keys`` (a fleet's keys folder, ``twohr keys init``) every link is mutual TLS
+    instead, each process with its own certificate, one identity per robot, the gateway on HTTPS for ``host``
+    and ``hosts``. ``api_token`` (None: no token) guards the HTTP API. ``foxglove_port`` turns on the
     gateway's Foxglove live view on ``host``; ``ros2_domain`` starts the ros2 service, which speaks ROS 2 over
     rmw_zenoh in that domain. ``maps``: the map store's folder (the gateway serves it)."""
-    from twohr.bus import RouterSecurity, start_router, wait_for_services
+    from twohr.bus import open_session, wait_for_services
 
-    from .access import Credentials, access_control
-
-    credentials = secrets_dir = security = None
-    if secure:
-        credentials = Credentials.generate(api_token)
-        secrets_dir = Path(tempfile.mkdtemp(prefix="twohr-secrets-"))
-        credentials.save(secrets_dir)
-        security = RouterSecurity(users_file=secrets_dir / "users.txt", access_control=access_control(ros2_domain or 0))
-    router_session = start_router([router], security)
-    system = System(router_session, ProcessGroup(), router, credentials, secrets_dir)
+    if keys is not None:
+        fleet = Fleet(keys)
+        fleet.read()  # one clear line for a folder without keys
+        fleet.ensure_serving("router", [_endpoint_host(router)])
+        fleet.ensure_serving("gateway", [host, *(hosts or [])])
+        access = StackAccess(keys=fleet)
+    else:
+        access = StackAccess.generated(api_token) if secure else StackAccess()
+    system = System(_start_router(router, access, ros2_domain or 0), ProcessGroup(), router, access)
     base_env = {k: v for k, v in os.environ.items() if not k.startswith("TWOHR_ZENOH_")}
     base_env |= {"TWOHR_ZENOH_ROUTER": router, "TWOHR_LOG_LEVEL": log_level}
-
-    def env(role: str) -> dict[str, str]:
-        if credentials is None:
-            return base_env
-        return base_env | {"TWOHR_ZENOH_USER": role, "TWOHR_ZENOH_PASSWORD_FILE": str(secrets_dir / f"{role}.password")}
-
     try:
         roots = [arg for root in data_roots for arg in ("--data-root", root)]
         for name in PIPELINE_SERVICES:
             extra = {"source": roots, "recorder": ["--recordings", recordings] + (
                 ["--record-descriptors"] if record_descriptors else [])}.get(name, [])
-            system.group.start(name, [f"twohr_services.{name}", *extra], env(name))
+            system.group.start(name, [f"twohr_services.{name}", *extra], base_env | access.env(name))
         gateway_args = ["twohr_services.gateway", "--host", host, "--port", str(port), "--recordings", recordings,
-                        *roots, "--foxglove-port", str(foxglove_port or 0), *(["--maps", maps] if maps else [])]
-        gateway_env = env("gateway") | ({"TWOHR_API_TOKEN": api_token} if api_token else {})
+                        *roots, "--foxglove-port", str(foxglove_port or 0), *(["--maps", maps] if maps else []),
+                        *(_gateway_tls_args(access.keys) if access.keys else [])]
+        gateway_env = base_env | access.env("gateway") | ({"TWOHR_API_TOKEN": api_token} if api_token else {})
         system.group.start("gateway", gateway_args, gateway_env)
         if ros2_domain is not None:
-            system.group.start("ros2", ["twohr_services.ros2", "--domain", str(ros2_domain)], env("ros2"))
-        from twohr.bus import open_session
-
-        client = open_session(system.bus("client"))
+            system.group.start("ros2", ["twohr_services.ros2", "--domain", str(ros2_domain)],
+                               base_env | access.env("ros2"))
+        client = open_session(system.bus("gateway" if access.keys else "client"))
         try:
             optional = ["ros2"] if ros2_domain is not None else []
             wait_for_services(client, [*PIPELINE_SERVICES, *optional], timeout=timeout)
         finally:
             client.close()
-        _wait_http(f"http://{host}:{port}/healthz", timeout)
+        _wait_http(gateway_url(host, port, access.keys), timeout, access.keys)
         if system.group.dead():
             raise RuntimeError(f"processes exited during start-up: {system.group.dead()}")
     except BaseException:
@@ -221,3 +283,13 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
         raise
     system.group.supervise()
     return system
+
+
+def _gateway_tls_args(fleet: Fleet) -> list[str]:
+    folder = fleet.service_folder("gateway")
+    return ["--tls-keys", str(folder), "--robot-tokens", str(folder / "tokens.json")]
+
+
+def gateway_url(host: str, port: int, fleet: Fleet | None = None) -> str:
+    """The gateway's base URL: HTTPS on a fleet's keys."""
+    return f"{'https' if fleet else 'http'}://{host}:{port}"

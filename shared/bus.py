@@ -2,8 +2,10 @@
 
 A process joins the bus as a role (``TWOHR_ZENOH_USER``) with that role's password
 (``TWOHR_ZENOH_PASSWORD``, or a file named by ``TWOHR_ZENOH_PASSWORD_FILE``), or from a whole Zenoh
-client config file (``TWOHR_ZENOH_CONFIG``, as ``twohr up --write-client-config`` writes). The router
-checks both, and its access-control list (made by the composition root) decides what each role may do.
+client config file (``TWOHR_ZENOH_CONFIG``, as ``twohr up --write-client-config`` writes). On a fleet's bus it
+joins with its own identity instead (``TWOHR_ZENOH_KEYS``, or ``--keys``: a key folder or a robot's bundle,
+:mod:`twohr.identity`): mutual TLS with its certificate, and its password inside TLS. The router checks them,
+and its access-control list (made by the composition root) decides what each identity may do.
 
 Kept light (no numpy or OpenCV): container health checks import only this module."""
 
@@ -20,6 +22,7 @@ import zenoh
 from pydantic import BaseModel, Field, SecretStr
 
 from .errors import TwohrError
+from .identity import Identity, env_identity, load_identity
 from .keys import HEALTH_PREFIX
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
@@ -32,25 +35,32 @@ def _env_password() -> SecretStr | None:
     return SecretStr(value) if value else None
 
 
-def add_router_option(parser, help: str = "Zenoh router endpoint to connect to (default $TWOHR_ZENOH_ROUTER)",
-                      **kwargs) -> None:
-    """``--router ENDPOINT``, the one option every process on the bus takes (an ``argparse`` parser)."""
+def add_router_option(parser, help: str = "Zenoh router endpoint to connect to (default $TWOHR_ZENOH_ROUTER, or "
+                      "the --keys bundle's)", keys: bool = True, **kwargs) -> None:
+    """``--router ENDPOINT`` and ``--keys PATH``, the options every process on the bus takes (an ``argparse``
+    parser)."""
     parser.add_argument("--router", default=None, metavar="ENDPOINT", help=help, **kwargs)
+    if keys:
+        parser.add_argument("--keys", default=None, metavar="PATH", help="join a fleet's bus with this identity: a "
+                            "robot's bundle (twohr keys add) or a service's key folder (default $TWOHR_ZENOH_KEYS); "
+                            "mutual TLS, to the bundle's endpoint unless --router names another")
 
 
 def bus_from_args(args) -> BusConfig:
-    """The :class:`BusConfig` of a process started with :func:`add_router_option`: ``--router`` when given, else
-    the environment's."""
-    return BusConfig(connect=[args.router]) if getattr(args, "router", None) else BusConfig()
+    """The :class:`BusConfig` of a process started with :func:`add_router_option`: its ``--keys`` identity (else
+    the environment's), and ``--router`` when given, else the identity's endpoint, else the environment's."""
+    identity = load_identity(args.keys) if getattr(args, "keys", None) else env_identity()
+    router = getattr(args, "router", None) or (identity.endpoint if identity else None)
+    return BusConfig(identity=identity, **({"connect": [router]} if router else {}))
 
 
 class RouterSecurity(BaseModel):
-    """What a router checks: the ``user:password`` file, the access-control list, and TLS when given."""
+    """What a router checks: the ``user:password`` file, the access-control list and, with an ``identity``, mutual
+    TLS: it listens on ``tls/`` endpoints only, with that certificate, and admits only certificates of its CA."""
 
     users_file: Path
     access_control: dict
-    tls_certificate: Path | None = Field(None, description="PEM certificate for tls/ endpoints")
-    tls_private_key: Path | None = None
+    identity: Identity | None = Field(None, description="the router's own certificate (a fleet's stack)")
 
 
 class BusConfig(BaseModel):
@@ -62,7 +72,8 @@ class BusConfig(BaseModel):
     multicast_scouting: bool = False
     user: str | None = Field(default_factory=lambda: os.environ.get("TWOHR_ZENOH_USER") or None)
     password: SecretStr | None = Field(default_factory=_env_password)
-    tls_root_ca: Path | None = Field(default_factory=lambda: os.environ.get("TWOHR_ZENOH_TLS_ROOT_CA") or None)
+    identity: Identity | None = Field(default_factory=env_identity, description="mutual TLS with this certificate "
+                                      "and its credentials ($TWOHR_ZENOH_KEYS)")
     config_file: Path | None = Field(default_factory=lambda: os.environ.get("TWOHR_ZENOH_CONFIG") or None,
                                      description="a whole Zenoh config file; replaces every other field")
     security: RouterSecurity | None = Field(None, description="routers only")
@@ -86,17 +97,19 @@ class BusConfig(BaseModel):
         if self.listen:
             conf["listen"] = {"endpoints": self.listen}
         transport: dict = {}
-        if self.user and self.password is not None:
-            transport["auth"] = {"usrpwd": {"user": self.user, "password": self.password.get_secret_value()}}
-        if self.tls_root_ca:
-            transport["link"] = {"tls": {"root_ca_certificate": str(self.tls_root_ca)}}
+        user, password = self.user, self.password
+        if self.identity is not None and user is None:
+            user, password = self.identity.name, self.identity.password
+        if user and password is not None:
+            transport["auth"] = {"usrpwd": {"user": user, "password": password.get_secret_value()}}
+        if self.identity is not None:  # its certificate when it dials (a client, or a robot's router)
+            transport["link"] = {"tls": self.identity.zenoh_tls()}
         if self.security is not None:
             auth = transport.setdefault("auth", {}).setdefault("usrpwd", {})
             auth["dictionary_file"] = str(self.security.users_file)
             conf["access_control"] = self.security.access_control
-            if self.security.tls_certificate:
-                transport["link"] = {"tls": {"listen_certificate": str(self.security.tls_certificate),
-                                             "listen_private_key": str(self.security.tls_private_key)}}
+            if self.security.identity is not None:
+                transport["link"] = {"protocols": ["tls"], "tls": self.security.identity.zenoh_tls(listen=True)}
         if not self.shared_memory:
             transport["shared_memory"] = {"enabled": False}
         if transport:
@@ -115,7 +128,11 @@ def open_session(conf: BusConfig | None = None) -> zenoh.Session:
         if conf.mode == "router":
             raise TwohrError(f"cannot start the Zenoh router on {', '.join(conf.listen)}: {reason}") from None
         where = conf.config_file or ", ".join(conf.connect)
-        who = f" as {conf.user!r}" if conf.user else " without credentials"
+        user = conf.user or (conf.identity.name if conf.identity else None)
+        who = f" as {user!r}" if user else " without credentials"
+        if conf.identity is not None:
+            reason += (" (the router refused the TLS handshake or the credentials: a certificate of another "
+                       "fleet's CA, a revoked robot, or no fleet router there)")
         raise TwohrError(f"cannot join the Zenoh bus at {where}{who}: {reason}") from None
 
 
@@ -128,13 +145,14 @@ def free_port(host: str = "127.0.0.1") -> int:
 
 def start_router(listen: list[str] | None = None, security: RouterSecurity | None = None,
                  connect: list[str] | None = None, user: str | None = None,
-                 password: SecretStr | None = None) -> zenoh.Session:
+                 password: SecretStr | None = None, identity: Identity | None = None) -> zenoh.Session:
     """A Zenoh router inside this process, listening on ``listen`` (default tcp/127.0.0.1:7447); with
     ``security`` it admits only its users and enforces their access-control list. With ``connect`` it links to
-    the routers there (retrying until they answer), presenting ``user`` and ``password``: the ``router`` role
-    of their stack (see ``twohr_app.access``, which makes them)."""
+    the routers there (retrying until they answer), presenting ``user`` and ``password`` (the ``router`` role of
+    their stack, see ``twohr_app.access``) or, on a fleet's bus, ``identity``: a robot's own router carries its
+    robot's identity."""
     return open_session(BusConfig(mode="router", connect=connect or [], listen=listen or [DEFAULT_ROUTER],
-                                  user=user, password=password, config_file=None, tls_root_ca=None,
+                                  user=user, password=password, config_file=None, identity=identity,
                                   security=security))
 
 

@@ -26,7 +26,9 @@ ALIVE_PREFIX = f"{PREFIX}/_alive"
 #: ``twohr/maps/<name>/save`` carries as the map's next version
 MAPS_PREFIX = f"{PREFIX}/maps"
 
-_ROBOT = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
+ROBOT_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
+#: robot ids that name something else under ``twohr/``
+RESERVED_ROBOT_IDS = ("maps",)
 
 
 def map_key(name: str, save: bool = False) -> str:
@@ -45,7 +47,7 @@ def parse_map_key(key_expr: str, save: bool = False) -> str:
 
 def key(robot_id: str, stream: str) -> str:
     """The key of one robot's stream, e.g. ``twohr/robot1/pose``."""
-    if not _ROBOT.match(robot_id) or robot_id == "maps":
+    if not ROBOT_PATTERN.match(robot_id) or robot_id in RESERVED_ROBOT_IDS:
         raise ValueError(f"invalid robot id {robot_id!r}: use letters, digits, '_' or '-' (at most 64), "
                          "starting with a letter or digit; 'maps' is the map store's")
     return f"{PREFIX}/{robot_id}/{stream}"

@@ -385,7 +385,7 @@ def test_a_linked_router_gets_what_a_client_gets_and_its_uplink_the_mirror():
     assert [s["id"] for s in access_control()["subjects"]] == [s["id"] for s in acl["subjects"]][:-1]
     # a router that links presents its credentials and still checks its own users
     conf = BusConfig(mode="router", connect=[f"tcp/{SERVER}:{ROUTER_PORT}"], listen=[f"tcp/{ROBOT_LAN}:7447"],
-                     user="router", password=SecretStr("pw"), config_file=None, tls_root_ca=None,
+                     user="router", password=SecretStr("pw"), config_file=None, identity=None,
                      security=RouterSecurity(users_file=Path("users.txt"), access_control=acl)).zenoh_config()
     assert json.loads(conf.get_json("connect/endpoints")) == [f"tcp/{SERVER}:{ROUTER_PORT}"]
     usrpwd = json.loads(conf.get_json("transport/auth/usrpwd"))

@@ -21,16 +21,17 @@ from twohr.errors import TwohrError
 log = logging.getLogger(__name__)
 
 
-def open_bus(zenoh_config: str | None, router: str | None):
-    """A Zenoh session from a client config file, a router endpoint, or the default (``$TWOHR_ZENOH_ROUTER``,
-    else ``tcp/127.0.0.1:7447``, with the credentials in the environment)."""
-    from twohr.bus import BusConfig, open_session
+def open_bus(args: argparse.Namespace):
+    """A Zenoh session from a client config file (``--zenoh-config``), or a robot's bundle (``--keys``), or the
+    default (``$TWOHR_ZENOH_ROUTER``, else ``tcp/127.0.0.1:7447``, with the credentials in the environment), to
+    ``--router`` where given."""
+    from twohr.bus import BusConfig, bus_from_args, open_session
 
-    if zenoh_config:
-        if not Path(zenoh_config).is_file():
-            raise TwohrError(f"Zenoh config not found: {zenoh_config}")
-        return open_session(BusConfig(config_file=zenoh_config))
-    bus = BusConfig(connect=[router]) if router else BusConfig()
+    if args.zenoh_config:
+        if not Path(args.zenoh_config).is_file():
+            raise TwohrError(f"Zenoh config not found: {args.zenoh_config}")
+        return open_session(BusConfig(config_file=args.zenoh_config))
+    bus = bus_from_args(args)
     return open_session(bus.model_copy(update={"shared_memory": False}))  # a client that comes and goes
 
 
@@ -137,10 +138,14 @@ def _realsense_stream(rs, robot: str, width: int, height: int, fps: int, frames:
 
 def _camera(args: argparse.Namespace) -> int:
     from twohr import keys
+    from twohr.identity import load_identity
     from twohr.service import declare_publisher
 
+    if args.keys and args.zenoh_config:
+        raise TwohrError("give --keys or --zenoh-config, not both")
+    robot = args.robot or (load_identity(args.keys).name if args.keys else "robot1")
     try:
-        key = keys.key(args.robot, keys.RAW_CAMERA)
+        key = keys.key(robot, keys.RAW_CAMERA)
     except ValueError as exc:
         raise TwohrError(str(exc)) from None
     if args.frames is not None and args.frames < 1:
@@ -148,10 +153,10 @@ def _camera(args: argparse.Namespace) -> int:
     if args.rate < 0:
         raise TwohrError("--rate must be 0 (as fast as possible) or a frame rate in Hz")
     if args.replay:
-        payloads = replay_payloads(args.replay, args.robot, args.rate, args.frames, args.start, args.loop)
+        payloads = replay_payloads(args.replay, robot, args.rate, args.frames, args.start, args.loop)
     else:
-        payloads = realsense_payloads(args.robot, args.width, args.height, args.fps, args.frames)
-    session = open_bus(args.zenoh_config, args.router)
+        payloads = realsense_payloads(robot, args.width, args.height, args.fps, args.frames)
+    session = open_bus(args)
     sent, t0 = 0, time.monotonic()
     try:
         publisher = declare_publisher(session, key)
@@ -171,7 +176,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--replay", metavar="SEQ", help="play a recorded TUM-layout sequence as a camera would")
     source.add_argument("--realsense", action="store_true", help="stream the first Intel RealSense camera")
-    p.add_argument("--robot", default="robot1", help="robot id: frames go to twohr/<robot>/camera (default robot1)")
+    p.add_argument("--robot", default=None, help="robot id: frames go to twohr/<robot>/camera (default: the --keys "
+                   "bundle's robot, else robot1)")
     p.add_argument("--rate", type=float, default=30.0, help="replay frame rate in Hz; 0 = as fast as possible "
                    "(default 30)")
     p.add_argument("--frames", type=int, default=None, help="stop after N frames (default: all / until Ctrl-C)")
@@ -180,7 +186,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "time (for soak runs; stop with --frames or Ctrl-C)")
     p.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh client configuration to open the session "
                    "from (default: connect to $TWOHR_ZENOH_ROUTER or tcp/127.0.0.1:7447)")
-    add_router_option(p, help="router endpoint to connect to, instead of --zenoh-config")
+    add_router_option(p, help="router endpoint to connect to, instead of --zenoh-config (default: the --keys "
+                      "bundle's endpoint, else $TWOHR_ZENOH_ROUTER)")
     p.add_argument("--width", type=int, default=640, help="RealSense stream width (default 640)")
     p.add_argument("--height", type=int, default=480, help="RealSense stream height (default 480)")
     p.add_argument("--fps", type=int, default=30, help="RealSense frame rate (default 30)")

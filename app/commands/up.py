@@ -6,6 +6,11 @@ enforces each role's access-control list (``twohr_app.access``). The HTTP API ne
 (``--api-token``) whenever the gateway listens beyond loopback; one is generated and printed if none is given.
 Outside clients (camera drivers, other robots, ROS 2 nodes) join with the client config that
 ``--write-client-config`` writes. ``docker-compose.yml`` mirrors the same topology.
+
+A fleet across hosts: ``--keys DIR`` (``twohr keys init DIR``) with ``--router tls/HOST:PORT`` runs every link on
+mutual TLS, each process with its own certificate of the fleet's CA, each robot with its own identity (it may
+publish only its own camera), the gateway on HTTPS; ``twohr keys revoke DIR ROBOT`` shuts a robot out while the
+stack runs. Listening beyond loopback without TLS is refused unless ``--insecure``.
 """
 
 from __future__ import annotations
@@ -23,35 +28,60 @@ from ..access import is_loopback
 from ..supervisor import start_system
 
 
+def check_exposure(args: argparse.Namespace) -> None:
+    """Refuse to listen beyond loopback without TLS unless ``--insecure``: passwords, frames and poses would
+    cross the network in clear text."""
+    from twohr.errors import TwohrError
+
+    if args.insecure or args.keys:
+        return
+    if not args.router.startswith("tls/") and not is_loopback(args.router):
+        raise TwohrError(f"--router {args.router} is reachable from other hosts without TLS: passwords and frames "
+                         "would cross the network in clear; give --keys DIR and a tls/ endpoint (twohr keys init), "
+                         "or --insecure for a closed test network")
+    if not is_loopback(args.host):
+        raise TwohrError(f"--host {args.host} serves the HTTP API beyond this host without TLS: give --keys DIR "
+                         "(HTTPS with a certificate of the fleet's CA), or --insecure for a closed test network")
+    if args.router.startswith("tls/"):
+        raise TwohrError(f"--router {args.router}: a tls/ endpoint needs the fleet's keys (--keys DIR)")
+
+
 def _up(args: argparse.Namespace) -> int:
     import secrets
 
     from twohr.errors import TwohrError
 
     from ..access import write_client_config
+    from ..supervisor import gateway_url
 
-    if not args.insecure and not is_loopback(args.router) and not args.expose:
-        raise TwohrError(f"--router {args.router} is reachable from other hosts: add --expose to mean it "
-                         "(other hosts then join with the --write-client-config file)")
+    check_exposure(args)
     # the gateway on loopback serves only this host's users; anywhere else it needs a token
     token = args.api_token or (None if args.insecure or is_loopback(args.host) else secrets.token_urlsafe(18))
     t0 = time.monotonic()
     print(f"starting router on {args.router} and services {', '.join(PIPELINE_SERVICES)} + gateway …", flush=True)
+    if args.keys:
+        from ..fleet_router import DenialLog
+
+        DenialLog().start()
     try:
         system = start_system(args.router, args.data_root or [str(Path.cwd())], args.recordings, args.host,
                               args.port, token, args.timeout, secure=not args.insecure,
                               ros2_domain=args.ros2_domain, foxglove_port=args.foxglove_port or None,
-                              record_descriptors=args.record_descriptors, maps=args.maps)
+                              record_descriptors=args.record_descriptors, maps=args.maps, keys=args.keys)
     except (TimeoutError, RuntimeError) as exc:
         raise TwohrError(str(exc)) from None
-    print(f"all healthy in {time.monotonic() - t0:.1f} s — gateway http://{args.host}:{args.port} "
-          f"(docs at /docs); poses on twohr/<robot>/pose; Ctrl-C stops everything", flush=True)
+    url = gateway_url(args.host, args.port, system.access.keys)
+    print(f"all healthy in {time.monotonic() - t0:.1f} s — gateway {url} (docs at /docs); poses on "
+          "twohr/<robot>/pose; Ctrl-C stops everything", flush=True)
     if args.insecure:
         print("WARNING: --insecure: the bus admits anyone who reaches it and the HTTP API has no token",
               file=sys.stderr, flush=True)
-    else:
-        if token and not args.api_token:
-            print(f"HTTP API token (generated): {token}   use: -H 'Authorization: Bearer {token}'", flush=True)
+    elif token and not args.api_token:
+        print(f"HTTP API token (generated): {token}   use: -H 'Authorization: Bearer {token}'", flush=True)
+    if args.keys:
+        print(f"fleet keys {args.keys}: robots join with their bundle (twohr keys add {args.keys} ROBOT --out "
+              f"ROBOT.bundle --endpoint {args.router}); HTTPS verified with {Path(args.keys) / 'ca.crt'}", flush=True)
+    elif not args.insecure:
         client_config = write_client_config(Path(args.write_client_config), args.router, system.credentials)
         print(f"Zenoh client config for outside clients: {client_config}", flush=True)
     if args.foxglove_port:
@@ -72,7 +102,8 @@ def _up(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("up", help="start the router, every service and the gateway as local processes",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--router", default="tcp/127.0.0.1:7447", help="endpoint the Zenoh router listens on")
+    p.add_argument("--router", default="tcp/127.0.0.1:7447", help="endpoint the Zenoh router listens on (with "
+                   "--keys a tls/HOST:PORT one; without, loopback only unless --insecure)")
     p.add_argument("--data-root", action="append", help="folder sequences may come from (repeatable; default .)")
     p.add_argument("--recordings", default="recordings", help="folder for MCAP recordings")
     p.add_argument("--maps", default=None, metavar="DIR", help="the map store: sessions build, localize in and "
@@ -88,7 +119,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ros2-domain", type=int, default=None, metavar="ID",
                    help="also run the ros2 service: poses as ROS 2 topics (PoseStamped, Odometry, tf, Path) over "
                    "rmw_zenoh in this domain, which ROS 2 nodes with the client config can read")
-    p.add_argument("--expose", action="store_true", help="allow a --router endpoint that other hosts can reach")
+    p.add_argument("--keys", default=None, metavar="DIR", help="a fleet's keys (twohr keys init DIR): every link "
+                   "mutual TLS with one certificate per process, one identity per robot, revocation while running "
+                   "(twohr keys revoke), the gateway on HTTPS; needed for a --router other hosts can reach")
     p.add_argument("--insecure", action="store_true", help="no bus authentication, access control or API token "
                    "(local experiments only)")
     p.add_argument("--foxglove-port", type=int, default=8765,

@@ -28,6 +28,10 @@ def build_parser():
                         "/maps); default none")
     parser.add_argument("--foxglove-port", type=int, default=8765,
                         help="port of the Foxglove WebSocket live view on --host (default 8765; 0 turns it off)")
+    parser.add_argument("--tls-keys", default=None, metavar="FOLDER", help="serve HTTPS with the certificate and "
+                        "key of this key folder (cert.pem, key.pem: the gateway's of a fleet's keys)")
+    parser.add_argument("--robot-tokens", default=None, metavar="FILE", help="the robots' API tokens (robot -> "
+                        "SHA-256, JSON, as twohr keys writes it): each starts, stops and reads its own sessions")
     return parser
 
 
@@ -42,13 +46,22 @@ def settings_from_args(args) -> GatewaySettings:
         foxglove_host=args.host,
         foxglove_port=args.foxglove_port or None,
         maps=Path(args.maps) if args.maps else None,
+        robot_tokens=Path(args.robot_tokens) if args.robot_tokens else None,
     )
 
 
 def main(argv: list[str] | None = None) -> None:
     """Parse ``argv`` (default: the process's arguments) and serve the gateway until it is stopped."""
-    args = build_parser().parse_args(argv)
-    uvicorn.run(create_app(settings_from_args(args)), host=args.host, port=args.port, log_level="info")
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    tls = {}
+    if args.tls_keys:
+        folder = Path(args.tls_keys)
+        tls = {"ssl_certfile": str(folder / "cert.pem"), "ssl_keyfile": str(folder / "key.pem")}
+        missing = [path for path in tls.values() if not Path(path).is_file()]
+        if missing:
+            parser.exit(2, f"gateway: error: --tls-keys {args.tls_keys} lacks {', '.join(missing)}\n")
+    uvicorn.run(create_app(settings_from_args(args)), host=args.host, port=args.port, log_level="info", **tls)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ from twohr.errors import validation_problems
 
 from . import page
 from .bus import GatewayBus
+from .deps import RobotTokens
 from .routes import health, maps, sessions
 from .sessions import SessionTable
 from .settings import GatewaySettings
@@ -64,6 +65,7 @@ def create_app(settings: GatewaySettings) -> FastAPI:
     app.state.settings = settings
     app.state.table = SessionTable()
     app.state.bus = GatewayBus(settings, app.state.table)
+    app.state.robot_tokens = RobotTokens(settings.robot_tokens) if settings.robot_tokens else None
     app.middleware("http")(limit_body)
     app.add_exception_handler(RequestValidationError, validation_error)
     app.include_router(page.router)

@@ -3,7 +3,11 @@ the API token check, and the error replies the routes document."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import secrets
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request, status
@@ -23,7 +27,8 @@ class Problem(BaseModel):
 # the content type is spelled out: with a model, FastAPI would document a text route's errors as text
 ERRORS = {code: {"description": text, "content": {"application/json": {"schema": Problem.model_json_schema()}}}
           for code, text in {
-    400: "the request body is not valid JSON text", 401: "missing or wrong API token", 404: "no such session",
+    400: "the request body is not valid JSON text", 401: "missing or wrong API token",
+    403: "a robot's token, for another robot's session or the operator's work", 404: "no such session",
     409: "conflict with the session's state",
     413: "request body too large", 422: "invalid request: the detail names the field",
     503: "a service the session needs is not running"}.items()}
@@ -55,11 +60,61 @@ Bus = Annotated[GatewayBus, Depends(gateway_bus)]
 Table = Annotated[SessionTable, Depends(session_table)]
 
 
-async def require_token(request: Request, settings: Settings) -> None:
-    """401 unless the request carries the gateway's API token (when it has one) as ``Authorization: Bearer``."""
-    if settings.api_token is None:
-        return
+class RobotTokens:
+    """The robots' API tokens, as SHA-256 digests in a JSON file (``robot -> digest``, what ``twohr keys`` writes
+    for the gateway); read again whenever the file changes, so a revoked robot's token stops working at once."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._stamp: tuple[int, int] | None = None
+        self._robots: dict[str, str] = {}
+
+    def robot_of(self, token: str) -> str | None:
+        """The robot whose token this is, or None."""
+        try:
+            stat = self.path.stat()
+            if (stat.st_mtime_ns, stat.st_size) != self._stamp:
+                self._robots = {digest: robot for robot, digest in json.loads(self.path.read_text()).items()}
+                self._stamp = (stat.st_mtime_ns, stat.st_size)
+        except (OSError, ValueError):
+            self._robots, self._stamp = {}, None  # unreadable: no robot is let in, the operator still is
+        digest = hashlib.sha256(token.encode("utf-8", "surrogateescape")).hexdigest()
+        return next((robot for known, robot in self._robots.items() if secrets.compare_digest(known, digest)), None)
+
+
+@dataclass(frozen=True)
+class Caller:
+    """Who sent a request: the operator (``robot`` None: everything) or one robot (its own sessions only)."""
+
+    robot: str | None = None
+
+    def check_robot(self, robot_id: str) -> None:
+        """403 unless this caller may act for ``robot_id``."""
+        if self.robot is not None and self.robot != robot_id:
+            raise HTTPException(status.HTTP_403_FORBIDDEN, f"robot {self.robot}'s token acts for robot "
+                                f"{self.robot} only, not {robot_id}")
+
+    def check_operator(self, what: str) -> None:
+        """403 unless this caller is the operator."""
+        if self.robot is not None:
+            raise HTTPException(status.HTTP_403_FORBIDDEN, f"{what} needs the operator's token, not robot "
+                                f"{self.robot}'s")
+
+
+async def require_token(request: Request, settings: Settings) -> Caller:
+    """401 unless the request carries the operator's API token (when the gateway has one) or, where the gateway
+    knows the robots' tokens, a robot's, as ``Authorization: Bearer``; returns who it is."""
+    if settings.api_token is None and settings.robot_tokens is None:
+        return Caller()
     supplied = request.headers.get("authorization", "").removeprefix("Bearer ").strip()
     # compared as bytes: a header with non-ASCII characters is simply a wrong token
-    if not secrets.compare_digest(supplied.encode("utf-8", "surrogateescape"), settings.api_token.encode()):
+    if settings.api_token is not None and secrets.compare_digest(
+            supplied.encode("utf-8", "surrogateescape"), settings.api_token.encode()):
+        return Caller()
+    robot = request.app.state.robot_tokens.robot_of(supplied) if supplied and settings.robot_tokens else None
+    if robot is None:
         raise HTTPException(status.HTTP_401_UNAUTHORIZED, "missing or wrong API token (Authorization: Bearer …)")
+    return Caller(robot)
+
+
+Who = Annotated[Caller, Depends(require_token)]

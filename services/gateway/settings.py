@@ -17,6 +17,8 @@ class GatewaySettings(BaseModel):
     recordings: Path = Path("recordings")
     api_token: str | None = Field(default_factory=lambda: os.environ.get("TWOHR_API_TOKEN") or None,
                                   description="if set, requests need 'Authorization: Bearer <token>'")
+    robot_tokens: Path | None = Field(None, description="the robots' API tokens (robot -> SHA-256, JSON, as twohr keys "
+                                      "writes it): a robot's token starts, stops and reads its own sessions only")
     bus: BusConfig = Field(default_factory=BusConfig)
     idle_timeout: float = Field(15.0, gt=0, description="a session whose source is done and that gets no pose "
                                 "for this long is finished")

@@ -13,7 +13,7 @@ from fastapi.responses import FileResponse
 
 from twohr.mapfile import MapEntry, MapFileError, MapStore
 
-from ..deps import Settings, errors, require_token
+from ..deps import Settings, Who, errors, require_token
 
 log = logging.getLogger("twohr.gateway")
 
@@ -52,12 +52,14 @@ def download_map(name: str, store: Store) -> FileResponse:
     return FileResponse(path, media_type="application/octet-stream", filename=path.name)
 
 
-@router.post("/maps", status_code=201, response_model=MapEntry, responses=errors(401, 404, 413, 422),
+@router.post("/maps", status_code=201, response_model=MapEntry, responses=errors(401, 403, 404, 413, 422),
              openapi_extra={"requestBody": {"required": True, "content": {"application/octet-stream": {
                  "schema": {"type": "string", "format": "binary"}}}}})
-async def upload_map(request: Request, store: Store, settings: Settings, name: str | None = None) -> MapEntry:
+async def upload_map(request: Request, store: Store, settings: Settings, who: Who,
+                     name: str | None = None) -> MapEntry:
     """Keep an uploaded map file (the body), checked through first, under its name (``name``, if given, must be
-    the one in its header); a map already under that name is kept as an earlier version."""
+    the one in its header); a map already under that name is kept as an earlier version. The operator's only."""
+    who.check_operator("uploading a map")
     chunks, size = [], 0
     async for chunk in request.stream():  # a chunked upload has no Content-Length for the middleware to check
         size += len(chunk)
@@ -70,9 +72,10 @@ async def upload_map(request: Request, store: Store, settings: Settings, name: s
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)[:2000]) from None
 
 
-@router.delete("/maps/{name}", status_code=204, responses=errors(401, 404))
-def delete_map(name: str, store: Store) -> None:
-    """Remove a map and its earlier versions."""
+@router.delete("/maps/{name}", status_code=204, responses=errors(401, 403, 404))
+def delete_map(name: str, store: Store, who: Who) -> None:
+    """Remove a map and its earlier versions. The operator's only."""
+    who.check_operator("deleting a map")
     try:
         removed = store.delete(name)
     except MapFileError as exc:

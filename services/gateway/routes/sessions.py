@@ -23,7 +23,7 @@ from twohr.models import get_spec
 from twohr.paths import resolve_under_roots
 from twohr.trajectory import tum_text
 
-from ..deps import Bus, Settings, Table, errors, require_token
+from ..deps import Bus, Caller, Settings, Table, Who, errors, require_token
 from ..sessions import ACTIVE, MapRequest, PoseOut, Session, SessionInfo, SessionRequest, SessionTable
 from ..settings import GatewaySettings
 
@@ -99,18 +99,22 @@ def session_info(session: Session, recordings: Path) -> SessionInfo:
     )
 
 
-def lookup(table: SessionTable, session_id: str) -> Session:
-    """The session ``session_id``; 404 when the table has none."""
+def lookup(table: SessionTable, session_id: str, who: Caller) -> Session:
+    """The session ``session_id``; 404 when the table has none, 403 when it is another robot's and ``who`` is a
+    robot."""
     session = table.get(session_id)
     if session is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"no session {session_id}")
+    who.check_robot(session.request.robot_id)
     return session
 
 
-@router.post("/sessions", status_code=201, response_model=SessionInfo, responses=errors(400, 401, 409, 413, 422, 503))
-def create_session(request: SessionRequest, settings: Settings, bus: Bus, table: Table) -> SessionInfo:
+@router.post("/sessions", status_code=201, response_model=SessionInfo,
+             responses=errors(400, 401, 403, 409, 413, 422, 503))
+def create_session(request: SessionRequest, settings: Settings, bus: Bus, table: Table, who: Who) -> SessionInfo:
     """Start a session on a sequence under the data roots. 409 if the robot already runs one, 503 if a
-    service is not running."""
+    service is not running, 403 for a robot's token and another robot's session."""
+    who.check_robot(request.robot_id)
     config, folder = checked_start(request, settings)
     missing = bus.missing_services()
     if missing:
@@ -124,34 +128,36 @@ def create_session(request: SessionRequest, settings: Settings, bus: Bus, table:
 
 
 @router.get("/sessions", response_model=list[SessionInfo], responses=errors(401))
-def list_sessions(settings: Settings, table: Table) -> list[SessionInfo]:
-    """Every session the gateway knows: the active ones and the latest ended ones."""
-    return [session_info(s, settings.recordings) for s in list(table.sessions.values())]
+def list_sessions(settings: Settings, table: Table, who: Who) -> list[SessionInfo]:
+    """Every session the gateway knows: the active ones and the latest ended ones (a robot's token: its own)."""
+    return [session_info(s, settings.recordings) for s in list(table.sessions.values())
+            if who.robot in (None, s.request.robot_id)]
 
 
-@router.get("/sessions/{session_id}", response_model=SessionInfo, responses=errors(401, 404))
-def get_session(session_id: str, settings: Settings, table: Table) -> SessionInfo:
+@router.get("/sessions/{session_id}", response_model=SessionInfo, responses=errors(401, 403, 404))
+def get_session(session_id: str, settings: Settings, table: Table, who: Who) -> SessionInfo:
     """One session's state, progress, latest pose and ATE."""
-    return session_info(lookup(table, session_id), settings.recordings)
+    return session_info(lookup(table, session_id, who), settings.recordings)
 
 
-@router.delete("/sessions/{session_id}", response_model=SessionInfo, responses=errors(401, 404))
-def stop_session(session_id: str, settings: Settings, bus: Bus, table: Table) -> SessionInfo:
+@router.delete("/sessions/{session_id}", response_model=SessionInfo, responses=errors(401, 403, 404))
+def stop_session(session_id: str, settings: Settings, bus: Bus, table: Table, who: Who) -> SessionInfo:
     """Stop a session (its robot is free at once); an ended session is returned unchanged."""
-    session = lookup(table, session_id)
+    session = lookup(table, session_id, who)
     if session.state in ACTIVE:
         session.state = "stopped"
         bus.send_control(session, "stop")
     return session_info(session, settings.recordings)
 
 
-@router.get("/sessions/{session_id}/trajectory", response_class=PlainTextResponse, responses=errors(401, 404, 422))
-async def trajectory(session_id: str, bus: Bus, table: Table, online: bool = False) -> PlainTextResponse:
+@router.get("/sessions/{session_id}/trajectory", response_class=PlainTextResponse,
+            responses=errors(401, 403, 404, 422))
+async def trajectory(session_id: str, bus: Bus, table: Table, who: Who, online: bool = False) -> PlainTextResponse:
     """The session's trajectory in TUM format (camera-to-world). Once the session has ended: the refined
     trajectory the tracker sends then (final bundle adjustment, re-anchoring, smoothing), waited for a few
     seconds if it is not in yet; while it runs, or with ``online=true``: the poses as published. The header
     ``X-Twohr-Trajectory`` says which (``refined`` or ``online``)."""
-    session = lookup(table, session_id)
+    session = lookup(table, session_id, who)
     while not online and session.refined is None and session.refined_due is not None and (
             time.time() < session.refined_due) and "tracker" in bus.alive:
         await asyncio.sleep(0.1)
@@ -164,10 +170,10 @@ async def trajectory(session_id: str, bus: Bus, table: Table, online: bool = Fal
 @router.get("/sessions/{session_id}/recording",
             responses={200: {"content": {"application/octet-stream": {}},
                              "description": "the MCAP file; header X-Twohr-Recording: partial when the recorder "
-                             "died and its readable prefix was re-indexed"}, **errors(401, 404, 409)})
-async def recording(session_id: str, settings: Settings, table: Table) -> FileResponse:
+                             "died and its readable prefix was re-indexed"}, **errors(401, 403, 404, 409)})
+async def recording(session_id: str, settings: Settings, table: Table, who: Who) -> FileResponse:
     """The session's MCAP file, once the session has ended."""
-    session = lookup(table, session_id)
+    session = lookup(table, session_id, who)
     path = settings.recordings / f"{session.id}.mcap"
     if not session.request.record:
         raise HTTPException(status.HTTP_404_NOT_FOUND, "this session was not recorded")
