@@ -11,8 +11,7 @@ Modules:
   health query), ``access`` (roles, credentials, access control), ``service`` (the services' shell),
   ``workers`` (background worker, prefetcher);
 * recordings and views: ``mcapfile`` (crash-safe MCAP files), ``foxglove_convert`` (twohr data as
-  Foxglove messages), ``foxglove_live`` (the Foxglove WebSocket live view), and the package ``ros2``
-  (ROS 2 interop without ROS);
+  Foxglove messages), ``foxglove_live`` (the Foxglove WebSocket live view);
 * odds and ends: ``errors`` (user-facing errors), ``paths`` (the dev sequence, paths under data roots).
 """
 

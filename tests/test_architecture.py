@@ -115,6 +115,7 @@ def test_services_holds_only_service_rooms():
     loose = [p.name for p in SERVICES.iterdir() if p.is_file() and p.name != "__init__.py"]
     assert not loose, loose
     assert all((p / "__init__.py").is_file() for p in SERVICES.iterdir() if p.is_dir() and p.name != "__pycache__")
+    assert not (REPO / "shared" / "ros2").exists()
 
 
 def long_functions(folder: Path, limit: int = 80) -> list[str]:

@@ -30,14 +30,15 @@ from twohr.bus import BusConfig, bus_from_args
 from twohr.config import read_yaml_mapping
 from twohr.errors import ConfigError, validation_problems
 from twohr.messages import PathMsg, PoseMsg, StatusMsg, decode, encode, path_trajectory
-from twohr.ros2 import msgs
-from twohr.ros2.config import Ros2Config
-from twohr.ros2.convert import CameraAssembler, PoseOutputs, diagnostics
-from twohr.ros2.rmw import Attachment, NodeInfo, make_gid, topic_key, topic_key_any_hash
 from twohr.service import Service, declare_publisher, service_parser
 
+from . import msgs
+from .config import Ros2Config
+from .convert import CameraAssembler, PoseOutputs, diagnostics
+from .rmw import Attachment, NodeInfo, make_gid, topic_key, topic_key_any_hash
+
 #: the camera input's roles and the message type each is subscribed with
-CAMERA_ROLES: tuple[tuple[str, type[msgs.RosMessage]], ...] = (
+CAMERA_ROLES: tuple[tuple[str, type], ...] = (
     ("color", msgs.Image), ("color_compressed", msgs.CompressedImage), ("depth", msgs.Image), ("info", msgs.CameraInfo))
 
 
@@ -52,16 +53,16 @@ class RosNode:
         self.tokens = [session.liveliness().declare_token(info.node_token())]
         self.publishers: dict[str, tuple[zenoh.Publisher, bytes, list[int]]] = {}
 
-    def _entity(self, kind: str, topic: str, cls: type[msgs.RosMessage]) -> str:
+    def _entity(self, kind: str, topic: str, cls: type) -> str:
         token = self.info.endpoint_token(next(self.entity_ids), kind, topic, cls)
         self.tokens.append(self.session.liveliness().declare_token(token))
         return token
 
-    def subscription(self, topic: str, cls: type[msgs.RosMessage]) -> None:
+    def subscription(self, topic: str, cls: type) -> None:
         """Announce a subscription (the data subscriber itself is declared by the service shell)."""
         self._entity("MS", topic, cls)
 
-    def publish(self, topic: str, message: msgs.RosMessage) -> None:
+    def publish(self, topic: str, message) -> None:
         if topic not in self.publishers:
             token = self._entity("MP", topic, type(message))
             publisher = declare_publisher(self.session, topic_key(self.info.domain_id, topic, type(message)),
@@ -90,7 +91,7 @@ class Ros2Service(Service):
         self.entity_ids = itertools.count()
         self.published: dict[str, int] = {}
         self.camera = CameraAssembler(self.config.camera_input) if self.config.camera_input else None
-        self.inputs: dict[str, tuple[str, type[msgs.RosMessage]]] = {}  # key prefix -> (role, type)
+        self.inputs: dict[str, tuple[str, type]] = {}  # key prefix -> (role, type)
         if self.config.camera_input:
             topics = self.config.camera_input.topics()
             for role, cls in CAMERA_ROLES:
@@ -130,7 +131,7 @@ class Ros2Service(Service):
             node = self._node(self.config.robot_namespace(robot))
             for topic, message in outputs:
                 node.publish(topic, message)
-                self.published[message.ros_type] = self.published.get(message.ros_type, 0) + 1
+                self.published[message.__msgtype__] = self.published.get(message.__msgtype__, 0) + 1
             return
         prefix = key[: key.rfind("/") + 1]
         if prefix not in self.inputs:

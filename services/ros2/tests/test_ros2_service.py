@@ -13,11 +13,11 @@ from twohr import keys
 from twohr.bus import open_session, wait_for_services
 from twohr.dataset import RGBDSequence
 from twohr.messages import FrameMsg, PoseMsg, StatusMsg, decode, encode
-from twohr.ros2 import msgs
-from twohr.ros2.config import Ros2CameraInput, Ros2Config
-from twohr.ros2.convert import frame_to_ros
-from twohr.ros2.rmw import Attachment, topic_key
 from twohr.service import declare_publisher
+from twohr_services.ros2 import msgs
+from twohr_services.ros2.config import Ros2CameraInput, Ros2Config
+from twohr_services.ros2.convert import frame_to_ros
+from twohr_services.ros2.rmw import Attachment, topic_key
 from twohr_services.ros2.service import Ros2Service, command
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -69,8 +69,8 @@ def test_poses_become_ros2_samples_that_rosbags_decodes(ros2_service):
     pose_key = topic_key(0, "/live1/pose", msgs.PoseStamped)
     assert pose_key.startswith("0/live1/pose/geometry_msgs::msg::dds_::PoseStamped_/RIHS01_")
     for key, items in by_key.items():
-        ros_type = next(cls.ros_type for cls in (msgs.PoseStamped, msgs.Odometry, msgs.TFMessage, msgs.Path)
-                        if cls.dds_type() in key)
+        ros_type = next(cls.__msgtype__ for cls in (msgs.PoseStamped, msgs.Odometry, msgs.TFMessage, msgs.Path)
+                        if msgs.dds_type(cls) in key)
         decoded = [TYPESTORE.deserialize_cdr(payload, ros_type) for payload, _ in items]
         attachments = [Attachment.decode(attachment) for _, attachment in items]
         assert [a.sequence_number for a in attachments] == list(range(1, len(items) + 1))

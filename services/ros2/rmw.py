@@ -21,8 +21,9 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
-from ..messages import MessageError
-from .msgs import RosMessage
+from twohr.messages import MessageError
+
+from . import msgs
 
 ADMIN_SPACE = "@ros2_lv"
 #: rmw_zenoh's compact QoS for RELIABLE, VOLATILE, KEEP_LAST 10: the fields equal to its defaults are left empty
@@ -44,14 +45,14 @@ def qualified_name(namespace: str, name: str) -> str:
     return full.rstrip("/")
 
 
-def topic_key(domain_id: int, topic: str, message: type[RosMessage]) -> str:
+def topic_key(domain_id: int, topic: str, message: type) -> str:
     """The Zenoh key a ROS 2 node on rmw_zenoh publishes ``topic`` (fully qualified) of this type on."""
-    return f"{domain_id}/{topic.strip('/')}/{message.dds_type()}/{message.type_hash}"
+    return f"{domain_id}/{topic.strip('/')}/{msgs.dds_type(message)}/{msgs.type_hash(message)}"
 
 
-def topic_key_any_hash(domain_id: int, topic: str, message: type[RosMessage]) -> str:
+def topic_key_any_hash(domain_id: int, topic: str, message: type) -> str:
     """The key expression for a topic whatever the publisher's type hash (Humble sends ``TypeHashNotSupported``)."""
-    return f"{domain_id}/{topic.strip('/')}/{message.dds_type()}/*"
+    return f"{domain_id}/{topic.strip('/')}/{msgs.dds_type(message)}/*"
 
 
 def mangle(name: str) -> str:
@@ -77,10 +78,11 @@ class NodeInfo(BaseModel):
         """The liveliness token that announces the node (kind ``NN``)."""
         return self._prefix(self.node_id, "NN")
 
-    def endpoint_token(self, entity_id: int, kind: Literal["MP", "MS"], topic: str, message: type[RosMessage],
+    def endpoint_token(self, entity_id: int, kind: Literal["MP", "MS"], topic: str, message: type,
                        qos: str = DEFAULT_QOS) -> str:
         """The liveliness token of a publisher (``MP``) or subscription (``MS``) on a fully qualified topic."""
-        return f"{self._prefix(entity_id, kind)}/{mangle(topic)}/{message.dds_type()}/{message.type_hash}/{qos}"
+        return (f"{self._prefix(entity_id, kind)}/{mangle(topic)}/{msgs.dds_type(message)}/"
+                f"{msgs.type_hash(message)}/{qos}")
 
 
 def make_gid(token: str) -> bytes:

@@ -1,8 +1,7 @@
 """twohr messages to and from ROS 2 messages: poses out (PoseStamped, Odometry, TF, Path), session statuses out
 (DiagnosticArray), camera frames in.
 
-Pure functions and small stateful builders; no bus inside. The service adapter and the ROS 2 MCAP
-writer both call :class:`PoseOutputs`, so a live ROS 2 graph and a recording carry the same messages.
+Pure functions and small stateful builders; no bus inside: the service publishes what they return.
 """
 
 from __future__ import annotations
@@ -13,11 +12,12 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from ..dataset import CameraIntrinsics
-from ..geometry import invert_pose, make_pose, quat_to_rot, rot_to_quat
-from ..keys import LIVE_SESSION
-from ..messages import FrameMsg, MessageError, PathMsg, PoseMsg, StatusMsg
-from ..trajectory import Trajectory
+from twohr.dataset import CameraIntrinsics
+from twohr.geometry import invert_pose, make_pose, quat_to_rot, rot_to_quat
+from twohr.keys import LIVE_SESSION
+from twohr.messages import FrameMsg, MessageError, PathMsg, PoseMsg, StatusMsg
+from twohr.trajectory import Trajectory
+
 from . import msgs
 from .config import Ros2CameraInput, Ros2Config
 
@@ -36,12 +36,20 @@ DIAGNOSTIC_LEVELS: dict[str, int] = {
 
 
 def _header(stamp: float, frame_id: str) -> msgs.Header:
-    return msgs.Header(stamp=msgs.Time.from_seconds(stamp), frame_id=frame_id)
+    return msgs.Header(stamp=msgs.stamp(stamp), frame_id=frame_id)
+
+
+def _ros_pose(x, y, z, qx, qy, qz, qw) -> msgs.Pose:
+    return msgs.Pose(position=msgs.Point(x=x, y=y, z=z), orientation=msgs.Quaternion(x=qx, y=qy, z=qz, w=qw))
 
 
 def _pose(pose: PoseMsg) -> msgs.Pose:
-    (x, y, z), (qx, qy, qz, qw) = pose.position, pose.orientation
-    return msgs.Pose(position=msgs.Point(x=x, y=y, z=z), orientation=msgs.Quaternion(x=qx, y=qy, z=qz, w=qw))
+    return _ros_pose(*pose.position, *pose.orientation)
+
+
+def _still() -> msgs.TwistWithCovariance:
+    zero = msgs.Vector3(x=0.0, y=0.0, z=0.0)
+    return msgs.TwistWithCovariance(twist=msgs.Twist(linear=zero, angular=zero), covariance=np.zeros(36))
 
 
 def _matrix(position, orientation) -> np.ndarray:
@@ -49,13 +57,13 @@ def _matrix(position, orientation) -> np.ndarray:
 
 
 def _pose_of(matrix: np.ndarray) -> msgs.Pose:
-    (x, y, z), (qx, qy, qz, qw) = matrix[:3, 3].tolist(), rot_to_quat(matrix[:3, :3]).reshape(4).tolist()
-    return msgs.Pose(position=msgs.Point(x=x, y=y, z=z), orientation=msgs.Quaternion(x=qx, y=qy, z=qz, w=qw))
+    return _ros_pose(*matrix[:3, 3].tolist(), *rot_to_quat(matrix[:3, :3]).reshape(4).tolist())
 
 
 def _transform(header: msgs.Header, child: str, pose: msgs.Pose) -> msgs.TransformStamped:
+    p = pose.position
     return msgs.TransformStamped(header=header, child_frame_id=child, transform=msgs.Transform(
-        translation=msgs.Vector3(**pose.position.model_dump()), rotation=pose.orientation))
+        translation=msgs.Vector3(x=p.x, y=p.y, z=p.z), rotation=pose.orientation))
 
 
 @dataclass
@@ -93,7 +101,7 @@ class PoseOutputs:
         self.config = config
         self.robots: dict[str, RobotState] = {}
 
-    def topics(self, robot_id: str) -> dict[type[msgs.RosMessage], str]:
+    def topics(self, robot_id: str) -> dict[type, str]:
         c = self.config
         return {msgs.PoseStamped: c.topic(robot_id, c.pose_topic), msgs.Odometry: c.topic(robot_id, c.odom_topic),
                 msgs.TFMessage: c.topic(robot_id, c.tf_topic), msgs.Path: c.topic(robot_id, c.path_topic)}
@@ -111,7 +119,7 @@ class PoseOutputs:
                                                        online=deque(maxlen=self.config.correction_window))
         return state
 
-    def messages(self, pose: PoseMsg) -> list[tuple[str, msgs.RosMessage]]:
+    def messages(self, pose: PoseMsg) -> list[tuple[str, object]]:
         """``(topic, message)`` pairs for one pose, in publishing order."""
         if not np.all(np.isfinite(pose.position + pose.orientation)) or not any(pose.orientation):
             return []
@@ -124,16 +132,16 @@ class PoseOutputs:
         online = _pose(pose)
         odom_header = _header(pose.stamp, odom_frame)
         if state.map_odom is None:
-            map_odom, in_map = msgs.Pose(), online
+            map_odom, in_map = _ros_pose(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), online
         else:
             map_odom = _pose_of(state.map_odom)
             in_map = _pose_of(state.map_odom @ _matrix(pose.position, pose.orientation))
         stamped = msgs.PoseStamped(header=_header(pose.stamp, map_frame), pose=in_map)
         odometry = msgs.Odometry(header=odom_header, child_frame_id=camera_frame,
-                                 pose=msgs.PoseWithCovariance(pose=online))
+                                 pose=msgs.PoseWithCovariance(pose=online, covariance=np.zeros(36)), twist=_still())
         tf = msgs.TFMessage(transforms=[_transform(stamped.header, odom_frame, map_odom),
                                         _transform(odom_header, camera_frame, online)])
-        out: list[tuple[str, msgs.RosMessage]] = [
+        out: list[tuple[str, object]] = [
             (topics[msgs.PoseStamped], stamped), (topics[msgs.Odometry], odometry), (topics[msgs.TFMessage], tf)]
         path = self._path(state, pose, msgs.PoseStamped(header=odom_header, pose=online))
         if path is not None:
@@ -150,9 +158,8 @@ class PoseOutputs:
         if not path.final and state is not None and state.session_id == path.session_id:
             self.correct(state, trajectory)
         rows = trajectory.to_tum_array() if len(trajectory) else np.zeros((0, 8))
-        poses = [msgs.PoseStamped(header=_header(float(r[0]), map_frame), pose=msgs.Pose(
-            position=msgs.Point(x=r[1], y=r[2], z=r[3]), orientation=msgs.Quaternion(x=r[4], y=r[5], z=r[6], w=r[7])))
-            for r in rows if np.isfinite(r).all()]
+        poses = [msgs.PoseStamped(header=_header(float(r[0]), map_frame), pose=_ros_pose(*r[1:].tolist()))
+                 for r in rows if np.isfinite(r).all()]
         topic = self.config.topic(robot, self.config.corrected_topic)
         return [(topic, msgs.Path(header=_header(path.stamp, map_frame), poses=poses))]
 
@@ -279,11 +286,11 @@ class CameraAssembler:
         self.info = info
 
     def add_color(self, image: msgs.Image | msgs.CompressedImage) -> tuple[FrameMsg, dict] | None:
-        self.colors.append((image.header.stamp.seconds(), image))
+        self.colors.append((msgs.seconds(image.header.stamp), image))
         return self._pair()
 
     def add_depth(self, image: msgs.Image) -> tuple[FrameMsg, dict] | None:
-        self.depths.append((image.header.stamp.seconds(), image))
+        self.depths.append((msgs.seconds(image.header.stamp), image))
         return self._pair()
 
     def _pair(self) -> tuple[FrameMsg, dict] | None:
@@ -326,12 +333,14 @@ def frame_to_ros(stamp: float, rgb: np.ndarray, depth: np.ndarray, camera: Camer
     header = _header(stamp, frame_id)
     height, width = depth.shape
     millimetres = np.clip(np.round(depth.astype(np.float64) * ROS_DEPTH_FACTOR / camera.depth_factor), 0, 65535)
-    color = msgs.Image(header=header, height=height, width=width, encoding="rgb8", step=width * 3,
-                       data=np.ascontiguousarray(rgb, np.uint8).tobytes())
-    depth_msg = msgs.Image(header=header, height=height, width=width, encoding="16UC1", step=width * 2,
-                           data=millimetres.astype("<u2").tobytes())
+    color = msgs.Image(header=header, height=height, width=width, encoding="rgb8", is_bigendian=0, step=width * 3,
+                       data=np.ascontiguousarray(rgb, np.uint8).reshape(-1))
+    depth_msg = msgs.Image(header=header, height=height, width=width, encoding="16UC1", is_bigendian=0,
+                           step=width * 2, data=millimetres.astype("<u2").view(np.uint8).reshape(-1))
     k = [camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy, 0.0, 0.0, 1.0]
     p = [camera.fx, 0.0, camera.cx, 0.0, 0.0, camera.fy, camera.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
     info = msgs.CameraInfo(header=header, height=height, width=width, distortion_model="plumb_bob",
-                           d=list(camera.distortion) or [0.0] * 5, k=k, p=p)
+                           d=np.array(list(camera.distortion) or [0.0] * 5), k=np.array(k), r=np.eye(3).reshape(-1),
+                           p=np.array(p), binning_x=0, binning_y=0,
+                           roi=msgs.RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
     return color, depth_msg, info

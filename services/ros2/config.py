@@ -6,7 +6,8 @@ import re
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from ..messages import ID_PATTERN
+from twohr.messages import ID_PATTERN
+
 from .rmw import qualified_name
 
 _FRAME = re.compile(r"^[A-Za-z0-9_./{}-]{1,128}$")
