@@ -240,6 +240,10 @@ def test_chunks_survive_a_kill(bus_config, zenoh_router, dev_sequence, tmp_path)
         control, frames = (declare_publisher(client, k) for k in (keys.key("r1", keys.CONTROL), "twohr/r1/frames"))
         start = ControlMsg(session_id="sess3", robot_id="r1", frame_index=-1, stamp=0, command="start")
         control.put(encode(start))
+        deadline = time.monotonic() + 20
+        while not (tmp_path / "sess3.mcap").is_file():  # keys have no ordering between them: frames once it is open
+            assert time.monotonic() < deadline, "the recorder did not open the session's file"
+            time.sleep(0.05)
         for item in frame_payloads(RGBDSequence(dev_sequence), "sess3", "r1", max_frames=12):
             frames.put(item.payload)
         time.sleep(2.0)
