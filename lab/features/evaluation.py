@@ -1,7 +1,7 @@
 """Keypoint quality on RGB-D frame pairs with known geometry: repeatability and match precision.
 
 The ground-truth geometry (reprojection, shared view, correct matches) and its conventions are
-:mod:`twohr.pairs`; matches are :func:`twohr.features.mutual_nn`, as the tracker's.
+:mod:`twohr_lab.pairs`; matches are :func:`twohr.features.mutual_nn`, as the tracker's.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from twohr.features import mutual_nn
-from twohr.pairs import correct_matches, shared_view
+from twohr_lab.pairs import correct_matches, shared_view
 
 
 @dataclass

@@ -21,7 +21,7 @@ from twohr.config import DetectorConfig
 from twohr.dataset import Frame, RGBDSequence
 from twohr.errors import DatasetError
 from twohr.features import Keypoints
-from twohr.pairs import frame_poses, relative_pose
+from twohr_lab.pairs import frame_poses, relative_pose
 from twohr_services.detector.core import (
     R2D2Detector,
     R2D2Network,

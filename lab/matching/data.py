@@ -27,7 +27,7 @@ from twohr.dataset import RGBDSequence
 from twohr.errors import DatasetError
 from twohr.features import Keypoints, descriptor_distances
 from twohr.geometry import depth_at_pixels, invert_pose
-from twohr.pairs import depth_agrees, frame_poses, in_image, project_into, relative_pose
+from twohr_lab.pairs import depth_agrees, frame_poses, in_image, project_into, relative_pose
 
 #: Depth readings outside this range (metres) are treated as missing.
 

@@ -9,9 +9,9 @@ from twohr.config import DetectorConfig
 from twohr.dataset import RGBDSequence
 from twohr.features import mutual_nn
 from twohr.geometry import backproject, depth_at_pixels, invert_pose, make_pose, project, so3_exp, transform_points
-from twohr.pairs import correct_matches, relative_pose, reproject, shared_view
 from twohr.trajectory import interpolate_poses
 from twohr_lab.features.evaluation import clustered_fraction, match_precision, repeatability
+from twohr_lab.pairs import correct_matches, relative_pose, reproject, shared_view
 from twohr_services.detector.core import R2D2Detector
 
 K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])

@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import DatasetError
-from .geometry import backproject, depth_at_pixels, invert_pose, project, transform_points
-from .trajectory import interpolate_poses
+from twohr.errors import DatasetError
+from twohr.geometry import backproject, depth_at_pixels, invert_pose, project, transform_points
+from twohr.trajectory import interpolate_poses
 
 
 def frame_poses(sequence) -> tuple[np.ndarray, np.ndarray]:
