@@ -81,11 +81,18 @@ def _pem(obj) -> str:
 
 
 def _write_private(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` readable by its owner only, replacing it atomically."""
+    """Write ``text`` to ``path`` readable by its owner only, replacing it atomically; a file replaced keeps its
+    owner (the service that reads it, in a container, may run as another user than whoever runs ``twohr keys``)."""
     tmp = path.with_name(path.name + ".tmp")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(fd, "w") as fh:
         fh.write(text)
+    if path.exists():
+        before = path.stat()
+        try:
+            os.chown(tmp, before.st_uid, before.st_gid)
+        except PermissionError:  # not root: the file becomes ours, as it would be anyway
+            pass
     os.replace(tmp, path)
 
 
@@ -169,8 +176,9 @@ class Fleet:
             builder = builder.add_extension(_alt_names(hosts), critical=False)
         return builder.sign(ca_key, hashes.SHA256()), key
 
-    def init(self, hosts: list[str] | None = None) -> None:
-        """Make the CA and every service role's key folder; :class:`FleetError` if the folder already holds keys."""
+    def init(self, hosts: list[str] | None = None, api_token: str | None = None) -> None:
+        """Make the CA and every service role's key folder, and the operator's API token (``api_token``, else a
+        new one) in the gateway's; :class:`FleetError` if the folder already holds keys."""
         from cryptography import x509
         from cryptography.hazmat.primitives import hashes
         from cryptography.hazmat.primitives.asymmetric import ec
@@ -198,8 +206,20 @@ class Fleet:
         for role in SERVICE_ROLES:
             self.issue_service(role, hosts if role in SERVING_ROLES else None)
         (self.folder / "robots").mkdir(exist_ok=True)
+        _write_private(self.service_folder("gateway") / "api-token", api_token or secrets.token_urlsafe(24))
         fleet = FleetFile(version=0)
         self._save(fleet)
+
+    def give(self, owners: dict[str, int]) -> None:
+        """Hand each service's key folder to the user its container runs as (``role`` or ``*`` -> uid): a
+        container reads its own folder only."""
+        for role in SERVICE_ROLES:
+            uid = owners.get(role, owners.get("*"))
+            if uid is None:
+                continue
+            folder = self.service_folder(role)
+            for path in (folder, *folder.iterdir()):
+                os.chown(path, uid, uid)
 
     def issue_service(self, role: str, hosts: list[str] | None = None) -> Path:
         """(Re)make the key folder of service ``role``: a new certificate (for ``hosts`` besides the local names,

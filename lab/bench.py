@@ -315,7 +315,7 @@ def format_table(rows: list[dict]) -> str:
 
 def session_latency(bus, gateway_url: str, sequence_name: str, frames: int = 60, rate: float = 0.0,
                     config_overrides: dict | None = None, record: bool = False, robot_id: str = "bench",
-                    timeout: float = 600.0, api_token: str | None = None) -> dict:
+                    timeout: float = 600.0, api_token: str | None = None, verify: object = True) -> dict:
     """Run one session on an already-running system (``twohr up`` or the compose stack) and measure it
     from outside: an independent Zenoh client (``bus``, a BusConfig with client credentials) receives the
     poses while ``POST /sessions`` on ``gateway_url`` drives the run. Frame -> pose latency is pose arrival
@@ -341,7 +341,7 @@ def session_latency(bus, gateway_url: str, sequence_name: str, frames: int = 60,
     sub = listener.declare_subscriber(keys.all_robots("pose"), on_pose)
     headers = {"Authorization": f"Bearer {api_token}"} if api_token else {}
     try:
-        with httpx.Client(base_url=gateway_url, timeout=30, headers=headers) as client:
+        with httpx.Client(base_url=gateway_url, timeout=30, headers=headers, verify=verify) as client:
             response = client.post("/sessions", json={"sequence": sequence_name, "robot_id": robot_id,
                                                       "max_frames": frames, "rate": rate, "record": record,
                                                       "config": config_overrides or {}})

@@ -31,8 +31,10 @@ def _bench(args: argparse.Namespace) -> int:
             frames, busy, repeats = args.frames or 300, [int(b) for b in args.busy.split(",")], args.runs
         from twohr.config import merge_overrides
 
-        rows = live.live_runs(sequence, frames, busy, repeats, progress=not args.quiet, camera_runs=args.camera_runs,
-                              config_overrides=merge_overrides({}, args.set or []))
+        links = {"tcp": [False], "tls": [True], "both": [False, True]}[args.link]
+        rows = [row for tls in links for row in live.live_runs(
+            sequence, frames, busy, repeats, progress=not args.quiet, camera_runs=args.camera_runs,
+            config_overrides=merge_overrides({}, args.set or []), tls=tls)]
         report["live"] = rows
         table = live.format_table(rows)
         if args.soak:
@@ -154,6 +156,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "every service's RSS")
     p.add_argument("--busy", default="0,1,2", help="with --live: counts of busy processes beside the stack "
                    "(python3 -c 'while True: pass'), comma-separated (default 0,1,2)")
+    p.add_argument("--link", choices=["tcp", "tls", "both"], default="tcp", help="with --live or --soak: the "
+                   "stack on plain TCP with passwords (default), on a fleet's keys made for the run (mutual TLS, "
+                   "HTTPS, each robot with its own bundle), or both, one after the other")
     p.add_argument("--soak", type=float, default=None, metavar="MINUTES",
                    help="one live camera session on the sequence looped at 30 Hz for MINUTES: every service's RSS "
                    "every 10 s and the FPS per minute")

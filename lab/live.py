@@ -79,27 +79,43 @@ def _score(sequence, text: str) -> float | None:
         os.unlink(handle.name)
 
 
-def camera_session(system, client_config: Path, url: str, sequence, robot: str, frames: int, busy: int,
+@dataclass
+class LiveStack:
+    """A running stack as a live session's clients reach it: the gateway (URL, headers, CA to verify), how an
+    observer joins the bus, and how ``twohr camera`` joins it (``--zenoh-config`` or a robot's ``--keys``)."""
+
+    system: object
+    url: str
+    observer: object  # twohr.bus.BusConfig
+    camera_args: list[str]
+    headers: dict = field(default_factory=dict)
+    verify: object = True  # an ssl.SSLContext with the fleet CA, over HTTPS
+
+    def http(self):
+        import httpx
+
+        return httpx.Client(base_url=self.url, timeout=60, headers=self.headers, verify=self.verify)
+
+
+def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: int,
                    sample_every_s: float = 10.0, progress: bool = True, camera_runs: int = 1,
                    config_overrides: dict | None = None) -> dict:
     """One live camera session with ``busy`` busy processes beside the stack; see the module docstring.
     ``camera_runs`` > 1 feeds the session ``frames`` frames that many times, each by a new ``twohr camera`` (a new
     client on the bus whose stamps start again, as a robot's camera driver restarted); ``frames`` then counts all.
     ``config_overrides`` (dotted keys) is the session's pipeline config, as ``POST /sessions`` takes it."""
-    import httpx
-
     from twohr import keys
-    from twohr.bus import BusConfig, open_session
+    from twohr.bus import open_session
 
     looped = frames > len(sequence) or camera_runs > 1
     per_run = frames // camera_runs
     poses = PoseLog()
-    observer = open_session(BusConfig(config_file=client_config))
+    observer = open_session(stack.observer)
     subscriber = observer.declare_subscriber(keys.key(robot, "pose"), poses)
     hogs = _busy(busy)
     rss: dict[str, list[tuple[float, float]]] = {}
     try:
-        with httpx.Client(base_url=url, timeout=60) as client:
+        with stack.http() as client:
             response = client.post("/sessions", json={"source": "camera", "robot_id": robot, "record": False,
                                                       "config": config_overrides or {}})
             response.raise_for_status()
@@ -109,11 +125,11 @@ def camera_session(system, client_config: Path, url: str, sequence, robot: str, 
             for _ in range(camera_runs):
                 camera = subprocess.Popen(
                     [sys.executable, "-m", "twohr_app", "camera", "--replay", str(sequence.root), "--rate",
-                     "30", "--robot", robot, "--zenoh-config", str(client_config), "--frames", str(per_run),
+                     "30", "--robot", robot, *stack.camera_args, "--frames", str(per_run),
                      *(["--loop"] if per_run > len(sequence) else [])], stdout=subprocess.DEVNULL)
                 while camera.poll() is None:
                     if time.monotonic() >= next_sample:
-                        for child in system.group.children:
+                        for child in stack.system.group.children:
                             value = rss_mib(child.proc.pid)
                             if value is not None:
                                 rss.setdefault(child.name, []).append((round(time.monotonic() - t0, 1),
@@ -156,40 +172,74 @@ def camera_session(system, client_config: Path, url: str, sequence, robot: str, 
 
 
 def live_runs(sequence, frames: int, busy_counts: list[int], repeats: int, progress: bool = True,
-              camera_runs: int = 1, config_overrides: dict | None = None) -> list[dict]:
+              camera_runs: int = 1, config_overrides: dict | None = None, tls: bool = False) -> list[dict]:
     """Start ``twohr up`` once and run :func:`camera_session` ``repeats`` times per busy count (each session with
-    ``config_overrides``)."""
+    ``config_overrides``). With ``tls``, the stack runs on a fleet's keys made for the run (every link mutual
+    TLS, the gateway on HTTPS) and each session's robot joins with its own bundle, as ``twohr up --keys`` does."""
     from twohr.bus import free_port
-    from twohr_app.access import write_client_config
     from twohr_app.supervisor import start_system
 
-    router, port = f"tcp/127.0.0.1:{free_port()}", free_port()
+    router = f"{'tls' if tls else 'tcp'}/127.0.0.1:{free_port()}"
+    port = free_port()
+    robots = [f"live{busy}x{repeat}" for busy in busy_counts for repeat in range(repeats)]
     with tempfile.TemporaryDirectory(prefix="twohr-live-") as scratch:
+        keys = _fleet_keys(Path(scratch), router, robots) if tls else None
         system = start_system(router, [str(sequence.root.parent)], str(Path(scratch) / "recordings"), "127.0.0.1",
-                              port, timeout=300, ros2_domain=0)
+                              port, timeout=300, ros2_domain=0, keys=keys, api_token="bench" if tls else None)
         try:
-            config = write_client_config(Path(scratch) / "C.json5", router, system.credentials)
             rows = []
-            for busy in busy_counts:
-                for repeat in range(repeats):
-                    if progress:
-                        print(f"camera session: {frames} frames, {busy} busy process(es), run {repeat + 1}",
-                              flush=True)
-                    rows.append(camera_session(system, config, f"http://127.0.0.1:{port}", sequence,
-                                               f"live{busy}x{repeat}", frames * camera_runs, busy,
-                                               progress=progress, camera_runs=camera_runs,
-                                               config_overrides=config_overrides))
+            for robot in robots:
+                busy = int(robot[4:].split("x")[0])
+                if progress:
+                    print(f"camera session: {frames} frames, {busy} busy process(es), {robot}, "
+                          f"{'TLS' if tls else 'TCP'}", flush=True)
+                stack = _stack(system, Path(scratch), router, port, robot, keys)
+                rows.append({**camera_session(stack, sequence, robot, frames * camera_runs, busy, progress=progress,
+                                              camera_runs=camera_runs, config_overrides=config_overrides),
+                             "link": "tls" if tls else "tcp"})
             return rows
         finally:
             system.stop()
 
 
+def _fleet_keys(scratch: Path, router: str, robots: list[str]) -> Path:
+    """A fleet's keys for one bench run, with a bundle per robot (``<scratch>/<robot>.bundle``)."""
+    from twohr_app.fleet import Fleet
+
+    fleet = Fleet(scratch / "keys")
+    fleet.init()
+    for robot in robots:
+        fleet.add(robot, scratch / f"{robot}.bundle", endpoint=router)
+    return fleet.folder
+
+
+def _stack(system, scratch: Path, router: str, port: int, robot: str, keys: Path | None) -> LiveStack:
+    """How robot ``robot`` reaches ``system``: with its bundle on a fleet's keys, else with the client config."""
+    import ssl
+
+    from twohr.bus import BusConfig
+    from twohr.identity import load_identity
+    from twohr_app.access import write_client_config
+
+    if keys is None:
+        config = write_client_config(scratch / "C.json5", router, system.credentials)
+        return LiveStack(system, f"http://127.0.0.1:{port}", BusConfig(config_file=config),
+                         ["--zenoh-config", str(config)])
+    bundle = scratch / f"{robot}.bundle"
+    identity = load_identity(bundle)
+    observer = BusConfig(connect=[router], identity=identity, user=None, password=None, config_file=None)
+    return LiveStack(system, f"https://127.0.0.1:{port}", observer, ["--keys", str(bundle)],
+                     headers={"Authorization": "Bearer bench"},
+                     verify=ssl.create_default_context(cafile=str(keys / "ca.crt")))
+
+
 def format_table(rows: list[dict]) -> str:
     """The sessions as a Markdown table."""
-    lines = ["| busy | frames | posed % | dropped | FPS | latency p50 / p99 ms | ATE served | ATE online | health |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| link | busy | frames | posed % | dropped | FPS | latency p50 / p99 ms | ATE served | ATE online | "
+             "health |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['busy_processes']} | {r['frames']} | {r['posed_percent']} | {r['dropped']} | {r['fps']} | "
+        lines.append(f"| {r.get('link', 'tcp')} | {r['busy_processes']} | {r['frames']} | {r['posed_percent']} | "
+                     f"{r['dropped']} | {r['fps']} | "
                      f"{r['latency_ms_p50']} / {r['latency_ms_p99']} | {r['ate_served']} ({r['served']}) | "
                      f"{r['ate_online']} | {r['health']} {r['health_detail'] or ''} |")
     return "\n".join(lines)

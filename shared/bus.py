@@ -59,7 +59,7 @@ class RouterSecurity(BaseModel):
     TLS: it listens on ``tls/`` endpoints only, with that certificate, and admits only certificates of its CA."""
 
     users_file: Path
-    access_control: dict
+    access_control: dict | None = Field(None, description="None: every user admitted may do anything")
     identity: Identity | None = Field(None, description="the router's own certificate (a fleet's stack)")
 
 
@@ -107,7 +107,8 @@ class BusConfig(BaseModel):
         if self.security is not None:
             auth = transport.setdefault("auth", {}).setdefault("usrpwd", {})
             auth["dictionary_file"] = str(self.security.users_file)
-            conf["access_control"] = self.security.access_control
+            if self.security.access_control is not None:
+                conf["access_control"] = self.security.access_control
             if self.security.identity is not None:
                 transport["link"] = {"protocols": ["tls"], "tls": self.security.identity.zenoh_tls(listen=True)}
         if not self.shared_memory:

@@ -16,18 +16,13 @@ Run as root (``ip netns``); this file is also the program each host runs (``pyth
 from __future__ import annotations
 
 import argparse
-import ctypes
 import json
 import os
 import re
-import secrets
-import shutil
 import signal
-import subprocess
 import sys
 import time
 from collections import Counter
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -155,150 +150,23 @@ def main(argv: list[str] | None = None) -> int:
     return args.func(args)
 
 
-# ---- namespace plumbing ------------------------------------------------------------------------------------------
-
-CLONE_NEWNET = 0x40000000
-
-
-def _setns(fd: int) -> None:
-    libc = ctypes.CDLL(None, use_errno=True)
-    if libc.setns(fd, CLONE_NEWNET) != 0:
-        raise OSError(ctypes.get_errno(), "setns failed")
-
-
-@contextmanager
-def inside(namespace: str):
-    """Run this thread's sockets in ``namespace`` (the HTTP client talks to the gateway from the server host)."""
-    with open("/proc/thread-self/ns/net") as home, open(f"/run/netns/{namespace}") as there:
-        _setns(there.fileno())
-        try:
-            yield
-        finally:
-            _setns(home.fileno())
-
-
-def _ip(*args: str) -> None:
-    subprocess.run(["ip", *args], check=True, capture_output=True, text=True, timeout=30)
-
-
-class Program:
-    """A process started on a host, its output in a log file (a pipe nobody reads would stall it)."""
-
-    def __init__(self, argv: list[str], env: dict[str, str], log: Path) -> None:
-        self.log = log
-        with open(log, "w") as out:
-            # its own process group, so that what it started goes with it
-            self.proc = subprocess.Popen(argv, env=env, text=True, stdout=out, stderr=subprocess.STDOUT, cwd=REPO,
-                                         start_new_session=True)
-
-    def output(self) -> str:
-        return self.log.read_text()
-
-    def first_line(self, timeout: float) -> str:
-        """The first line it prints; fails if it exits or stays silent for ``timeout`` seconds."""
-        deadline = time.monotonic() + timeout
-        while "\n" not in (text := self.output()):
-            assert self.proc.poll() is None, f"{self.proc.args} exited with {self.proc.returncode}: {text[-3000:]}"
-            assert time.monotonic() < deadline, f"no output within {timeout} s from {self.proc.args}"
-            time.sleep(0.05)
-        return text.splitlines()[0]
-
-    def wait(self, timeout: float) -> int:
-        return self.proc.wait(timeout)
-
-    def stop(self, grace: float = 15.0) -> str:
-        """SIGTERM, then SIGKILL to its whole process group after ``grace``; returns what it printed."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(grace)
-            except subprocess.TimeoutExpired:
-                pass
-        try:
-            os.killpg(self.proc.pid, signal.SIGKILL)  # anything it left behind
-        except ProcessLookupError:
-            pass
-        self.proc.wait()
-        return self.output()
-
-
-class Hosts:
-    """The three namespaces and the processes started in them; :meth:`close` removes all of it."""
-
-    def __init__(self, tmp: Path) -> None:
-        self.tmp = tmp
-        self.tag = secrets.token_hex(3)
-        self.ns = {host: f"twohr-{self.tag}-{host}" for host in ("robot", "server", "third")}
-        self.programs: list[Program] = []
-        self.env = {k: v for k, v in os.environ.items() if not k.startswith("TWOHR_ZENOH_")} | {
-            "PYTHONUNBUFFERED": "1", "TWOHR_LOG_LEVEL": "WARNING"}
-
-    def make(self) -> None:
-        for name in self.ns.values():
-            _ip("netns", "add", name)
-        for name in self.ns.values():
-            _ip("-n", name, "link", "set", "lo", "up")
-        self._link("robot", ROBOT_UPLINK, "server", SERVER, f"th{self.tag}u")
-        self._link("robot", ROBOT_LAN, "third", THIRD, f"th{self.tag}l")
-
-    def _link(self, a: str, addr_a: str, b: str, addr_b: str, name: str) -> None:
-        # made inside namespace a with its peer moved straight into b: nothing appears in the host's own namespace
-        _ip("-n", self.ns[a], "link", "add", f"{name}a", "type", "veth", "peer", "name", f"{name}b",
-            "netns", self.ns[b])
-        for host, dev, addr in ((a, f"{name}a", addr_a), (b, f"{name}b", addr_b)):
-            _ip("-n", self.ns[host], "addr", "add", f"{addr}/30", "dev", dev)
-            _ip("-n", self.ns[host], "link", "set", dev, "up")
-
-    def start(self, host: str, *argv: str) -> Program:
-        program = Program(["ip", "netns", "exec", self.ns[host], *argv], self.env,
-                          self.tmp / f"{host}-{len(self.programs)}.log")
-        self.programs.append(program)
-        return program
-
-    def role(self, host: str, *argv: str) -> Program:
-        """Start one of this file's host programs on ``host``."""
-        return self.start(host, sys.executable, __file__, *argv)
-
-    def run(self, host: str, *argv: str, env: dict[str, str] | None = None,
-            timeout: float = 60) -> subprocess.CompletedProcess:
-        return subprocess.run(["ip", "netns", "exec", self.ns[host], *argv], env=env or self.env, text=True,
-                              capture_output=True, timeout=timeout, cwd=REPO)
-
-    def close(self) -> None:
-        for program in reversed(self.programs):
-            program.stop()
-        for name in self.ns.values():
-            subprocess.run(["ip", "netns", "del", name], capture_output=True, timeout=30)
-
-
-def netns_unavailable() -> str | None:
-    if shutil.which("ip") is None:
-        return "the iproute2 `ip` command is not installed"
-    if os.geteuid() != 0:
-        return "network namespaces need root (CI runs as root)"
-    probe = f"twohr-probe-{os.getpid()}"
-    made = subprocess.run(["ip", "netns", "add", probe], capture_output=True, text=True)
-    if made.returncode != 0:
-        return f"`ip netns add` is not permitted here: {made.stderr.strip()}"
-    subprocess.run(["ip", "netns", "del", probe], capture_output=True)
-    return None
-
-
 # ---- the three hosts, once for the module ----------------------------------------------------------------------
 
+def role(net, host: str, *argv: str):
+    """Start one of this file's host programs on ``host``."""
+    return net.start(host, sys.executable, __file__, *argv)
+
+
 @pytest.fixture(scope="module")
-def hosts(tmp_path_factory, dev_sequence):
-    reason = netns_unavailable()
-    if reason:
-        pytest.skip(f"cannot make network namespaces: {reason}")
+def hosts(tmp_path_factory, dev_sequence, network):
     from twohr_app.access import Credentials, client_config
 
     tmp = tmp_path_factory.mktemp("across_hosts")
-    net = Hosts(tmp)
+    net = network(tmp, ["robot", "server", "third"])
     try:
-        net.make()
+        net.make([("robot", ROBOT_UPLINK, "server", SERVER), ("robot", ROBOT_LAN, "third", THIRD)])
         t0 = time.monotonic()
-        server = net.role("server", "server", "--data-root", str(dev_sequence.parent), "--recordings",
+        server = role(net, "server", "server", "--data-root", str(dev_sequence.parent), "--recordings",
                           str(tmp / "recordings"), "--out", str(tmp / "server.json"))
         deadline = time.monotonic() + 180
         while not (tmp / "server.json").is_file():
@@ -325,7 +193,7 @@ def hosts(tmp_path_factory, dev_sequence):
 
         router_args = ["--users", str(robot_secrets / "users.txt"), "--uplink", f"tcp/{SERVER}:{ROUTER_PORT}",
                        "--uplink-zid", server_info["zid"]]
-        router = net.role("robot", "router", "--listen", f"tcp/127.0.0.1:{ROUTER_PORT}", "--listen",
+        router = role(net, "robot", "router", "--listen", f"tcp/127.0.0.1:{ROUTER_PORT}", "--listen",
                           f"tcp/{ROBOT_LAN}:{ROUTER_PORT}", *router_args,
                           "--password-file", str(robot_secrets / "uplink.password"))
         linked = router.first_line(60)
@@ -349,7 +217,7 @@ def health(hosts) -> dict[str, dict[str, int]]:
             for line in done.stdout.splitlines() if line.strip()}
 
 
-def camera(hosts, sequence: Path, frames: int) -> Program:
+def camera(hosts, sequence: Path, frames: int):
     """``twohr camera --replay`` on the robot host, a client of the robot's own router."""
     return hosts["net"].start("robot", str(TWOHR), "camera", "--replay", str(sequence), "--rate", "30",
                               "--robot", ROBOT, "--frames", str(frames),
@@ -360,7 +228,7 @@ def gateway(method: str, path: str, hosts, **kwargs):
     """One HTTP request to the gateway, made from the server host."""
     import httpx
 
-    with inside(hosts["net"].ns["server"]), httpx.Client(base_url=f"http://{SERVER}:{GATEWAY_PORT}", timeout=30,
+    with hosts["net"].inside("server"), httpx.Client(base_url=f"http://{SERVER}:{GATEWAY_PORT}", timeout=30,
                                                          headers={"Authorization": f"Bearer {TOKEN}"}) as http:
         return http.request(method, path, **kwargs)
 
@@ -415,7 +283,7 @@ def test_a_live_session_across_the_link_and_its_poses_on_the_third_host(hosts, d
     from twohr.geometry import make_pose, quat_to_rot
     from twohr.trajectory import Trajectory
 
-    subscriber = hosts["net"].role("third", "subscribe", "--config", str(hosts["tmp"] / "third.json5"),
+    subscriber = role(hosts["net"], "third", "subscribe", "--config", str(hosts["tmp"] / "third.json5"),
                                    "--robot", ROBOT)
     assert subscriber.first_line(30) == "subscribed"
     time.sleep(1.0)  # the subscription travels to the server's router

@@ -13,10 +13,6 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from cryptography import x509
-from cryptography.hazmat.primitives import hashes
-from cryptography.hazmat.primitives.asymmetric import ec
-from cryptography.x509.oid import NameOID
 from pydantic import SecretStr
 
 from twohr.bus import BusConfig, free_port, open_session
@@ -62,17 +58,6 @@ def test_keys_are_private_and_listed(keys):
     assert role.returncode == 2 and "a service role's name" in role.stderr and "Traceback" not in role.stderr
 
 
-def _self_signed(name: str) -> Bundle:
-    key = ec.generate_private_key(ec.SECP256R1())
-    subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)])
-    now = datetime.datetime.now(datetime.timezone.utc)
-    cert = (x509.CertificateBuilder().subject_name(subject).issuer_name(subject).public_key(key.public_key())
-            .serial_number(1).not_valid_before(now - datetime.timedelta(hours=1))
-            .not_valid_after(now + datetime.timedelta(days=1)).sign(key, hashes.SHA256()))
-    return Bundle(name=name, ca_pem=_pem(cert), cert_pem=_pem(cert), key_pem=SecretStr(_pem(key)),
-                  password=SecretStr("guess"))
-
-
 def _write(bundle: Bundle, path: Path) -> Path:
     path.write_text(json.dumps(_dump(bundle)))
     return path
@@ -114,7 +99,7 @@ def _client(bundle_or_identity, endpoint: str) -> zenoh.Session:
                                   shared_memory=False))
 
 
-def test_one_identity_per_robot_and_revocation_while_running(keys, tmp_path):
+def test_one_identity_per_robot_and_revocation_while_running(keys, tmp_path, self_signed_bundle):
     fleet, bundles = keys
     endpoint = f"tls/127.0.0.1:{free_port()}"
     router = FleetRouter(fleet.service_folder("router"), [endpoint])
@@ -154,7 +139,7 @@ def test_one_identity_per_robot_and_revocation_while_running(keys, tmp_path):
             open_session(BusConfig(connect=[endpoint], identity=None, user="a", password=SecretStr("x"),
                                    config_file=None))
         with pytest.raises(TwohrError, match="cannot join"):
-            _client(_self_signed("a"), endpoint)
+            _client(load_identity(self_signed_bundle("a", tmp_path / "evil.bundle")), endpoint)
         b_as_a = load_identity(bundles["a"]).model_copy(update={"password": load_identity(bundles["b"]).password})
         with pytest.raises(TwohrError, match="cannot join"):
             _client(b_as_a, endpoint)
@@ -221,3 +206,37 @@ def test_a_denial_line_names_the_identity_and_the_key():
               "on twohr/a/camera")  # Zenoh names the client by its id alone once it has seen it
     one_log = DenialFilter()
     assert [one_log.denial(text) for text in [*caching, cached]] == [None] * 5 + [("b", "put", "twohr/a/camera")] * 2
+
+
+def test_a_robots_own_router_carries_the_robots_identity(keys, tmp_path):
+    """``twohr router --keys c.bundle``: the robot's processes join it on loopback with the same bundle, and what
+    they publish reaches the stack as robot c's, so c's rules hold for all of it."""
+    fleet, bundles = keys
+    endpoint, local = f"tls/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
+    router = FleetRouter(fleet.service_folder("router"), [endpoint])
+    robot_router = subprocess.Popen([sys.executable, "-m", "twohr_app", "router", "--keys", str(bundles["c"]),
+                                     "--listen", local, "--connect", endpoint], stdout=subprocess.PIPE, text=True)
+    sessions = []
+    try:
+        assert "of robot c listening on" in robot_router.stdout.readline()
+        source = _client(fleet.identity("source"), endpoint)
+        sessions.append(source)
+        got: list[str] = []
+        source.declare_subscriber("twohr/*/camera", lambda sample: got.append(str(sample.key_expr)))
+        with pytest.raises(TwohrError, match="cannot join"):  # a process with nothing is not let in
+            open_session(BusConfig(connect=[local], identity=None, user=None, password=None, config_file=None))
+        on_robot = _client(bundles["c"], local)
+        sessions.append(on_robot)
+        time.sleep(1.5)
+        on_robot.declare_publisher("twohr/c/camera").put(b"c's camera")
+        on_robot.declare_publisher("twohr/a/camera").put(b"c's process posing as a")
+        time.sleep(1.0)
+        assert got == ["twohr/c/camera"]
+        exposed = twohr("router", "--keys", str(bundles["c"]), "--listen", "tcp/0.0.0.0:1")
+        assert exposed.returncode == 2 and "on loopback" in exposed.stderr
+    finally:
+        for session in sessions:
+            session.close()
+        robot_router.terminate()
+        robot_router.wait(10)
+        router.close()

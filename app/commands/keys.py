@@ -1,6 +1,7 @@
 """``twohr keys``: a fleet's keys. One certificate authority, one certificate per service and per robot.
 
     twohr keys init DIR [--host NAME]                        # the CA and every service's key folder
+                                                             # ($TWOHR_API_TOKEN: the operator's API token)
     twohr keys add DIR ROBOT --out BUNDLE [--endpoint tls/HOST:PORT] [--days 365]
     twohr keys list DIR
     twohr keys revoke DIR ROBOT                              # a running stack shuts ROBOT out within seconds
@@ -14,16 +15,36 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import os
 from pathlib import Path
+
+from twohr.errors import TwohrError
 
 from ..fleet import SERVICE_ROLES, Fleet
 
 
+def _owners(items: list[str]) -> dict[str, int]:
+    owners = {}
+    for item in items:
+        role, _, uid = item.rpartition("=")
+        if not uid.isdigit() or (role and role not in SERVICE_ROLES):
+            raise TwohrError(f"--owner {item}: give UID or ROLE=UID with ROLE one of {', '.join(SERVICE_ROLES)}")
+        owners[role or "*"] = int(uid)
+    return owners
+
+
 def _init(args: argparse.Namespace) -> int:
     fleet = Fleet(args.dir)
-    fleet.init(args.host or [])
-    print(f"fleet keys in {fleet.folder}: CA {fleet.folder / 'ca.crt'}, one key folder per service "
-          f"({', '.join(SERVICE_ROLES)}) under {fleet.folder / 'services'}; keep {fleet.folder / 'ca.key'} private")
+    owners = _owners(args.owner or [])
+    if args.if_absent and fleet.exists():
+        print(f"fleet keys in {fleet.folder}: already there ({len(fleet.read().robots)} robots)")
+    else:
+        fleet.init(args.host or [], os.environ.get("TWOHR_API_TOKEN") or None)
+        print(f"fleet keys in {fleet.folder}: CA {fleet.folder / 'ca.crt'}, one key folder per service "
+              f"({', '.join(SERVICE_ROLES)}) under {fleet.folder / 'services'}; keep {fleet.folder / 'ca.key'} "
+              f"private; the operator's API token is in {fleet.service_folder('gateway') / 'api-token'}")
+    if owners:
+        fleet.give(owners)
     return 0
 
 
@@ -61,6 +82,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.add_argument("dir", metavar="DIR")
     q.add_argument("--host", action="append", metavar="NAME", help="a host name or address the stack's router and "
                    "gateway are reached at, besides localhost and 127.0.0.1 (repeatable; twohr up adds its own)")
+    q.add_argument("--if-absent", action="store_true", help="keep the keys already in DIR (compose's first start)")
+    q.add_argument("--owner", action="append", metavar="[ROLE=]UID", help="hand the service key folders (or "
+                   "ROLE's) to UID: each container reads only its own (repeatable)")
     q.set_defaults(func=_init)
     q = actions.add_parser("add", help="add a robot and write its bundle")
     q.add_argument("dir", metavar="DIR")

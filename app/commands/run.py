@@ -201,7 +201,8 @@ def _found_in_map(result) -> dict:
 def _demo(args: argparse.Namespace) -> int:
     from twohr import models
 
-    args.config, args.set, args.camera, args.start, args.step, args.frames = None, [], None, 0, 1, None
+    args.config, args.set, args.preset, args.camera = None, [], None, None
+    args.start, args.step, args.frames = 0, 1, None
     args.map, args.map_mode, args.save_map = None, None, None  # a demo builds its own map and keeps it in runs/
     config, sequence = load_config_and_sequence(args)
     print(f"twohr demo: {sequence.name}, {len(sequence)} RGB-D frames; models "

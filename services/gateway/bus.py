@@ -40,6 +40,8 @@ class GatewayBus:
         self.settings = settings
         self.table = table
         self.alive: set[str] = set()  # services whose liveliness token is up
+        self._gone: dict[str, float] = {}  # pipeline service -> when its token went, while it has not come back
+        self._linked_since: float | None = 0.0  # when this gateway's own link to a router last came up
         self.session: zenoh.Session | None = None
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._subscribers: list = []
@@ -211,8 +213,27 @@ class GatewayBus:
             return
         self.alive.discard(name)
         if name in PIPELINE_SERVICES:  # an optional service (the ros2 bridge) is not part of a session's pipeline
-            for session in self.table.fail_active(f"the {name} service stopped during the session"):
-                self._fail(session)
+            self._gone.setdefault(name, time.monotonic())
+
+    def _fail_for_gone_services(self) -> None:
+        """Fail the active sessions once a pipeline service's token has stayed away for ``liveliness_grace`` while
+        this gateway stayed linked to its router. A token that went because this gateway's own link went (the
+        router restarting, as a fleet's revocation makes it) is not a dead service: the tokens come back with the
+        link, and the sessions go on."""
+        now = time.monotonic()
+        if not list(self.session.info.routers_zid()):
+            self._linked_since = None
+            self._gone.clear()
+            return
+        if self._linked_since is None:
+            self._linked_since = now
+        for name, since in list(self._gone.items()):
+            if name in self.alive or since < self._linked_since:
+                del self._gone[name]
+            elif now - since >= self.settings.liveliness_grace:
+                del self._gone[name]
+                for session in self.table.fail_active(f"the {name} service stopped during the session"):
+                    self._fail(session)
 
     def _finish(self, session: Session) -> None:
         self._score(session)
@@ -222,6 +243,7 @@ class GatewayBus:
     def _watch(self) -> None:
         settings = self.settings
         while not self._stop.wait(0.25):
+            self._fail_for_gone_services()
             for session in self.table.finished_sessions(settings.idle_timeout):
                 self._finish(session)
             for session in self.table.stalled_sessions(settings.start_timeout, settings.stall_timeout):

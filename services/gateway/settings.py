@@ -26,6 +26,8 @@ class GatewaySettings(BaseModel):
     stall_timeout: float = Field(45.0, gt=0, description="a running session with no pose for this long fails")
     refine_timeout: float = Field(30.0, gt=0, description="after a session ends, how long its refined trajectory "
                                   "(from the tracker) is waited for before the online poses are served instead")
+    liveliness_grace: float = Field(0.5, ge=0, description="a pipeline service whose liveliness token stays away this "
+                                    "long, while the gateway stays linked to its router, fails the active sessions")
     keep_ended: int = Field(200, ge=1, description="ended sessions kept in the table (the oldest are forgotten)")
     max_request_bytes: int = Field(256 * 1024, ge=1024, description="larger request bodies get 413")
     foxglove_host: str = Field("127.0.0.1", description="interface of the Foxglove live view")
