@@ -16,10 +16,12 @@ is answered with an ``error`` status on ``twohr/<robot>/status``, which fails th
 from __future__ import annotations
 
 import collections
+import functools
 import json
 import logging
 import os
 import signal
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -30,6 +32,7 @@ import zenoh
 from . import keys
 from .bus import BusConfig, add_router_option, bus_from_args, open_session
 from .config import PipelineConfig
+from .errors import TwohrError
 from .keys import ALIVE_PREFIX, HEALTH_PREFIX
 from .messages import ControlMsg, MessageError, StatusMsg, decode, encode, split
 
@@ -353,6 +356,21 @@ def declare_publisher(session: zenoh.Session, key: str, wait_for_subscribers: fl
     return publisher
 
 
+def one_line_errors(name: str):
+    """Decorate a service's ``main``: a :class:`~twohr.errors.TwohrError` (an unusable key folder, a bus that will
+    not have it, a bad flag value) ends the process with exit code 2 and one line, not a traceback."""
+    def wrap(main):
+        @functools.wraps(main)
+        def run(*args, **kwargs):
+            try:
+                return main(*args, **kwargs)
+            except TwohrError as exc:
+                print(f"{name}: error: {exc}", file=sys.stderr, flush=True)
+                raise SystemExit(2) from None
+        return run
+    return wrap
+
+
 def service_parser(name: str, description: str | None = None):
     """The command line of ``python -m twohr_services.<name>``, with the options every service takes (``--router``);
     a service adds its own."""
@@ -367,5 +385,9 @@ def service_parser(name: str, description: str | None = None):
 
 def serve(service_cls: type[Service], argv: list[str] | None = None, **kwargs) -> None:
     """``python -m twohr_services.<name>``: parse the common options and run the service until SIGINT/SIGTERM."""
-    args = service_parser(service_cls.name, (service_cls.__doc__ or "").strip()).parse_args(argv)
-    service_cls(bus_from_args(args), **kwargs).run_forever()
+    @one_line_errors(service_cls.name)
+    def main() -> None:
+        args = service_parser(service_cls.name, (service_cls.__doc__ or "").strip()).parse_args(argv)
+        service_cls(bus_from_args(args), **kwargs).run_forever()
+
+    main()

@@ -91,6 +91,11 @@ def test_every_unusable_key_is_one_clear_line(keys, tmp_path, dev_sequence):
                      "--frames", "1")
         assert done.returncode == 2 and reason in done.stderr, done.stderr
         assert len(done.stderr.strip().splitlines()) == 1 and "Traceback" not in done.stderr
+    for service in ("tracker", "gateway"):  # the services too, at start, in a few seconds
+        done = subprocess.run([sys.executable, "-m", f"twohr_services.{service}", "--keys", str(expired), "--router",
+                               "tls/127.0.0.1:9"], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 2 and done.stderr.strip().startswith(f"{service}: error: ") and \
+            "expired on" in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr
 
 
 def _client(bundle_or_identity, endpoint: str) -> zenoh.Session:

@@ -7,7 +7,7 @@ from pathlib import Path
 import uvicorn
 
 from twohr.bus import bus_from_args
-from twohr.service import service_parser
+from twohr.service import one_line_errors, service_parser
 
 from .app import create_app
 from .settings import GatewaySettings
@@ -50,6 +50,7 @@ def settings_from_args(args) -> GatewaySettings:
     )
 
 
+@one_line_errors("gateway")
 def main(argv: list[str] | None = None) -> None:
     """Parse ``argv`` (default: the process's arguments) and serve the gateway until it is stopped."""
     parser = build_parser()

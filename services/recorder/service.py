@@ -18,7 +18,7 @@ from twohr import keys
 from twohr.bus import BusConfig, bus_from_args
 from twohr.mcapfile import recover
 from twohr.messages import ControlMsg, PathMsg, decode, split
-from twohr.service import Service, service_parser
+from twohr.service import Service, one_line_errors, service_parser
 
 from .core import RecordingOptions, SessionRecorder
 
@@ -108,6 +108,7 @@ class RecorderService(Service):
                 self._close(session_id)
 
 
+@one_line_errors("recorder")
 def main(argv: list[str] | None = None) -> None:
     parser = service_parser("recorder", __doc__)
     parser.add_argument("--recordings", default="recordings", help="folder for the MCAP files")

@@ -30,7 +30,7 @@ from twohr.bus import BusConfig, bus_from_args
 from twohr.config import read_yaml_mapping
 from twohr.errors import ConfigError, validation_problems
 from twohr.messages import PathMsg, PoseMsg, StatusMsg, decode, encode, path_trajectory
-from twohr.service import Service, declare_publisher, service_parser
+from twohr.service import Service, declare_publisher, one_line_errors, service_parser
 
 from . import msgs
 from .config import Ros2Config
@@ -195,6 +195,7 @@ def load_config(args: argparse.Namespace) -> Ros2Config:
         raise ValueError(validation_problems(exc)) from None
 
 
+@one_line_errors("ros2")
 def main(argv: list[str] | None = None) -> None:
     parser = service_parser("ros2", __doc__)
     parser.add_argument("--config", help="YAML or JSON file with the ros2 settings (a top-level 'ros2' key or not)")

@@ -21,7 +21,7 @@ from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
 from twohr.messages import ControlMsg, FrameMsg, PoseMsg, StatusMsg, decode, encode, split
 from twohr.paths import resolve_under_roots
-from twohr.service import Service, service_parser
+from twohr.service import Service, one_line_errors, service_parser
 
 from .core import Pacer, frame_payloads
 
@@ -148,6 +148,7 @@ class SourceService(Service):
             self.report(control, "relaying", frames=playback.sent)
 
 
+@one_line_errors("source")
 def main(argv: list[str] | None = None) -> None:
     parser = service_parser("source", __doc__)
     parser.add_argument("--data-root", action="append", default=None, help="folder sequences may come from")
