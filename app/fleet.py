@@ -237,15 +237,7 @@ class Fleet:
 
     def serves(self, role: str, hosts: list[str]) -> bool:
         """Whether the certificate of ``role`` names every one of ``hosts``."""
-        from cryptography import x509
-
-        cert = x509.load_pem_x509_certificate((self.service_folder(role) / CERT_FILE).read_bytes())
-        try:
-            names = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
-        except x509.ExtensionNotFound:
-            return False
-        have = {str(n) for n in names.get_values_for_type(x509.DNSName)} | {
-            str(n) for n in names.get_values_for_type(x509.IPAddress)}
+        have = set(self._served(role))
         return all(host.strip("[]") in have for host in hosts)
 
     def ensure_serving(self, role: str, hosts: list[str]) -> None:
@@ -254,6 +246,7 @@ class Fleet:
             self.issue_service(role, [*self._served(role), *hosts])
 
     def _served(self, role: str) -> list[str]:
+        """The host names and addresses the certificate of ``role`` names."""
         from cryptography import x509
 
         cert = x509.load_pem_x509_certificate((self.service_folder(role) / CERT_FILE).read_bytes())
