@@ -64,15 +64,16 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
                          subscribe=_robots("control", "pose", "status", "camera")),
         # the networks answer the tracker's queries only (each answer is published for recordings and views)
         "detector": Grants(publish=_robots("keypoints", "status"), subscribe=_robots("control"),
-                           serve=_robots("rpc/detect")),
+                           serve=_robots("rpc/detect/*")),
         "yolo": Grants(publish=_robots("dynamics", "status"), subscribe=_robots("control"),
-                       serve=_robots("rpc/dynamics")),
+                       serve=_robots("rpc/dynamics/*")),
         "matcher": Grants(publish=_robots("matches", "status"), subscribe=_robots("control"),
-                          serve=_robots("rpc/match")),
+                          serve=_robots("rpc/match/*")),
         "tracker": Grants(publish=_robots("pose", "path", "status", "landmarks"),
                           subscribe=_robots("control", "frames"),
-                          ask=_robots("rpc/detect", "rpc/dynamics", "rpc/match") + [f"{MAPS_PREFIX}/*",
-                                                                                   f"{MAPS_PREFIX}/*/save"]),
+                          # each keyframe job to one replica of a network service, followed by its liveliness
+                          ask=_robots("rpc/detect/*", "rpc/dynamics/*", "rpc/match/*") + [
+                              f"{MAPS_PREFIX}/*", f"{MAPS_PREFIX}/*/save"], watch_liveliness=True),
         "recorder": Grants(publish=_robots("status"), subscribe=[f"{PREFIX}/*/*"]),
         "ros2": Grants(publish=_robots("camera") + ros2,
                        subscribe=_robots("pose", "path", "status", "landmarks") + ros2),
@@ -86,7 +87,7 @@ def uplink_grants(ros2_domain: int = 0) -> Grants:
     """What the stack's router may do on a robot's own router that links to it (the mirror of a client): send
     the results its clients read, receive the cameras they publish, answer health queries."""
     client = role_grants(ros2_domain)["client"]
-    return Grants(publish=client.subscribe, subscribe=client.publish, serve=[f"{HEALTH_PREFIX}/*"])
+    return Grants(publish=client.subscribe, subscribe=client.publish, serve=[f"{HEALTH_PREFIX}/**"])
 
 
 ROLES = tuple(role_grants())
@@ -101,7 +102,7 @@ def role_rules(role: str, grants: Grants) -> list[dict]:
     sends to it: a publisher sends puts and learns of matching subscribers; a subscriber declares interest and
     receives puts; a queryable declares itself, receives queries and sends replies; a querier the reverse."""
     rules = []
-    own = [f"{HEALTH_PREFIX}/{role}"]
+    own = [f"{HEALTH_PREFIX}/{role}/*"]  # each replica answers on its own key
     serve = grants.serve + own
     if grants.publish:
         rules += [_rule(f"{role}-pub", ["put", "delete"], "ingress", grants.publish),
@@ -110,16 +111,16 @@ def role_rules(role: str, grants: Grants) -> list[dict]:
     if grants.subscribe:
         rules += [_rule(f"{role}-sub", ["declare_subscriber"], "ingress", grants.subscribe),
                   _rule(f"{role}-sub-data", ["put", "delete"], "egress", grants.subscribe)]
-    ask = grants.ask + [f"{HEALTH_PREFIX}/*"]  # every role may read the services' health counters
+    ask = grants.ask + [f"{HEALTH_PREFIX}/**"]  # every role may read the services' health counters
     rules += [_rule(f"{role}-serve", ["declare_queryable", "reply"], "ingress", serve),
               _rule(f"{role}-serve-query", ["query"], "egress", serve),
-              _rule(f"{role}-alive", ["liveliness_token"], "ingress", [f"{ALIVE_PREFIX}/{role}"]),
+              _rule(f"{role}-alive", ["liveliness_token"], "ingress", [f"{ALIVE_PREFIX}/{role}/*"]),
               _rule(f"{role}-ask", ["query"], "ingress", ask),
               _rule(f"{role}-ask-reply", ["reply", "declare_queryable"], "egress", ask)]
     ros2_tokens = [k for k in grants.publish if k.startswith("@ros2_lv/")]
     if ros2_tokens:
         rules.append(_rule(f"{role}-ros2-tokens", ["liveliness_token"], "ingress", ros2_tokens))
-    watched = ([f"{ALIVE_PREFIX}/*"] if grants.watch_liveliness else []) + [
+    watched = ([f"{ALIVE_PREFIX}/**"] if grants.watch_liveliness else []) + [
         k for k in grants.subscribe if k.startswith("@ros2_lv/")]
     if watched:
         rules += [_rule(f"{role}-watch", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", watched),

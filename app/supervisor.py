@@ -196,6 +196,7 @@ class System:
     group: ProcessGroup
     endpoint: str
     access: StackAccess
+    replicas: dict[str, set[str]] = field(default_factory=dict)  # service -> the replicas started here
 
     @property
     def credentials(self):
@@ -234,14 +235,17 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
                  api_token: str | None = None, timeout: float = 120.0, log_level: str = "INFO",
                  secure: bool = True, ros2_domain: int | None = None, foxglove_port: int | None = None,
                  record_descriptors: bool = False, maps: str | None = None, keys: str | Path | None = None,
-                 hosts: list[str] | None = None) -> System:
+                 hosts: list[str] | None = None, replicas: dict[str, int] | None = None,
+                 max_robots: float | None = None) -> System:
     """Start the router, the services and the gateway; returns the :class:`System` once every part is healthy.
     With ``secure`` (the default) the router admits only generated per-role credentials and enforces the
     access-control list; with ``keys`` (a fleet's keys folder, ``twohr keys init``) every link is mutual TLS
     instead, each process with its own certificate, one identity per robot, the gateway on HTTPS for ``host``
     and ``hosts``. ``api_token`` (None: no token) guards the HTTP API. ``foxglove_port`` turns on the
     gateway's Foxglove live view on ``host``; ``ros2_domain`` starts the ros2 service, which speaks ROS 2 over
-    rmw_zenoh in that domain. ``maps``: the map store's folder (the gateway serves it)."""
+    rmw_zenoh in that domain. ``maps``: the map store's folder (the gateway serves it). ``replicas``: how many
+    processes of each network service to run (:func:`check_replicas`; default one each). ``max_robots``: the
+    gateway's admission limit (None: none)."""
     from twohr.bus import open_session, wait_for_services
 
     if keys is not None:
@@ -257,13 +261,16 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
     base_env |= {"TWOHR_ZENOH_ROUTER": router, "TWOHR_LOG_LEVEL": log_level}
     try:
         roots = [arg for root in data_roots for arg in ("--data-root", root)]
+        counts = {name: 1 for name in PIPELINE_SERVICES} | check_replicas(replicas or {})
+        started = {}
         for name in PIPELINE_SERVICES:
             extra = {"source": roots, "recorder": ["--recordings", recordings] + (
                 ["--record-descriptors"] if record_descriptors else [])}.get(name, [])
-            system.group.start(name, [f"twohr_services.{name}", *extra], base_env | access.env(name))
+            started[name] = start_replicas(system.group, name, counts[name], extra, base_env | access.env(name))
         gateway_args = ["twohr_services.gateway", "--host", host, "--port", str(port), "--recordings", recordings,
                         *roots, "--foxglove-port", str(foxglove_port or 0), *(["--maps", maps] if maps else []),
-                        *(_gateway_tls_args(access.keys) if access.keys else [])]
+                        *(_gateway_tls_args(access.keys) if access.keys else []),
+                        *(["--max-robots", f"{max_robots:g}"] if max_robots else [])]
         gateway_env = base_env | access.env("gateway") | ({"TWOHR_API_TOKEN": api_token} if api_token else {})
         system.group.start("gateway", gateway_args, gateway_env)
         if ros2_domain is not None:
@@ -272,7 +279,8 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
         client = open_session(system.bus("gateway" if access.keys else "client"))
         try:
             optional = ["ros2"] if ros2_domain is not None else []
-            wait_for_services(client, [*PIPELINE_SERVICES, *optional], timeout=timeout)
+            wait_for_services(client, [*PIPELINE_SERVICES, *optional], timeout=timeout, replicas=started)
+            system.replicas = started
         finally:
             client.close()
         _wait_http(gateway_url(host, port, access.keys), timeout, access.keys)
@@ -283,6 +291,81 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
         raise
     system.group.supervise()
     return system
+
+
+def check_replicas(replicas: dict[str, int]) -> dict[str, int]:
+    """``replicas`` checked: only the network services run as several processes, each at least once; a
+    :class:`~twohr.errors.ConfigError` in one line otherwise."""
+    from twohr.errors import ConfigError
+    from twohr.keys import NETWORK_SERVICES
+
+    for name, count in replicas.items():
+        if name not in NETWORK_SERVICES:
+            why = ("keeps every session's map in one process" if name == "tracker" else
+                   "is not a network service" if name in PIPELINE_SERVICES else "is no service")
+            raise ConfigError(f"replicas of {name!r}: {name} {why}; replicas are for {', '.join(NETWORK_SERVICES)}")
+        if count < 1:
+            raise ConfigError(f"{name}={count}: a service needs at least one replica (leave it out of --only "
+                              "instead)")
+    return dict(replicas)
+
+
+def start_replicas(group: ProcessGroup, name: str, count: int, args: list[str], env: dict[str, str]) -> set[str]:
+    """Start ``count`` processes of service ``name`` (``detector``, ``detector-2``, …), each its own replica named
+    ``<host>-<supervisor pid>-<child>`` (a restarted child comes back as the same replica); returns the names."""
+    import socket
+
+    names = set()
+    for i in range(count):
+        child = name if i == 0 else f"{name}-{i + 1}"
+        names.add(replica := f"{socket.gethostname()}-{os.getpid()}-{child}")
+        group.start(child, [f"twohr_services.{name}", *args], env | {"TWOHR_REPLICA": replica})
+    return names
+
+
+def join_stack(router: str, services: dict[str, int], keys: str | Path | None, timeout: float = 120.0,
+               log_level: str = "INFO") -> System:
+    """Replicas of network services on this host, joined to a running stack's router at ``router``: with
+    ``keys`` (a fleet's keys, or a folder holding ``services/<role>/`` for each service started) each with its
+    service's certificate; without, with no credentials (a stack started ``--insecure``). Returns once each
+    replica answers its health query."""
+    from twohr.bus import open_session, wait_for_services
+
+    counts = check_replicas(services)
+    access = StackAccess(keys=Fleet(keys)) if keys else StackAccess()
+    if access.keys is not None:
+        from twohr.errors import ConfigError
+
+        missing = [name for name in counts if not access.keys.service_folder(name).is_dir()]
+        if missing:
+            raise ConfigError(f"{keys} holds no key folder for {', '.join(missing)} (services/<role>/, as "
+                              "`twohr keys init` makes them)")
+    base_env = {k: v for k, v in os.environ.items() if not k.startswith("TWOHR_ZENOH_")}
+    base_env |= {"TWOHR_ZENOH_ROUTER": router, "TWOHR_LOG_LEVEL": log_level}
+    system = System(_NoRouter(), ProcessGroup(), router, access)
+    try:
+        started = {name: start_replicas(system.group, name, count, [], base_env | access.env(name))
+                   for name, count in counts.items()}
+        client = open_session(access.bus(next(iter(counts)), router))
+        try:
+            wait_for_services(client, list(counts), timeout=timeout, replicas=started)
+            system.replicas = started
+        finally:
+            client.close()
+        if system.group.dead():
+            raise RuntimeError(f"processes exited during start-up: {system.group.dead()}")
+    except BaseException:
+        system.stop()
+        raise
+    system.group.supervise()
+    return system
+
+
+class _NoRouter:
+    """A joining host runs no router of its own."""
+
+    def close(self) -> None:
+        pass
 
 
 def _gateway_tls_args(fleet: Fleet) -> list[str]:

@@ -403,6 +403,8 @@ def bus_latency(sequence_root, config_overrides: dict, frames: int = 60, rate: f
     finally:
         system.stop()
     summary = {key: float(np.median([r[key] for r in per_robot])) for key in ("frames", "dropped_percent", "fps")}
+    firsts = [r["first_pose_s"] for r in per_robot if r["first_pose_s"] is not None]
+    summary["first_pose_s"] = round(float(np.median(firsts)), 2) if firsts else None
     summary["latency_ms"] = {p: float(np.median([r["latency_ms"][p] or np.nan for r in per_robot]))
                              for p in ("p50", "p99")}
     camera_fps = 30 * rate if rate > 0 else 0  # rate 1 = the dev sequence's camera, 30 Hz; 0 = as fast as it goes

@@ -32,9 +32,18 @@ def _bench(args: argparse.Namespace) -> int:
         from twohr.config import merge_overrides
 
         links = {"tcp": [False], "tls": [True], "both": [False, True]}[args.link]
-        rows = [row for tls in links for row in live.live_runs(
-            sequence, frames, busy, repeats, progress=not args.quiet, camera_runs=args.camera_runs,
-            config_overrides=merge_overrides({}, args.set or []), tls=tls)]
+        overrides = merge_overrides({}, args.set or [])
+        if args.robots is not None or args.replicas:  # robots on one stack, each with its own camera
+            from twohr_app.commands.up import parse_replicas
+
+            replicas = parse_replicas(args.replicas)
+            rows = [row for tls in links for row in live.fleet_runs(
+                sequence, args.robots or 1, frames, busy, repeats, progress=not args.quiet, config_overrides=overrides,
+                tls=tls, replicas=replicas)]
+        else:
+            rows = [row for tls in links for row in live.live_runs(
+                sequence, frames, busy, repeats, progress=not args.quiet, camera_runs=args.camera_runs,
+                config_overrides=overrides, tls=tls)]
         report["live"] = rows
         table = live.format_table(rows)
         if args.soak:
@@ -47,6 +56,7 @@ def _bench(args: argparse.Namespace) -> int:
 
         from twohr.errors import ConfigError
 
+        args.robots = 1 if args.robots is None else args.robots
         if args.robots < 1 or (args.robots > 1 and args.gateway):
             raise ConfigError("--robots takes a count of 1 or more, and more than 1 only without --gateway")
 
@@ -166,8 +176,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--camera-runs", type=int, default=1, help="with --live or --soak: feed each session that many "
                    "separate twohr camera runs of its frames (each a new client whose stamps start again, as a camera "
                    "driver restarted), e.g. --live --frames 560 --camera-runs 6 --busy 0")
-    p.add_argument("--robots", type=int, default=1, help="with --bus: that many robots replay the sequence at once "
-                   "through one stack (one detector service for all); per-robot figures and how many kept camera rate")
+    p.add_argument("--robots", type=int, default=None, help="with --bus: that many robots replay the sequence at once "
+                   "through one stack (one detector service for all); per-robot figures and how many kept camera "
+                   "rate. With --live: that many live robots at once, each its own twohr camera at 30 Hz on its own "
+                   "stretch of the sequence: posed %%, ATE, latency per robot and the stack's CPU per robot")
+    p.add_argument("--replicas", action="append", metavar="SERVICE=N", help="with --live: replicas of network "
+                   "services in the stack, as twohr up --replicas takes them")
     p.add_argument("--rate", type=float, default=1.0,
                    help="with --bus: source speed, 1 = the camera's real rate (30 Hz for the dev sequence), "
                    "0 = as fast as the pipeline answers (at most two frames in flight)")

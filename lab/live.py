@@ -99,11 +99,12 @@ class LiveStack:
 
 def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: int,
                    sample_every_s: float = 10.0, progress: bool = True, camera_runs: int = 1,
-                   config_overrides: dict | None = None) -> dict:
+                   config_overrides: dict | None = None, start: int = 0, rate: float = 0.0) -> dict:
     """One live camera session with ``busy`` busy processes beside the stack; see the module docstring.
     ``camera_runs`` > 1 feeds the session ``frames`` frames that many times, each by a new ``twohr camera`` (a new
     client on the bus whose stamps start again, as a robot's camera driver restarted); ``frames`` then counts all.
-    ``config_overrides`` (dotted keys) is the session's pipeline config, as ``POST /sessions`` takes it."""
+    ``config_overrides`` (dotted keys) is the session's pipeline config, as ``POST /sessions`` takes it. ``start``:
+    the sequence's first frame the camera sends; ``rate``: the session's admitted rate (Hz, 0 = the camera's)."""
     from twohr import keys
     from twohr.bus import open_session
 
@@ -117,7 +118,7 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
     try:
         with stack.http() as client:
             response = client.post("/sessions", json={"source": "camera", "robot_id": robot, "record": False,
-                                                      "config": config_overrides or {}})
+                                                      "config": config_overrides or {}, "rate": rate})
             response.raise_for_status()
             session_id = response.json()["id"]
             t0 = time.monotonic()
@@ -125,7 +126,7 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
             for _ in range(camera_runs):
                 camera = subprocess.Popen(
                     [sys.executable, "-m", "twohr_app", "camera", "--replay", str(sequence.root), "--rate",
-                     "30", "--robot", robot, *stack.camera_args, "--frames", str(per_run),
+                     "30", "--robot", robot, *stack.camera_args, "--frames", str(per_run), "--start", str(start),
                      *(["--loop"] if per_run > len(sequence) else [])], stdout=subprocess.DEVNULL)
                 while camera.poll() is None:
                     if time.monotonic() >= next_sample:
@@ -142,7 +143,9 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
             deadline = time.monotonic() + 30
             while time.monotonic() < deadline:  # until the last frames' poses are in
                 info = client.get(f"/sessions/{session_id}").json()
-                if info["frames_sent"] == frames and info["frames"] + (info["frames_dropped"] or 0) >= frames:
+                sent = info["frames_sent"] or 0
+                if sent >= frames * (rate / 30 if rate else 1) - 1 and info["frames"] + (info["frames_dropped"] or 0) \
+                        >= sent:
                     break
                 time.sleep(0.5)
             info = client.get(f"/sessions/{session_id}").json()
@@ -156,8 +159,10 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
         observer.close()
     latency = poses.latency_ms()
     stamps = np.array([r for _, r, _ in poses.received])
-    row = {"busy_processes": busy, "frames": frames, "posed": info["frames"], "dropped": info["frames_dropped"],
-           "posed_percent": round(100 * info["frames"] / frames, 1), "fps": info["fps"],
+    relayed = info["frames_sent"] or frames  # fewer than the camera sent where the session was admitted at a rate
+    row = {"robot": robot, "busy_processes": busy, "frames": frames, "relayed": relayed, "posed": info["frames"],
+           "dropped": info["frames_dropped"], "posed_percent": round(100 * info["frames"] / max(1, relayed), 1),
+           "fps": info["fps"],
            "latency_ms_p50": round(float(np.percentile(latency, 50)), 1) if len(latency) else None,
            "latency_ms_p99": round(float(np.percentile(latency, 99)), 1) if len(latency) else None,
            "health": info.get("health"), "health_detail": info.get("health_detail"),
@@ -169,6 +174,72 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
         per_minute = np.bincount(minutes.astype(int))
         row["fps_per_minute"] = [round(n / 60, 2) for n in per_minute[:-1]]  # the last minute is partial
     return row
+
+
+def _stack_cpu_s(system) -> float:
+    """CPU seconds (user + system) the stack's processes have used so far."""
+    total = 0.0
+    for child in system.group.children:
+        try:
+            fields = Path(f"/proc/{child.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        except (OSError, IndexError, ValueError):
+            pass
+    return total
+
+
+def fleet_runs(sequence, robots: int, frames: int, busy_counts: list[int], repeats: int, progress: bool = True,
+               config_overrides: dict | None = None, tls: bool = False, replicas: dict[str, int] | None = None,
+               rate: float = 0.0) -> list[dict]:
+    """``robots`` live robots at once on one stack (``twohr bench --live --robots N``): each its own ``twohr
+    camera`` at 30 Hz on its own stretch of the sequence (starts spread over it: frames 0-299 and 260-559 for two
+    robots of 300 frames on the 560-frame dev sequence), its own robot id and, with ``tls``, its own bundle. One row
+    per robot and run, with the stack's CPU over the run divided among the robots (``stack_cores_per_robot``:
+    cores; ``stack_cpu_ms_per_posed_frame``). The stack admits them all (``--max-robots`` = ``robots``)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from twohr.bus import free_port
+    from twohr_app.supervisor import start_system
+
+    router = f"{'tls' if tls else 'tcp'}/127.0.0.1:{free_port()}"
+    port = free_port()
+    names = [f"r{i + 1}" for i in range(robots)]
+    step = (len(sequence) - frames) // (robots - 1) if robots > 1 else 0
+    with tempfile.TemporaryDirectory(prefix="twohr-fleet-") as scratch:
+        keys = _fleet_keys(Path(scratch), router, names) if tls else None
+        system = start_system(router, [str(sequence.root.parent)], str(Path(scratch) / "recordings"), "127.0.0.1",
+                              port, timeout=300, keys=keys, api_token="bench" if tls else None, replicas=replicas,
+                              max_robots=float(robots))
+        try:
+            rows = []
+            for busy in busy_counts:
+                for repeat in range(repeats):
+                    if progress:
+                        print(f"{robots} robots x {frames} frames, {busy} busy process(es), run {repeat + 1}",
+                              flush=True)
+                    stacks = [_stack(system, Path(scratch), router, port, name, keys) for name in names]
+                    hogs = _busy(busy)
+                    cpu0, t0 = _stack_cpu_s(system), time.monotonic()
+                    try:
+                        with ThreadPoolExecutor(robots) as pool:
+                            run = list(pool.map(
+                                lambda i, stack, busy: camera_session(
+                                    stack, sequence, names[i], frames, busy, progress=progress,
+                                    config_overrides=config_overrides, start=min(i * step, len(sequence) - frames),
+                                    rate=rate), range(robots), stacks, [busy] * robots))
+                    finally:
+                        for hog in hogs:
+                            hog.kill()
+                    cpu_s, wall_s = _stack_cpu_s(system) - cpu0, time.monotonic() - t0
+                    posed = sum(r["posed"] for r in run)
+                    for row in run:
+                        row |= {"robots": robots, "run": repeat + 1, "link": "tls" if tls else "tcp",
+                                "stack_cores_per_robot": round(cpu_s / wall_s / robots, 2),
+                                "stack_cpu_ms_per_posed_frame": round(1000 * cpu_s / max(1, posed), 1)}
+                    rows += run
+            return rows
+        finally:
+            system.stop()
 
 
 def live_runs(sequence, frames: int, busy_counts: list[int], repeats: int, progress: bool = True,
@@ -234,14 +305,19 @@ def _stack(system, scratch: Path, router: str, port: int, robot: str, keys: Path
 
 
 def format_table(rows: list[dict]) -> str:
-    """The sessions as a Markdown table."""
-    lines = ["| link | busy | frames | posed % | dropped | FPS | latency p50 / p99 ms | ATE served | ATE online | "
-             "health |", "|---|---|---|---|---|---|---|---|---|---|"]
+    """The sessions as a Markdown table (with the robot count, robot and stack CPU per robot for fleet runs)."""
+    fleet = any("robots" in r for r in rows)
+    lines = ["| " + ("robots | robot | " if fleet else "") + "link | busy | frames | posed % | dropped | FPS | "
+             "latency p50 / p99 ms | ATE served | ATE online | health |" + (" stack cores per robot |" if fleet
+                                                                             else ""),
+             "|---" * (10 + 3 * fleet) + "|"]
     for r in rows:
-        lines.append(f"| {r.get('link', 'tcp')} | {r['busy_processes']} | {r['frames']} | {r['posed_percent']} | "
+        lines.append((f"| {r['robots']} | {r['robot']} " if fleet else "") +
+                     f"| {r.get('link', 'tcp')} | {r['busy_processes']} | {r['frames']} | {r['posed_percent']} | "
                      f"{r['dropped']} | {r['fps']} | "
                      f"{r['latency_ms_p50']} / {r['latency_ms_p99']} | {r['ate_served']} ({r['served']}) | "
-                     f"{r['ate_online']} | {r['health']} {r['health_detail'] or ''} |")
+                     f"{r['ate_online']} | {r['health']} {r['health_detail'] or ''} |" +
+                     (f" {r['stack_cores_per_robot']} |" if fleet else ""))
     return "\n".join(lines)
 
 

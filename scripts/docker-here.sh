@@ -131,7 +131,7 @@ build_image() {
     local t0=$SECONDS
     log "building twohr:latest on $TWOHR_BASE_IMAGE; log in $STATE/build.log"
     # shellcheck disable=SC2086
-    $TWOHR_COMPOSE build router >"$STATE/build.log" 2>&1 || { tail -30 "$STATE/build.log" >&2; return 1; }
+    $TWOHR_COMPOSE build >"$STATE/build.log" 2>&1 || { tail -30 "$STATE/build.log" >&2; return 1; }
     local size; size=$(docker image inspect twohr:latest --format '{{.Size}}')
     log "built twohr:latest in $((SECONDS - t0)) s, $((size / 1000000)) MB"
     printf '{"build_s": %d, "image_bytes": %d, "base_image": "%s"}\n' $((SECONDS - t0)) "$size" \

@@ -21,9 +21,9 @@ from typing import Literal
 import zenoh
 from pydantic import BaseModel, Field, SecretStr
 
+from . import keys
 from .errors import TwohrError
 from .identity import Identity, env_identity, load_identity
-from .keys import HEALTH_PREFIX
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 
@@ -157,23 +157,40 @@ def start_router(listen: list[str] | None = None, security: RouterSecurity | Non
                                   security=security))
 
 
+def replica_health(session: zenoh.Session, service: str, timeout: float = 1.0) -> list[dict]:
+    """The health counters of every replica of one service that answers in time (each says its replica and host)."""
+    replies = session.get(keys.health_key(service), timeout=timeout, target=zenoh.QueryTarget.ALL,
+                          consolidation=zenoh.ConsolidationMode.NONE)
+    answers = [json.loads(reply.ok.payload.to_bytes()) for reply in replies if reply.ok is not None]
+    return sorted(answers, key=lambda answer: str(answer.get("replica", "")))
+
+
 def query_health(session: zenoh.Session, service: str, timeout: float = 1.0) -> dict | None:
-    """Ask one service for its health counters; None if it does not answer in time."""
-    for reply in session.get(f"{HEALTH_PREFIX}/{service}", timeout=timeout):
-        if reply.ok is not None:
-            return json.loads(reply.ok.payload.to_bytes())
-    return None
+    """One service's health: its replicas' counters summed, each replica's own answer under ``replicas``; None if no
+    replica answers in time."""
+    answers = replica_health(session, service, timeout)
+    if not answers:
+        return None
+    merged = {k: v for k, v in answers[0].items() if k not in ("replica", "host")}
+    for answer in answers[1:]:
+        for k, v in answer.items():
+            if isinstance(v, int) and not isinstance(v, bool) and isinstance(merged.get(k), int):
+                merged[k] += v
+    return merged | {"replicas": answers}
 
 
-def wait_for_services(session: zenoh.Session, names: list[str], timeout: float = 30.0) -> dict[str, dict]:
-    """Block until every named service answers its health query; raises TimeoutError naming the missing ones."""
+def wait_for_services(session: zenoh.Session, names: list[str], timeout: float = 30.0,
+                      replicas: dict[str, set[str]] | None = None) -> dict[str, dict]:
+    """Block until every named service answers its health query (and, for a service in ``replicas``, each of
+    those replicas); raises TimeoutError naming the missing ones."""
     deadline = time.monotonic() + timeout
     healthy: dict[str, dict] = {}
     while time.monotonic() < deadline:
         for name in names:
             if name not in healthy:
                 answer = query_health(session, name, timeout=0.5)
-                if answer is not None:
+                answered = {r.get("replica") for r in answer["replicas"]} if answer else set()
+                if answer is not None and (replicas or {}).get(name, set()) <= answered:
                     healthy[name] = answer
         if len(healthy) == len(names):
             return healthy

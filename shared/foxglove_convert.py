@@ -22,10 +22,10 @@ from .messages import (
     FrameMsg,
     KeypointsMsg,
     LandmarksMsg,
+    PathAssembler,
     PathMsg,
     PoseMsg,
     decode,
-    path_trajectory,
     split,
 )
 from .trajectory import Trajectory
@@ -171,6 +171,7 @@ class FoxgloveConverter:
         self.path_every = max(1, path_every)
         self.path_window = max(1, path_window)
         self.paths: dict[str, tuple[collections.deque, collections.deque, list[int]]] = {}
+        self.assembler = PathAssembler()
 
     def reset(self, robot_id: str) -> None:
         """Forget a robot's path (a new session starts)."""
@@ -248,5 +249,6 @@ class FoxgloveConverter:
             return self.landmarks(robot, t, arrays["points"])
         if isinstance(message, PathMsg):
             _, arrays = decode(payload)
-            return self.corrected_path(robot, t, path_trajectory(arrays), message.final)
+            trajectory = self.assembler.add(message, arrays)  # the whole path, rebuilt from deltas
+            return [] if trajectory is None else self.corrected_path(robot, t, trajectory, message.final)
         return []

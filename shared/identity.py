@@ -77,7 +77,8 @@ def load_identity(path: str | Path, now: datetime.datetime | None = None) -> Ide
         if missing:
             raise IdentityError(f"key folder {path} lacks {', '.join(missing)}")
         texts = {name: _read(file) for name, file in files.items()}
-        identity = Identity(name=path.name, ca_pem=texts[CA_FILE], cert_pem=texts[CERT_FILE],
+        # the folder's name is where it is mounted (a container sees /run/twohr/keys): the certificate says who
+        identity = Identity(name=_common_name(texts[CERT_FILE], path), ca_pem=texts[CA_FILE], cert_pem=texts[CERT_FILE],
                             key_pem=SecretStr(texts[KEY_FILE]), password=SecretStr(texts[PASSWORD_FILE].strip()))
     elif path.is_file():
         try:
@@ -125,6 +126,19 @@ def check_identity(identity: Identity, where: str, now: datetime.datetime | None
     if key.public_key().public_bytes(serialization.Encoding.PEM, public) != \
             cert.public_key().public_bytes(serialization.Encoding.PEM, public):
         raise IdentityError(f"{where}: the private key does not belong to the certificate of {identity.name!r}")
+
+
+def _common_name(cert_pem: str, where: Path) -> str:
+    from cryptography import x509
+    from cryptography.x509.oid import NameOID
+
+    try:
+        names = x509.load_pem_x509_certificate(cert_pem.encode()).subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    except ValueError as exc:
+        raise IdentityError(f"{where}: unreadable certificate ({str(exc).splitlines()[0]})") from None
+    if not names:
+        raise IdentityError(f"{where}: the certificate names no one")
+    return str(names[0].value)
 
 
 def env_identity() -> Identity | None:

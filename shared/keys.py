@@ -7,6 +7,8 @@ import re
 PREFIX = "twohr"
 #: The services every session's pipeline needs, in the order a stack starts them (the ros2 bridge is optional).
 PIPELINE_SERVICES = ("source", "detector", "yolo", "matcher", "tracker", "recorder")
+#: The services that answer the tracker's keyframe jobs: any number of replicas each, on any host of the mesh.
+NETWORK_SERVICES = ("detector", "yolo", "matcher")
 #: Data streams every robot publishes.
 STREAMS = ("frames", "keypoints", "dynamics", "matches", "pose", "landmarks", "path", "status")
 #: Control and request keys (not recorded as data streams).
@@ -17,9 +19,9 @@ DYNAMICS_QUERY = "rpc/dynamics"
 RAW_CAMERA = "camera"
 #: the session id a camera driver puts on frames it publishes; the source relay replaces it with the live session's
 LIVE_SESSION = "live"
-#: every service answers a health query on ``twohr/_health/<name>`` with its counters
+#: every service process (a replica) answers a health query on ``twohr/_health/<name>/<replica>`` with its counters
 HEALTH_PREFIX = f"{PREFIX}/_health"
-#: every service holds a liveliness token ``twohr/_alive/<name>`` while it is connected
+#: every service process holds a liveliness token ``twohr/_alive/<name>/<replica>`` while it is connected
 ALIVE_PREFIX = f"{PREFIX}/_alive"
 
 #: the map store answers ``twohr/maps/<name>`` with a map file's bytes, and keeps the bytes a query on
@@ -43,6 +45,30 @@ def parse_map_key(key_expr: str, save: bool = False) -> str:
     if str(key_expr) != map_key(name, save) or not name or "*" in name:
         raise ValueError(f"{key_expr}: name one map, {map_key('<name>', save)}")
     return name
+
+
+def alive_key(service: str, replica: str = "*") -> str:
+    """The liveliness token of one replica of ``service`` (``*``: of every replica)."""
+    return f"{ALIVE_PREFIX}/{service}/{replica}"
+
+
+def health_key(service: str, replica: str = "*") -> str:
+    """The health query key of one replica of ``service`` (``*``: of every replica)."""
+    return f"{HEALTH_PREFIX}/{service}/{replica}"
+
+
+def parse_replica_key(key_expr: str) -> tuple[str, str]:
+    """(service, replica) of a key made by :func:`alive_key` or :func:`health_key`."""
+    parts = str(key_expr).split("/")
+    if len(parts) != 4 or parts[0] != PREFIX or f"{PREFIX}/{parts[1]}" not in (ALIVE_PREFIX, HEALTH_PREFIX):
+        raise ValueError(f"not a replica key: {key_expr}")
+    return parts[2], parts[3]
+
+
+def replica_query(robot_id: str, query: str, replica: str) -> str:
+    """The key a network query for ``robot_id`` goes to when one replica is to answer it,
+    e.g. ``twohr/robot1/rpc/detect/host-4711``."""
+    return f"{key(robot_id, query)}/{replica}"
 
 
 def key(robot_id: str, stream: str) -> str:

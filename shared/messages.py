@@ -142,12 +142,19 @@ class PathMsg(Message):
     """Corrected camera-to-world poses: ``stamps`` (N,) float64 and ``poses`` (N, 7) float64 rows of
     ``tx ty tz qx qy qz qw``. ``final`` False: a live correction, the keyframes' poses after bundle adjustment
     (a robot's earlier poses move with their keyframe); True: the refined trajectory of every frame, once the
-    session has ended (final bundle adjustment, re-anchoring, smoothing; ``twohr run``'s ``trajectory.txt``)."""
+    session has ended (final bundle adjustment, re-anchoring, smoothing; ``twohr run``'s ``trajectory.txt``).
+
+    A live correction is ``full`` (every keyframe) or a delta: only the keyframes that are new or moved since the
+    session's previous path message, so that messages stay small as a map grows; a full one comes every few
+    messages and whenever keyframes went. :class:`PathAssembler` rebuilds the whole path from them."""
 
     schema_name: ClassVar[str] = "twohr.Path"
     required_arrays: ClassVar[tuple[str, ...]] = ("stamps", "poses")
     final: bool = False
     frame_id: FrameId = ""
+    full: bool = Field(True, description="stamps and poses hold every keyframe (False: a delta)")
+    seq: int = Field(0, ge=0, description="the session's path message number (a gap: a delta was lost)")
+    keyframes: int = Field(0, ge=0, description="keyframes in the whole path once this message is applied")
 
 
 class StatusMsg(Message):
@@ -351,6 +358,69 @@ def path_trajectory(arrays: dict[str, np.ndarray]) -> Trajectory:
         raise MessageError(f"a path needs stamps (N,) and finite poses (N, 7) with unit quaternions, got "
                            f"{stamps.shape} and {rows.shape}")
     return Trajectory.from_tum_array(np.column_stack([stamps, rows]))
+
+
+#: a keyframe's pose that moved less than this (metres, or quaternion components) since it was sent is not sent again
+PATH_TOLERANCE = 1e-5
+
+
+class PathDeltas:
+    """The sender's side of live corrections: each call gives the next :class:`PathMsg` fields and arrays for a
+    session's keyframe path, a delta (new and moved keyframes) or, every ``full_every`` messages and whenever a
+    keyframe went, the full path."""
+
+    def __init__(self, full_every: int = 10) -> None:
+        self.full_every = full_every
+        self.sent: dict[float, np.ndarray] = {}  # stamp -> the row last sent
+        self.seq = -1
+
+    def next(self, keyframes: Trajectory) -> tuple[dict, dict[str, np.ndarray]]:
+        """(``full``, ``seq``, ``keyframes`` fields; the ``stamps`` and ``poses`` arrays) of the next message."""
+        arrays = path_arrays(keyframes)
+        stamps, rows = arrays["stamps"], arrays["poses"]
+        self.seq += 1
+        full = self.seq % self.full_every == 0 or not set(self.sent) <= set(stamps.tolist())
+        if not full:
+            changed = [i for i, (stamp, row) in enumerate(zip(stamps.tolist(), rows, strict=True))
+                       if stamp not in self.sent or np.abs(self.sent[stamp] - row).max() > PATH_TOLERANCE]
+            arrays = {"stamps": stamps[changed], "poses": np.ascontiguousarray(rows[changed])}
+        self.sent = dict(zip(stamps.tolist(), rows, strict=True))
+        return {"full": full, "seq": self.seq, "keyframes": len(stamps)}, arrays
+
+
+class PathAssembler:
+    """The receiver's side: each session's whole keyframe path, rebuilt from its full and delta :class:`PathMsg`
+    messages. After a lost message (a gap in ``seq``) the path is unknown until the next full one."""
+
+    def __init__(self, keep: int = 64) -> None:
+        self.keep = keep
+        self.paths: dict[str, tuple[int, dict[float, np.ndarray]] | None] = {}
+
+    def add(self, message: PathMsg, arrays: dict[str, np.ndarray]) -> Trajectory | None:
+        """The session's whole path after ``message`` (its trajectory as sent, for a final or full one), or None
+        while it is unknown. Raises :class:`MessageError` for arrays that are no path."""
+        trajectory = path_trajectory(arrays)
+        if message.final or message.full:
+            self._keep(message.session_id, (message.seq, dict(zip(trajectory.stamps.tolist(), arrays["poses"],
+                                                                   strict=True))))
+            return trajectory
+        known = self.paths.get(message.session_id)
+        if known is None or known[0] + 1 != message.seq:
+            self.paths[message.session_id] = None
+            return None
+        rows = known[1] | dict(zip(trajectory.stamps.tolist(), arrays["poses"], strict=True))
+        if len(rows) != message.keyframes:
+            self.paths[message.session_id] = None
+            return None
+        self.paths[message.session_id] = (message.seq, rows)
+        stamps = sorted(rows)
+        return path_trajectory({"stamps": np.array(stamps), "poses": np.array([rows[s] for s in stamps])})
+
+    def _keep(self, session_id: str, state) -> None:
+        self.paths.pop(session_id, None)
+        self.paths[session_id] = state
+        while len(self.paths) > self.keep:  # the oldest sessions go
+            self.paths.pop(next(iter(self.paths)))
 
 
 def pose_trajectory(poses: list[PoseMsg]) -> Trajectory:

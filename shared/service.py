@@ -3,9 +3,11 @@
 A :class:`Service` subscribes to key expressions, puts each sample into a bounded
 :class:`Inbox` (policy ``drop_oldest`` or ``backpressure``), and one worker thread hands the
 samples to :meth:`Service.handle`. A malformed payload is counted and logged, never fatal.
-Each service answers a health query on ``twohr/_health/<name>`` with its counters, and holds a
-liveliness token ``twohr/_alive/<name>`` while it is connected, so that the gateway notices at once
-when it dies.
+Each service process is one *replica* of its service (:func:`replica_id`): it answers a
+health query on ``twohr/_health/<name>/<replica>`` with its counters, and holds a liveliness token
+``twohr/_alive/<name>/<replica>`` while it is connected, so that the gateway notices at once when the last
+replica of a service dies, and the tracker sends keyframe jobs only to replicas that are alive
+(:mod:`twohr.replicas`).
 
 Per-session state exists only for sessions whose ``start`` control message this service saw: a message
 for any other session is counted as ``ignored`` and dropped, and a message whose header names another
@@ -20,7 +22,10 @@ import functools
 import json
 import logging
 import os
+import re
+import secrets
 import signal
+import socket
 import sys
 import threading
 import time
@@ -33,7 +38,6 @@ from . import keys
 from .bus import BusConfig, add_router_option, bus_from_args, open_session
 from .config import PipelineConfig
 from .errors import TwohrError
-from .keys import ALIVE_PREFIX, HEALTH_PREFIX
 from .messages import ControlMsg, MessageError, StatusMsg, decode, encode, split
 
 QueuePolicy = Literal["drop_oldest", "backpressure"]
@@ -80,10 +84,13 @@ class Counters:
 
 class Inbox:
     """A bounded FIFO. ``drop_oldest`` discards the oldest item when full (fresh data wins, for live
-    cameras); ``backpressure`` blocks the producer until there is room (nothing lost, for playback)."""
+    cameras); ``backpressure`` blocks the producer until there is room (nothing lost, for playback).
 
-    def __init__(self, maxsize: int, policy: QueuePolicy, counters: Counters) -> None:
-        self.items: collections.deque = collections.deque()
+    ``fair``: one FIFO per robot (the robot of the item's key, ``twohr/<robot>/...``), served in turn, so that on
+    an overloaded stack every robot's samples get the same number of turns, whatever their order of arrival."""
+
+    def __init__(self, maxsize: int, policy: QueuePolicy, counters: Counters, fair: bool = False) -> None:
+        self.items: collections.deque | _RobotQueues = _RobotQueues() if fair else collections.deque()
         self.urgent: collections.deque = collections.deque()  # control messages and queries
         self.maxsize = maxsize
         self.policy = policy
@@ -121,6 +128,34 @@ class Inbox:
         return len(self.items) + len(self.urgent)
 
 
+class _RobotQueues:
+    """The deque operations :class:`Inbox` uses, over one FIFO per robot: ``popleft`` takes the oldest item of the
+    robot whose turn it is, turns going round the robots with items waiting."""
+
+    def __init__(self) -> None:
+        self.queues: collections.OrderedDict[str, collections.deque] = collections.OrderedDict()
+        self.size = 0
+
+    def append(self, item) -> None:
+        robot = str(item[0]).split("/", 2)[1] if str(item[0]).count("/") >= 2 else ""
+        self.queues.setdefault(robot, collections.deque()).append(item)
+        self.size += 1
+
+    def popleft(self):
+        if not self.size:
+            raise IndexError("pop from an empty inbox")
+        robot, queue = next(iter(self.queues.items()))
+        item = queue.popleft()
+        del self.queues[robot]
+        if queue:
+            self.queues[robot] = queue  # the robot's next item waits for the others' turns
+        self.size -= 1
+        return item
+
+    def __len__(self) -> int:
+        return self.size
+
+
 class Service:
     """Base class of the service adapters. Subclasses set ``name``, list ``subscriptions()`` and
     implement ``handle(key, payload)``; they publish with ``self.publish(key, payload)``."""
@@ -131,15 +166,17 @@ class Service:
     #: the CPU priority it takes when run as a program (see :data:`PER_FRAME_NICE`)
     priority: ServicePriority = "normal"
 
-    def __init__(self, bus: BusConfig | None = None, queue_size: int = 8, policy: QueuePolicy = "backpressure") -> None:
+    def __init__(self, bus: BusConfig | None = None, queue_size: int = 8, policy: QueuePolicy = "backpressure",
+                 fair: bool = False) -> None:
         self.bus = bus or BusConfig()
         self.counters = Counters()
-        self.inbox = Inbox(queue_size, policy, self.counters)
+        self.inbox = Inbox(queue_size, policy, self.counters, fair=fair)
         self.log = logging.getLogger(f"twohr.{self.name}")
         self.session: zenoh.Session | None = None
         self.stopping = threading.Event()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self.session_configs: dict[str, PipelineConfig] = {}
+        self.replica = replica_id()
 
     # -- to override
     def subscriptions(self) -> list[str]:
@@ -170,7 +207,13 @@ class Service:
         self.log.info("%s warm in %.2f s", what, time.perf_counter() - t0)
 
     def health(self) -> dict:
-        return {"service": self.name, "queue": len(self.inbox), **self.counters.as_dict()}
+        return {"service": self.name, "replica": self.replica, "host": socket.gethostname(),
+                "queue": len(self.inbox), **self.counters.as_dict()}
+
+    def declare_replica_queryable(self, query: str) -> zenoh.Queryable:
+        """Answer ``query`` (e.g. ``rpc/detect``) for every robot, as this replica: the tracker picks one replica
+        per job and asks it on ``twohr/<robot>/<query>/<replica>``."""
+        return self.session.declare_queryable(f"{keys.all_robots(query)}/{self.replica}", self._on_query)
 
     # -- the shell
     def publish(self, key: str, payload: bytes) -> None:
@@ -216,7 +259,7 @@ class Service:
         self.publish(keys.key(about.robot_id, "status"), encode(status))
 
     def _on_health(self, query: zenoh.Query) -> None:
-        query.reply(query.key_expr, json.dumps(self.health()))
+        query.reply(keys.health_key(self.name, self.replica), json.dumps(self.health()))
 
     def process_one(self, timeout: float = 0.2) -> bool:
         """Handle one queued sample; False if none arrived within ``timeout``."""
@@ -258,8 +301,8 @@ class Service:
         wanted = self.subscriptions() + ([keys.all_robots(keys.CONTROL)] if self.follows_sessions else [])
         subscribers = [self.session.declare_subscriber(k, self._on_sample) for k in wanted]
         self.on_start()  # queryables, and warm models: healthy and alive means ready
-        queryable = self.session.declare_queryable(f"{HEALTH_PREFIX}/{self.name}", self._on_health)
-        alive = self.session.liveliness().declare_token(f"{ALIVE_PREFIX}/{self.name}")
+        queryable = self.session.declare_queryable(keys.health_key(self.name, self.replica), self._on_health)
+        alive = self.session.liveliness().declare_token(keys.alive_key(self.name, self.replica))
         self.log.info("%s serving %s", self.name, ", ".join(self.subscriptions()) or "(no subscriptions)")
         try:
             while not stop.is_set():
@@ -288,6 +331,13 @@ class Service:
             signal.signal(sig, lambda *_: self.stopping.set())
         self.take_priority()
         self.run(self.stopping)
+
+
+def replica_id() -> str:
+    """This process's replica name: ``TWOHR_REPLICA``, else ``<host>-<pid>-<4 random hex>`` (containers on the
+    host's network share its name and may all be pid 1); one key chunk: letters, digits, ``.``, ``_``, ``-``."""
+    name = os.environ.get("TWOHR_REPLICA") or f"{socket.gethostname()}-{os.getpid()}-{secrets.token_hex(2)}"
+    return re.sub(r"[^A-Za-z0-9._-]", "-", name)[:96] or f"replica-{os.getpid()}"
 
 
 def nice_from_env(name: str, default: int, log: logging.Logger) -> int:

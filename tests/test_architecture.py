@@ -169,3 +169,17 @@ def test_service_rooms_hold_only_their_core_adapter_and_docs():
         assert not (SERVICES / room / "results").exists(), room
         for path in (SERVICES / room).iterdir():
             assert path.name not in ("cli.py", "bench.py", "dev_run.py", "report.py", "training.py"), path
+
+
+def test_every_package_folder_is_in_the_installed_wheel():
+    """The image installs the project as a wheel (not editable): a package folder missing from pyproject's list
+    imports here and fails only in the containers (CI once stopped on ``twohr_services.gateway.routes``)."""
+    import tomllib
+    listed = set(tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    folders = set()
+    for package, (_, root) in LAYERS.items():
+        for init in root.rglob("__init__.py"):
+            parts = init.parent.relative_to(root).parts
+            if "tests" not in parts and not any(p.startswith((".", "_")) for p in parts):
+                folders.add(".".join([package, *parts]))
+    assert folders - listed == set(), f"add to [tool.setuptools] packages: {sorted(folders - listed)}"

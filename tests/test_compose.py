@@ -28,32 +28,41 @@ def _check_command(command: list[str]) -> None:
 
 def test_compose_mirrors_the_topology():
     services = COMPOSE["services"]
-    assert set(services) == {"router", *PIPELINE_SERVICES, "gateway"}
+    assert set(services) == {"keys", "router", *PIPELINE_SERVICES, "gateway"}
     for name, svc in services.items():
         _check_command(svc["command"])
+        if name == "keys":
+            continue  # one-shot: makes the keys and exits
         assert svc["healthcheck"]["test"][0] == "CMD"
         _check_command(svc["healthcheck"]["test"][1:])
-        if name != "router":
-            assert svc["environment"]["TWOHR_ZENOH_ROUTER"] == "tcp/router:7447"
-    assert services["router"]["build"]["context"] == "."
+        assert svc["environment"]["TWOHR_ZENOH_ROUTER"] == "tls/router:7447"
+    assert services["keys"]["build"]["context"] == "."
     assert (REPO / "Dockerfile").is_file()
 
 
-def test_every_container_joins_the_bus_with_its_own_role():
-    """The router makes the credentials in the secrets volume; each service reads its own role's password and
-    waits for the router to be healthy; the gateway requires the generated API token."""
+def test_every_container_mounts_only_its_own_key():
+    """The one-shot keys service makes the fleet's keys on first start (and keeps them after); each container mounts
+    only its own key folder, read-only, joins the bus over TLS with it, and waits for what it needs; the router
+    listens on TLS only; the gateway serves HTTPS and knows the robots' tokens."""
     services = COMPOSE["services"]
-    assert "--secrets" in services["router"]["command"] and "--insecure" not in services["router"]["command"]
-    for name in [*PIPELINE_SERVICES, "gateway"]:
-        env = services[name]["environment"]
-        assert env["TWOHR_ZENOH_USER"] == name, name
-        assert env["TWOHR_ZENOH_PASSWORD_FILE"] == f"/run/twohr/{name}.password"
-        assert "secrets:/run/twohr:ro" in services[name]["volumes"], name
-        assert services[name]["depends_on"]["router"]["condition"] == "service_healthy"
+    keys = services["keys"]
+    assert keys["command"][:4] == ["twohr", "keys", "init", "/keys"] and "--if-absent" in keys["command"]
+    assert keys["volumes"] == ["${TWOHR_KEYS:-./keys}:/keys"]
+    assert "secrets" not in COMPOSE.get("volumes", {})
+    for name in ["router", *PIPELINE_SERVICES, "gateway"]:
+        svc = services[name]
+        key_mounts = [v for v in svc["volumes"] if "keys" in v.split(":")[0] or "/run/twohr" in v]
+        assert key_mounts == [f"${{TWOHR_KEYS:-./keys}}/services/{name}:/run/twohr/keys:ro"], (name, key_mounts)
+        assert svc["environment"]["TWOHR_ZENOH_KEYS"] == "/run/twohr/keys"
+        waits_for = ("keys", "service_completed_successfully") if name == "router" else ("router", "service_healthy")
+        assert svc["depends_on"][waits_for[0]]["condition"] == waits_for[1], name
+    assert services["router"]["command"][-2:] == ["--listen", "tls/0.0.0.0:7447"]
     command = services["gateway"]["command"]
-    assert command[command.index("--api-token-file") + 1] == "/run/twohr/api-token"
-    assert command[command.index("--maps") + 1] == "/maps" and any(v.endswith(":/maps") for v in
-                                                                    services["gateway"]["volumes"])
+    for flag, value in (("--api-token-file", "/run/twohr/keys/api-token"), ("--tls-keys", "/run/twohr/keys"),
+                        ("--robot-tokens", "/run/twohr/keys/tokens.json"), ("--maps", "/maps")):
+        assert command[command.index(flag) + 1] == value, flag
+    assert "https://" in services["gateway"]["healthcheck"]["test"][-1]
+    assert any(v.endswith(":/maps") for v in services["gateway"]["volumes"])
 
 
 def test_volumes_match_service_flags():
@@ -98,11 +107,12 @@ def test_override_files_publish_ports_or_use_the_host_network():
 
     host = yaml.safe_load((REPO / "docker-compose.host.yml").read_text())["services"]
     assert set(host) == set(COMPOSE["services"])
-    router_endpoint = "tcp/127.0.0.1:${TWOHR_ROUTER_PORT:-7447}"
+    router_endpoint = "tls/127.0.0.1:${TWOHR_ROUTER_PORT:-7447}"
     for name, svc in host.items():
         assert svc["network_mode"] == "host", name
-        assert svc["environment"]["TWOHR_ZENOH_ROUTER"] == router_endpoint, name
-    assert host["router"]["build"] == {"network": "host"}
+        if name != "keys":
+            assert svc["environment"]["TWOHR_ZENOH_ROUTER"] == router_endpoint, name
+    assert host["keys"]["build"] == {"network": "host"}
     assert host["router"]["command"][-1].endswith(":${TWOHR_ROUTER_PORT:-7447}")
     assert host["router"]["healthcheck"]["test"][-2] == router_endpoint
     assert host["gateway"]["command"][host["gateway"]["command"].index("--port") + 1] == "${TWOHR_GATEWAY_PORT:-8080}"

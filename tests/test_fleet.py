@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import shutil
 import subprocess
 import sys
 import threading
@@ -49,6 +50,9 @@ def test_keys_are_private_and_listed(keys):
     a = load_identity(bundles["a"])
     assert a.name == "a" and a.api_token is not None and a.endpoint is None
     assert load_identity(fleet.service_folder("tracker")).name == "tracker"
+    mounted = fleet.folder.parent / "mounted" / "keys"  # a container sees its folder at /run/twohr/keys
+    shutil.copytree(fleet.service_folder("tracker"), mounted)
+    assert load_identity(mounted).name == "tracker"
     listed = twohr("keys", "list", str(fleet.folder))
     assert listed.returncode == 0 and [line.split()[:2] for line in listed.stdout.splitlines()[1:4]] == [
         ["a", "active"], ["b", "active"], ["c", "active"]]
@@ -132,7 +136,7 @@ def test_one_identity_per_robot_and_revocation_while_running(keys, tmp_path, sel
         b.declare_publisher("twohr/a/camera").put(b"b posing as a")
         b.put("twohr/b/camera", b"b's own")
         b.put("twohr/b/pose", b"b may not publish poses")
-        token = b.liveliness().declare_token("twohr/_alive/detector")  # b may not pose as a service either
+        token = b.liveliness().declare_token("twohr/_alive/detector/b")  # b may not pose as a service either
         tracker.put("twohr/b/pose", b"a pose")
         time.sleep(1.0)
         with lock:

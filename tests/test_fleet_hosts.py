@@ -23,8 +23,9 @@ import pytest
 
 TWOHR = Path(sys.executable).with_name("twohr")
 PORT, GATEWAY = 7447, 8443
-STACK = {"a": "10.214.1.1", "b": "10.214.2.1", "x": "10.214.3.1"}  # the stack's end of each host's link
-HOST = {"a": "10.214.1.2", "b": "10.214.2.2", "x": "10.214.3.2"}
+# the stack's end of each host's link; "far" runs a detector replica that joins the stack
+STACK = {"a": "10.214.1.1", "b": "10.214.2.1", "x": "10.214.3.1", "far": "10.214.4.1"}
+HOST = {"a": "10.214.1.2", "b": "10.214.2.2", "x": "10.214.3.2", "far": "10.214.4.2"}
 TOKEN = "operator-token"
 FAST = json.dumps({"detector.input_scale": 0.5})
 
@@ -66,10 +67,10 @@ def arrivals(path: Path) -> list[float]:
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory, network, dev_sequence):
     tmp = tmp_path_factory.mktemp("fleet_hosts")
-    net = network(tmp, ["stack", "a", "b", "x"])
+    net = network(tmp, ["stack", *HOST])
     keys = tmp / "K"
     try:
-        net.make([("stack", STACK[h], h, HOST[h]) for h in ("a", "b", "x")])
+        net.make([("stack", STACK[h], h, HOST[h]) for h in HOST])
         made = subprocess.run(twohr("keys", "init", str(keys), *[f"--host={ip}" for ip in STACK.values()]),
                               capture_output=True, text=True, timeout=60)
         assert made.returncode == 0, made.stderr
@@ -81,7 +82,7 @@ def fleet(tmp_path_factory, network, dev_sequence):
                             str(tmp / "a-link.pcap"))
         stack = net.start("stack", *twohr("up", "--keys", str(keys), "--router", f"tls/0.0.0.0:{PORT}", "--port",
                                            str(GATEWAY), "--api-token", TOKEN, "--foxglove-port", "0",
-                                           "--data-root", str(dev_sequence.parent), "--recordings",
+                                           "--max-robots", "4", "--data-root", str(dev_sequence.parent), "--recordings",
                                            str(tmp / "recordings")))
         stack.wait_for(lambda text: "all healthy" in text, 240)
         yield {"net": net, "tmp": tmp, "keys": keys, "stack": stack, "capture": capture}
@@ -194,6 +195,29 @@ def test_a_revoked_robot_is_shut_out_while_the_others_go_on(fleet, dev_sequence)
     assert api(fleet, "GET", f"/sessions/{b_session}", token=bundle_token(fleet, "a")).status_code == 401
     print(f"revocation applied {applied:.1f} s after twohr keys revoke; b: {b_info['frames_sent']} of 450 frames "
           f"relayed, {b_info['frames']} posed; a: {a_info['frames_sent']} relayed before")
+
+
+def test_a_detector_replica_on_another_host_joins_with_its_own_key_and_takes_jobs(fleet, dev_sequence):
+    far = fleet["net"].start("far", *twohr("up", "--join", f"tls/{STACK['far']}:{PORT}", "--only", "detector",
+                                          "--keys", str(fleet["keys"])))
+    joined = far.wait_for(lambda text: "joined" in text, 120)
+    replica = joined.split("replicas ", 1)[1].split(";", 1)[0].strip()
+    before = api(fleet, "GET", "/healthz").json()["services"]["tracker"]["jobs"]["detector"]
+    assert replica in before["alive"] and len(before["alive"]) == 2, before
+    created = api(fleet, "POST", "/sessions", json={"sequence": dev_sequence.name, "robot_id": "replay1",
+                                                    "rate": 1.0, "max_frames": 150, "record": False,
+                                                    "config": json.loads(FAST)})
+    assert created.status_code == 201, created.text
+    deadline = time.monotonic() + 120
+    while session(fleet, created.json()["id"])["state"] in ("starting", "running"):
+        assert time.monotonic() < deadline
+        time.sleep(0.5)
+    after = api(fleet, "GET", "/healthz").json()["services"]
+    jobs = after["tracker"]["jobs"]["detector"]
+    far_jobs = jobs["answered"].get(replica, 0) - before["answered"].get(replica, 0)
+    assert far_jobs > 0 and jobs["lost"] == before["lost"], jobs
+    assert replica in [r["replica"] for r in after["detector"]["replicas"]]
+    far.stop()
 
 
 if __name__ == "__main__":

@@ -46,7 +46,7 @@ def gateway(zenoh_router, dev_sequence, tmp_path_factory, tiny_map):
 
     bus = BusConfig(connect=[zenoh_router])
     stand_in = open_session(bus)
-    tokens = [stand_in.liveliness().declare_token(f"{keys.ALIVE_PREFIX}/{name}") for name in PIPELINE_SERVICES]
+    tokens = [stand_in.liveliness().declare_token(keys.alive_key(name, "stand-in")) for name in PIPELINE_SERVICES]
     recordings = tmp_path_factory.mktemp("recordings")
     maps = tmp_path_factory.mktemp("maps")  # a map store with one map, for the /maps routes and session maps
     write_map(maps / "lab.map", tiny_map("lab", RGBDSequence(dev_sequence).camera))

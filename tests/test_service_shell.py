@@ -173,3 +173,22 @@ def test_the_per_frame_path_is_raised_where_the_process_may():
     may_raise = os.geteuid() == 0
     assert bool(ok) == may_raise
     assert after == (max(-20, base - 3) if may_raise else base)
+
+
+def test_a_fair_inbox_serves_the_robots_in_turn():
+    inbox = Inbox(16, "backpressure", Counters(), fair=True)
+    for i in range(6):  # robot a floods, b sends little
+        inbox.put(("twohr/a/frames", i))
+    for i in range(2):
+        inbox.put(("twohr/b/frames", i))
+    inbox.put(("twohr/b/control", "stop"), urgent=True)
+    order = [inbox.get(0.1) for _ in range(9)]
+    assert order == [("twohr/b/control", "stop"), ("twohr/a/frames", 0), ("twohr/b/frames", 0),
+                     ("twohr/a/frames", 1), ("twohr/b/frames", 1), ("twohr/a/frames", 2), ("twohr/a/frames", 3),
+                     ("twohr/a/frames", 4), ("twohr/a/frames", 5)]
+    assert inbox.get(0.01) is None
+    plain = Inbox(16, "backpressure", Counters())
+    for i in range(3):
+        plain.put(("twohr/a/frames", i))
+    plain.put(("twohr/b/frames", 0))
+    assert [plain.get(0.1)[0] for _ in range(4)][-1] == "twohr/b/frames"  # FIFO: b waits behind all of a's

@@ -146,7 +146,7 @@ def test_malformed_payloads_on_every_key_leave_services_alive(system):
         for stream, role in publishers.items():
             for junk in (b"", b"junk", b"2HR\x01\x00\x00\x00\x10{}"):
                 sessions[role].put(keys.key("robot_junk", stream), junk)
-        replies = list(sessions["tracker"].get(keys.key("robot_junk", keys.MATCH_QUERY), payload=b"junk",
+        replies = list(sessions["tracker"].get(keys.replica_query("robot_junk", keys.MATCH_QUERY, "*"), payload=b"junk",
                                                timeout=5))
         assert replies and replies[0].err is not None
         time.sleep(1.0)

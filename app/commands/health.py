@@ -1,8 +1,10 @@
-"""``twohr health``: ask services for their health counters over the bus (exit 1 if one is silent)."""
+"""``twohr health``: ask services for their health counters over the bus, one line per replica with its host
+(exit 1 if a service has no replica answering)."""
 
 from __future__ import annotations
 
 import argparse
+import json
 
 from twohr.bus import add_router_option
 from twohr.keys import PIPELINE_SERVICES
@@ -21,9 +23,15 @@ def _health(args: argparse.Namespace) -> int:
     finally:
         session.close()
     for name, health in answers.items():
-        print(f"{name:10} " + ("NOT ANSWERING" if health is None else
-                               " ".join(f"{k}={v}" for k, v in health.items() if k != "service")))
+        for replica in health["replicas"] if health else [None]:
+            print(f"{name:10} " + ("NOT ANSWERING" if replica is None else _replica_line(replica)))
     return 0 if all(h is not None for h in answers.values()) else 1
+
+
+def _replica_line(health: dict) -> str:
+    counters = " ".join(f"{k}={json.dumps(v, separators=(',', ':')) if isinstance(v, dict) else v}"
+                        for k, v in health.items() if k not in ("service", "replica", "host"))
+    return f"{health.get('replica', '?')} on {health.get('host', '?')}: {counters}"
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -11,6 +11,12 @@ A fleet across hosts: ``--keys DIR`` (``twohr keys init DIR``) with ``--router t
 mutual TLS, each process with its own certificate of the fleet's CA, each robot with its own identity (it may
 publish only its own camera), the gateway on HTTPS; ``twohr keys revoke DIR ROBOT`` shuts a robot out while the
 stack runs. Listening beyond loopback without TLS is refused unless ``--insecure``.
+
+Replicas: ``--replicas detector=2`` runs two detector processes; the tracker sends each keyframe job to one of
+them (the least busy) and, if that one dies, again to another. ``twohr up --join tls/STACK:7447 --only
+detector,yolo --keys DIR`` runs replicas on another host that join a running stack's router, each with its own
+service certificate (DIR holds ``services/<role>/`` for each, copied from the fleet's keys); ``twohr health``
+lists every replica and its host.
 """
 
 from __future__ import annotations
@@ -46,14 +52,75 @@ def check_exposure(args: argparse.Namespace) -> None:
         raise TwohrError(f"--router {args.router}: a tls/ endpoint needs the fleet's keys (--keys DIR)")
 
 
+def parse_replicas(values: list[str] | None) -> dict[str, int]:
+    """``["detector=2", "yolo=2,matcher=3"]`` as counts; one clear error for anything else."""
+    from twohr.errors import ConfigError
+
+    counts: dict[str, int] = {}
+    for item in (part.strip() for value in values or [] for part in value.split(",")):
+        name, _, count = item.partition("=")
+        if not count.strip().lstrip("-").isdigit():
+            raise ConfigError(f"--replicas {item!r}: write SERVICE=COUNT, e.g. detector=2")
+        counts[name.strip()] = int(count)
+    return counts
+
+
+def _join(args: argparse.Namespace) -> int:
+    """``--join``: replicas of network services on this host, joined to a running stack, until Ctrl-C."""
+    from twohr.errors import ConfigError, TwohrError
+
+    from ..supervisor import check_replicas, join_stack
+
+    only = [name.strip() for name in (args.only or "").split(",") if name.strip()]
+    if not only:
+        raise ConfigError("--join needs --only SERVICE[,SERVICE]: the network services to run here (detector, yolo, "
+                          "matcher)")
+    counts = check_replicas({name: 1 for name in only} | parse_replicas(args.replicas))
+    if extra := sorted(set(counts) - set(only)):
+        raise ConfigError(f"--replicas names {', '.join(extra)}, which --only does not run here")
+    if not args.keys and not args.insecure:
+        raise ConfigError(f"--join {args.join}: give the fleet's keys (--keys DIR with services/<role>/ for "
+                          f"{', '.join(only)}), or --insecure for a stack that admits anyone")
+    t0 = time.monotonic()
+    try:
+        system = join_stack(args.join, counts, args.keys, args.timeout)
+    except (TimeoutError, RuntimeError) as exc:
+        raise TwohrError(str(exc)) from None
+    print(f"joined {args.join} in {time.monotonic() - t0:.1f} s: replicas "
+          + ", ".join(sorted(r for started in system.replicas.values() for r in started)) + "; Ctrl-C stops them",
+          flush=True)
+    return _run_until_stopped(system)
+
+
+def _run_until_stopped(system) -> int:
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        stop.wait()
+    finally:
+        print("stopping …", flush=True)
+        system.stop()
+    return 0
+
+
 def _up(args: argparse.Namespace) -> int:
     import secrets
 
     from twohr.errors import TwohrError
+    from twohr_services.gateway.admission import parse_max_robots
 
     from ..access import write_client_config
-    from ..supervisor import gateway_url
+    from ..supervisor import check_replicas, gateway_url
 
+    if args.join:
+        return _join(args)
+    if args.only:
+        from twohr.errors import ConfigError
+
+        raise ConfigError("--only names the services a --join host runs; a stack runs every service")
+    replicas = check_replicas(parse_replicas(args.replicas))
+    max_robots = parse_max_robots(args.max_robots)
     check_exposure(args)
     # the gateway on loopback serves only this host's users; anywhere else it needs a token
     token = args.api_token or (None if args.insecure or is_loopback(args.host) else secrets.token_urlsafe(18))
@@ -67,12 +134,14 @@ def _up(args: argparse.Namespace) -> int:
         system = start_system(args.router, args.data_root or [str(Path.cwd())], args.recordings, args.host,
                               args.port, token, args.timeout, secure=not args.insecure,
                               ros2_domain=args.ros2_domain, foxglove_port=args.foxglove_port or None,
-                              record_descriptors=args.record_descriptors, maps=args.maps, keys=args.keys)
+                              record_descriptors=args.record_descriptors, maps=args.maps, keys=args.keys,
+                              replicas=replicas, max_robots=max_robots)
     except (TimeoutError, RuntimeError) as exc:
         raise TwohrError(str(exc)) from None
     url = gateway_url(args.host, args.port, system.access.keys)
     print(f"all healthy in {time.monotonic() - t0:.1f} s — gateway {url} (docs at /docs); poses on "
-          "twohr/<robot>/pose; Ctrl-C stops everything", flush=True)
+          f"twohr/<robot>/pose; admits {max_robots:g} robots at 30 Hz (--max-robots); Ctrl-C stops everything",
+          flush=True)
     if args.insecure:
         print("WARNING: --insecure: the bus admits anyone who reaches it and the HTTP API has no token",
               file=sys.stderr, flush=True)
@@ -88,15 +157,7 @@ def _up(args: argparse.Namespace) -> int:
         from twohr.foxglove_live import view_url
 
         print(f"live view: {view_url(args.host, args.foxglove_port)}", flush=True)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    try:
-        stop.wait()
-    finally:
-        print("stopping …", flush=True)
-        system.stop()
-    return 0
+    return _run_until_stopped(system)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -128,5 +189,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="Foxglove WebSocket live view on the gateway host (default 8765; 0 turns it off)")
     p.add_argument("--record-descriptors", action="store_true",
                    help="keep the raw keypoint descriptors in every recording (large)")
+    p.add_argument("--replicas", action="append", metavar="SERVICE=N", help="run N processes of a network service "
+                   "(detector, yolo, matcher; repeatable or comma-separated, e.g. detector=2,yolo=2); each keyframe "
+                   "job goes to one, the least busy, and again to another if it dies")
+    p.add_argument("--max-robots", default="auto", metavar="N", help="robots the stack admits at 30 Hz; past it "
+                   "POST /sessions gets 503 with Retry-After (a session at \"rate\" 15 counts half); auto "
+                   "(default) = from this host's cores, as measured by twohr bench --live --robots N")
+    p.add_argument("--join", default=None, metavar="ENDPOINT", help="run no stack: start replicas of the --only "
+                   "services on this host, joined to the running stack's router at ENDPOINT (tls/HOST:7447 with "
+                   "--keys)")
+    p.add_argument("--only", default=None, metavar="SERVICES", help="with --join: the network services to run "
+                   "here, comma-separated (e.g. detector,yolo)")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for every service to be healthy")
     p.set_defaults(func=_up)

@@ -1,8 +1,8 @@
 """The detector service: 2HR keypoints for the tracker's schedule.
 
-The tracker asks for a frame's keypoints on ``twohr/<robot>/rpc/detect`` (query: the frame message as the source
-sent it; reply: the keypoints): for keyframes in the ``keyframes`` schedule, for every frame in ``every_frame``.
-Each answer is also published on ``twohr/<robot>/keypoints``, for recordings and views.
+The tracker asks one replica for a frame's keypoints on ``twohr/<robot>/rpc/detect/<replica>`` (query: the frame
+message as the source sent it; reply: the keypoints): for keyframes in the ``keyframes`` schedule, for every frame
+in ``every_frame``. Each answer is also published on ``twohr/<robot>/keypoints``, for recordings and views.
 """
 
 from __future__ import annotations
@@ -38,14 +38,13 @@ class DetectorService(Service):
         return []  # queries only
 
     def on_start(self) -> None:
-        self.queryable = self.session.declare_queryable(keys.all_robots(keys.DETECT_QUERY), self._on_query)
+        self.queryable = self.declare_replica_queryable(keys.DETECT_QUERY)
         default = DetectorConfig()
         self.warm_up(f"the {default.model} network", lambda: self.detector_for(default.model_dump_json()).detect(
             np.zeros((480, 640, 3), np.uint8)))
 
     def handle(self, key: str, payload) -> None:
-        if key.endswith(keys.DETECT_QUERY):
-            reply_to(payload, self._keypoints)
+        reply_to(payload, self._keypoints)
 
     def _keypoints(self, payload: bytes) -> bytes:
         frame, arrays = decode(payload, FrameMsg, only=("rgb",))

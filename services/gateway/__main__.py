@@ -9,6 +9,7 @@ import uvicorn
 from twohr.bus import bus_from_args
 from twohr.service import one_line_errors, service_parser
 
+from .admission import parse_max_robots
 from .app import create_app
 from .settings import GatewaySettings
 
@@ -30,6 +31,8 @@ def build_parser():
                         help="port of the Foxglove WebSocket live view on --host (default 8765; 0 turns it off)")
     parser.add_argument("--tls-keys", default=None, metavar="FOLDER", help="serve HTTPS with the certificate and "
                         "key of this key folder (cert.pem, key.pem: the gateway's of a fleet's keys)")
+    parser.add_argument("--max-robots", default=None, metavar="N", help="robots the stack carries at 30 Hz, or auto "
+                        "(from the cores): past it POST /sessions gets 503 with Retry-After (default: no limit)")
     parser.add_argument("--robot-tokens", default=None, metavar="FILE", help="the robots' API tokens (robot -> "
                         "SHA-256, JSON, as twohr keys writes it): each starts, stops and reads its own sessions")
     return parser
@@ -47,6 +50,7 @@ def settings_from_args(args) -> GatewaySettings:
         foxglove_port=args.foxglove_port or None,
         maps=Path(args.maps) if args.maps else None,
         robot_tokens=Path(args.robot_tokens) if args.robot_tokens else None,
+        max_robots=parse_max_robots(args.max_robots) if args.max_robots else None,
     )
 
 

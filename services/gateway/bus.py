@@ -39,7 +39,7 @@ class GatewayBus:
     def __init__(self, settings, table: SessionTable) -> None:
         self.settings = settings
         self.table = table
-        self.alive: set[str] = set()  # services whose liveliness token is up
+        self.alive: dict[str, set[str]] = {}  # service -> its replicas whose liveliness token is up
         self._gone: dict[str, float] = {}  # pipeline service -> when its token went, while it has not come back
         self._linked_since: float | None = 0.0  # when this gateway's own link to a router last came up
         self.session: zenoh.Session | None = None
@@ -57,7 +57,7 @@ class GatewayBus:
             self.session.declare_subscriber(keys.all_robots("pose"), self._decoded(PoseMsg, self.table.on_pose)),
             self.session.declare_subscriber(keys.all_robots("status"), self._decoded(StatusMsg, self._on_status)),
             self.session.declare_subscriber(keys.all_robots("path"), self._on_path),
-            self.session.liveliness().declare_subscriber(f"{keys.ALIVE_PREFIX}/*", self._on_liveliness,
+            self.session.liveliness().declare_subscriber(keys.alive_key("*"), self._on_liveliness,
                                                          history=True)]
         if self.settings.maps is not None:  # the map store: read by trackers and clients, written by trackers
             self._map_store = ThreadPoolExecutor(MAP_STORE_WORKERS, thread_name_prefix="map-store")
@@ -132,7 +132,7 @@ class GatewayBus:
 
     def missing_services(self) -> list[str]:
         """The pipeline services whose liveliness token is not up."""
-        return [name for name in PIPELINE_SERVICES if name not in self.alive]
+        return [name for name in PIPELINE_SERVICES if not self.alive.get(name)]
 
     def send_control(self, session: Session, command: str, config: PipelineConfig | None = None) -> None:
         """Publish a start or stop of ``session`` on ``twohr/<robot>/control``. After a stop, the tracker sends the
@@ -207,12 +207,18 @@ class GatewayBus:
             self._fail(failed)
 
     def _on_liveliness(self, sample) -> None:
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
-        if sample.kind == zenoh.SampleKind.PUT:
-            self.alive.add(name)
+        """A replica's token came or went; a service is gone when its last replica's token went."""
+        try:
+            name, replica = keys.parse_replica_key(sample.key_expr)
+        except ValueError:
             return
-        self.alive.discard(name)
-        if name in PIPELINE_SERVICES:  # an optional service (the ros2 bridge) is not part of a session's pipeline
+        replicas = self.alive.setdefault(name, set())
+        if sample.kind == zenoh.SampleKind.PUT:
+            replicas.add(replica)
+            return
+        replicas.discard(replica)
+        # an optional service (the ros2 bridge) is not part of a session's pipeline
+        if not replicas and name in PIPELINE_SERVICES:
             self._gone.setdefault(name, time.monotonic())
 
     def _fail_for_gone_services(self) -> None:
@@ -228,7 +234,7 @@ class GatewayBus:
         if self._linked_since is None:
             self._linked_since = now
         for name, since in list(self._gone.items()):
-            if name in self.alive or since < self._linked_since:
+            if self.alive.get(name) or since < self._linked_since:
                 del self._gone[name]
             elif now - since >= self.settings.liveliness_grace:
                 del self._gone[name]

@@ -41,7 +41,10 @@ class SessionRequest(BaseModel):
                                  description="sequence folder, relative to a data root or absolute inside one "
                                  "(source 'sequence' only)")
     robot_id: str = Field("robot1", pattern=ID_PATTERN)
-    rate: float = Field(0.0, ge=0, le=100, description="1 = real time, 0 = as fast as the pipeline keeps up")
+    rate: float = Field(0.0, ge=0, le=100, description="a replay: its speed, 1 = real time, 0 = as fast as the "
+                        "pipeline keeps up; a camera session: the frames per second the stack tracks for this robot "
+                        "(e.g. 15 to be admitted at half a 30 Hz camera's share; the source relays every other "
+                        "frame), 0 = every frame the camera sends")
     record: bool = Field(True, description="write every stream to an MCAP file")
     record_descriptors: bool = Field(False, description="keep the raw keypoint descriptors in the recording (large)")
     record_frames: bool = Field(False, description="keep the raw RGB-D frames in the recording, for exact replay")
@@ -193,6 +196,11 @@ class SessionTable:
     def get(self, session_id: str) -> Session | None:
         with self.lock:
             return self.sessions.get(session_id)
+
+    def active(self) -> list[Session]:
+        """The sessions starting or running."""
+        with self.lock:
+            return [s for s in self.sessions.values() if s.state in ACTIVE]
 
     def active_for_robot(self, robot_id: str) -> Session | None:
         with self.lock:

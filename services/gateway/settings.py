@@ -29,6 +29,9 @@ class GatewaySettings(BaseModel):
     liveliness_grace: float = Field(0.5, ge=0, description="a pipeline service whose liveliness token stays away this "
                                     "long, while the gateway stays linked to its router, fails the active sessions")
     keep_ended: int = Field(200, ge=1, description="ended sessions kept in the table (the oldest are forgotten)")
+    max_robots: float | None = Field(None, gt=0, description="robots the stack carries at 30 Hz (a session at "
+                                     "\"rate\" 15 counts half); past it POST /sessions gets 503 with Retry-After. "
+                                     "None = no limit (twohr up sets it: --max-robots, default from the cores)")
     max_request_bytes: int = Field(256 * 1024, ge=1024, description="larger request bodies get 413")
     foxglove_host: str = Field("127.0.0.1", description="interface of the Foxglove live view")
     foxglove_port: int | None = Field(None, ge=0, le=65535, description="Foxglove live view port; None = off")

@@ -1,4 +1,4 @@
-"""The matcher service: answers match queries on ``twohr/<robot>/rpc/match`` and publishes each result
+"""The matcher service: answers match queries on ``twohr/<robot>/rpc/match/<replica>`` and publishes each result
 on ``twohr/<robot>/matches``.
 
 The tracker asks it to match the current frame's descriptors against its local map, so the
@@ -36,7 +36,7 @@ class MatcherService(Service):
         self.queryable = None
 
     def on_start(self) -> None:
-        self.queryable = self.session.declare_queryable(keys.all_robots(keys.MATCH_QUERY), self._on_query)
+        self.queryable = self.declare_replica_queryable(keys.MATCH_QUERY)
         descriptors = np.zeros((8, 128), np.float32)
         descriptors[:, 0] = 1.0
         default = MatcherConfig().model_dump_json()

@@ -29,7 +29,7 @@ from twohr import keys
 from twohr.bus import BusConfig, bus_from_args
 from twohr.config import read_yaml_mapping
 from twohr.errors import ConfigError, validation_problems
-from twohr.messages import PathMsg, PoseMsg, StatusMsg, decode, encode, path_trajectory
+from twohr.messages import PathAssembler, PathMsg, PoseMsg, StatusMsg, decode, encode
 from twohr.service import Service, declare_publisher, one_line_errors, service_parser
 
 from . import msgs
@@ -87,6 +87,7 @@ class Ros2Service(Service):
         super().__init__(bus, queue_size=64, policy="drop_oldest")
         self.config = config or Ros2Config(enabled=True)
         self.outputs = PoseOutputs(self.config)
+        self.paths = PathAssembler()
         self.nodes: dict[str, RosNode] = {}  # by namespace
         self.entity_ids = itertools.count()
         self.published: dict[str, int] = {}
@@ -121,7 +122,10 @@ class Ros2Service(Service):
         if key.startswith(keys.PREFIX + "/"):
             if key.endswith("/path"):
                 path, arrays = decode(payload, PathMsg)
-                robot, outputs = path.robot_id, self.outputs.corrections(path, path_trajectory(arrays))
+                trajectory = self.paths.add(path, arrays)  # the whole path, rebuilt from deltas
+                if trajectory is None:
+                    return  # a delta was lost: the next full path brings it back
+                robot, outputs = path.robot_id, self.outputs.corrections(path, trajectory)
             elif key.endswith("/status"):
                 status, _ = decode(payload, StatusMsg)
                 robot, outputs = status.robot_id, [diagnostics(status, self.config)]

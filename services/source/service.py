@@ -1,5 +1,6 @@
 """The source service: plays sequences on ``twohr/<robot>/frames`` when the gateway says so, or
-relays frames that any camera driver publishes on ``twohr/<robot>/camera``.
+relays frames that any camera driver publishes on ``twohr/<robot>/camera`` (a camera session admitted at a lower
+``rate`` than its camera's: one frame per ``1/rate`` of camera time, :class:`~twohr.rates.RateThinning`).
 
 Flow control: at ``rate`` 0 the source plays as fast as the pipeline keeps up, keeping at most
 ``window`` frames in flight (sent but not yet answered by a pose); at ``rate`` > 0 it plays in
@@ -21,6 +22,7 @@ from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
 from twohr.messages import ControlMsg, FrameMsg, PoseMsg, StatusMsg, decode, encode, split
 from twohr.paths import resolve_under_roots
+from twohr.rates import RateThinning
 from twohr.service import Service, one_line_errors, service_parser
 
 from .core import Pacer, frame_payloads
@@ -39,6 +41,7 @@ class Playback:
     answered: int = 0
     progress: threading.Condition = field(default_factory=threading.Condition)
     thread: threading.Thread | None = None
+    thinning: RateThinning | None = None  # a camera session admitted at a lower rate
 
 
 class SourceService(Service):
@@ -76,7 +79,7 @@ class SourceService(Service):
 
     def _start(self, control: ControlMsg) -> None:
         self._stop(control.robot_id)
-        playback = Playback(control)
+        playback = Playback(control, thinning=RateThinning(control.rate) if control.rate > 0 else None)
         self.playbacks[control.robot_id] = playback
         if control.sequence:
             playback.thread = threading.Thread(target=self._play, args=(playback,), daemon=True,
@@ -137,6 +140,8 @@ class SourceService(Service):
         if playback is None or playback.control.sequence:
             return  # no live session for this robot
         frame, parts = split(payload, FrameMsg)
+        if playback.thinning is not None and not playback.thinning.keep(frame.stamp):
+            return  # the session was admitted at a lower rate than its camera's
         control = playback.control
         relayed = frame.model_copy(update={"session_id": control.session_id, "frame_index": playback.sent,
                                            "sent_at": frame.sent_at or time.time()})

@@ -2,13 +2,15 @@
 
 It feeds every frame of ``frames`` to the session's :class:`~.schedule.Schedule` (built by
 :func:`~.schedule.build_schedule`, as ``twohr run`` builds it) over stages that ask the detector
-(``rpc/detect``), yolo (``rpc/dynamics``) and matcher (``rpc/match``) services. In the default ``keyframes``
+(``rpc/detect``), yolo (``rpc/dynamics``) and matcher (``rpc/match``) services, each job to one of their replicas
+(:mod:`twohr.replicas`: the least busy; sent again to another if its replica goes away). In the default ``keyframes``
 schedule those are asked only for keyframes and every few frames' masks, from worker threads, so a camera's pose
 never waits for a network (a replay paced by the poses, rate 0, waits for a late keyframe job as ``twohr run``
 does); in ``every_frame`` they are asked for every frame, in turn.
 
 Live corrections: whenever a keyframe changes the map, the keyframes' poses after bundle adjustment go out on
-``twohr/<robot>/path`` (``PathMsg``, ``final`` False). When a session ends, its refined trajectory of every frame
+``twohr/<robot>/path`` (``PathMsg``, ``final`` False): those that are new or moved, the whole path every few
+messages (``PathAssembler`` rebuilds it). When a session ends, its refined trajectory of every frame
 (final bundle adjustment, re-anchoring, smoothing, as ``twohr run`` writes ``trajectory.txt``) goes out on the same
 key with ``final`` True; the gateway serves it as the session's trajectory. That end of a session (and the saving of
 its map) runs on the service's finishing thread, never on the per-frame one: a session that stops holds up no other
@@ -25,7 +27,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
-import zenoh
 
 from twohr import keys
 from twohr.config import PipelineConfig
@@ -42,7 +43,7 @@ from twohr.messages import (
     LandmarksMsg,
     MatchesMsg,
     MatchRequestMsg,
-    MessageError,
+    PathDeltas,
     PathMsg,
     PoseMsg,
     decode,
@@ -50,6 +51,8 @@ from twohr.messages import (
     path_arrays,
     received_frame,
 )
+from twohr.rates import FairShare, RateThinning
+from twohr.replicas import Replicas
 from twohr.service import Service, declare_publisher, serve
 from twohr.trajectory import Trajectory
 
@@ -63,6 +66,9 @@ from .trajectory import TrackResult
 HEALTH_WINDOW = 90
 DEGRADED_DROPPED_PERCENT = 10
 DEGRADED_KEYFRAME_LAG = 30
+#: robots sharing an overloaded tracker are thinned further while a keyframe job comes back more than this many
+#: frames late: a map starved of CPU costs more accuracy than the frames it would take
+FAIR_KEYFRAME_LAG = 5
 #: how long the map store may take to hand over or keep a map (seconds)
 MAP_TIMEOUT_S = 30.0
 #: seconds between the last frame before a camera's stamps went back in time and the first one after
@@ -72,17 +78,15 @@ log = logging.getLogger("twohr.tracker")
 
 
 class RemoteStage:
-    """A network stage in another service, asked over the bus with the frame message as the source sent it."""
+    """A network stage in another service, asked over the bus with the frame message as the source sent it: one
+    replica of that service answers each job (:class:`twohr.replicas.Replicas`)."""
 
-    def __init__(self, session: zenoh.Session, robot_id: str, query: str, parse, timeout: float = 10.0) -> None:
-        self.session, self.key, self.parse, self.timeout = session, keys.key(robot_id, query), parse, timeout
+    def __init__(self, replicas: Replicas, robot_id: str, query: str, parse, timeout: float = 10.0) -> None:
+        self.replicas, self.robot_id, self.query, self.parse = replicas, robot_id, query, parse
+        self.timeout = timeout
 
     def __call__(self, frame: Frame):
-        for reply in self.session.get(self.key, payload=frame.message, timeout=self.timeout):
-            if reply.ok is not None:
-                return self.parse(reply.ok.payload.to_bytes())
-            raise MessageError(f"{self.key}: {reply.err.payload.to_bytes().decode(errors='replace')}")
-        raise TimeoutError(f"no service answered on {self.key} within {self.timeout} s")
+        return self.parse(self.replicas.call(self.robot_id, self.query, frame.message, self.timeout))
 
 
 def _keypoints_reply(payload: bytes) -> Keypoints:
@@ -97,24 +101,19 @@ def _dynamics_reply(payload: bytes) -> tuple[np.ndarray, int]:
 
 
 class RemoteMatcher:
-    """The match stage in the matcher service, asked over Zenoh (query/reply) for the frame it names."""
+    """The match stage in the matcher service (one replica per job), for the frame it names."""
 
-    def __init__(self, session: zenoh.Session, robot_id: str, session_id: str, timeout: float = 10.0) -> None:
-        self.session = session
-        self.key = keys.key(robot_id, keys.MATCH_QUERY)
-        self.robot_id, self.session_id = robot_id, session_id
-        self.timeout = timeout
+    def __init__(self, replicas: Replicas, robot_id: str, session_id: str, timeout: float = 10.0) -> None:
+        self.replicas, self.robot_id, self.session_id, self.timeout = replicas, robot_id, session_id, timeout
 
     def __call__(self, frame: Frame, desc_a: np.ndarray, desc_b: np.ndarray) -> Matches:
         request = MatchRequestMsg(session_id=self.session_id, robot_id=self.robot_id, frame_index=frame.index,
                                   stamp=frame.stamp, reference="local map")
-        payload = encode(request, {"desc_a": desc_a, "desc_b": desc_b})
-        for reply in self.session.get(self.key, payload=payload, timeout=self.timeout):
-            if reply.ok is not None:
-                _, arrays = decode(reply.ok.payload.to_bytes(), MatchesMsg)
-                return Matches(arrays["idx_a"], arrays["idx_b"], arrays["scores"])
-            raise MessageError(f"matcher service error: {reply.err.payload.to_bytes().decode(errors='replace')}")
-        raise TimeoutError(f"no matcher service answered on {self.key} within {self.timeout} s")
+        answer = self.replicas.call(self.robot_id, keys.MATCH_QUERY, encode(request, {"desc_a": desc_a,
+                                                                                      "desc_b": desc_b}),
+                                    self.timeout)
+        _, arrays = decode(answer, MatchesMsg)
+        return Matches(arrays["idx_a"], arrays["idx_b"], arrays["scores"])
 
 
 @dataclass
@@ -134,8 +133,9 @@ class SessionHealth:
         self.frames.append((dropped, 0.0 if dropped else (cpu - self.cpu_at) * 1000))
         self.cpu_at = cpu
 
-    def verdict(self, keyframe_lag: int) -> tuple[str, str, dict[str, int]]:
-        """(``ok`` or ``degraded``, why in words, the figures)."""
+    def verdict(self, keyframe_lag: int, share_hz: float | None = None) -> tuple[str, str, dict[str, int]]:
+        """(``ok`` or ``degraded``, why in words, the figures); ``share_hz``: the rate this session's fair share of
+        an overloaded tracker allows."""
         dropped = sum(d for d, _ in self.frames)
         tracked = [ms for d, ms in self.frames if not d]
         cpu_ms = float(np.mean(tracked)) if tracked else 0.0
@@ -143,7 +143,9 @@ class SessionHealth:
                    "cpu_ms_per_frame": round(cpu_ms)}
         why = [f"{figures['dropped_percent']} % of the latest {len(self.frames)} frames dropped"
                if figures["dropped_percent"] > DEGRADED_DROPPED_PERCENT else "",
-               f"keyframe job {keyframe_lag} frames late" if keyframe_lag > DEGRADED_KEYFRAME_LAG else ""]
+               f"keyframe job {keyframe_lag} frames late" if keyframe_lag > DEGRADED_KEYFRAME_LAG else "",
+               f"more robots than the tracker serves at camera rate: each tracked at {share_hz:.0f} Hz"
+               if share_hz is not None else ""]
         why = [w for w in why if w]
         detail = "; ".join(why) if why else "keeping up"
         return ("degraded" if why else "ok"), f"{detail} (CPU {cpu_ms:.0f} ms per frame)", figures
@@ -159,6 +161,9 @@ class SessionTrack:
     dropped: int = 0  # frames dropped because newer ones were waiting
     skipped: int = 0  # of them, in a row since the last tracked frame
     map_sent: int = -1  # the map version last published on ``landmarks``
+    path_deltas: PathDeltas = field(default_factory=PathDeltas)  # the keyframe poses last sent on ``path``
+    thinning: RateThinning | None = None  # its frames under a fair share of an overloaded tracker
+    share_hz: float | None = None
     health: SessionHealth = field(default_factory=SessionHealth)
     map_name: str = ""  # the session's map: its poses are in this frame ("" = the robot's own)
     map_mode: str = ""
@@ -190,7 +195,8 @@ class TrackerService(Service):
     priority = "per_frame"  # a frame's pose goes first
 
     def __init__(self, bus=None) -> None:
-        super().__init__(bus, queue_size=64, policy="backpressure")
+        # robots take turns: on an overloaded stack each gets the same share of the per-frame thread
+        super().__init__(bus, queue_size=64, policy="backpressure", fair=True)
         self.tracks: dict[str, SessionTrack] = {}
         self.paced: dict[str, bool] = {}
         self.maps: dict[str, ControlMsg] = {}  # sessions with a map, by id: their start (name, mode)
@@ -198,6 +204,15 @@ class TrackerService(Service):
         self.finishing = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracker-finishing")
         """the ends of sessions, one after another, off the per-frame thread"""
         self._declaring = threading.Lock()  # both threads publish: one publisher per key
+        self.replicas: dict[str, Replicas] = {}
+        self.fair = FairShare()  # equal shares of the per-frame thread when the cameras ask for more
+
+    def on_start(self) -> None:
+        self.replicas = {name: Replicas(self.session, name) for name in keys.NETWORK_SERVICES}
+
+    def health(self) -> dict:
+        """The shell's counters, and the keyframe jobs each network replica answered, sent again and lost."""
+        return super().health() | {"jobs": {name: r.stats() for name, r in self.replicas.items()}}
 
     def subscriptions(self) -> list[str]:
         return [keys.all_robots("frames")]
@@ -219,6 +234,7 @@ class TrackerService(Service):
         ignored from now on, as its config goes with this stop."""
         self.paced.pop(session_id, None)
         self.loaded.pop(session_id, None)
+        self.fair.forget(session_id)
         control = self.maps.pop(session_id, None)
         track = self.tracks.pop(session_id, None)
         if track is None:
@@ -261,10 +277,10 @@ class TrackerService(Service):
         if header.session_id not in self.tracks:
             config = self.config_for(header.session_id)
             robot_id = header.robot_id
-            stages = Stages(RemoteStage(self.session, robot_id, keys.DETECT_QUERY, _keypoints_reply),
-                            RemoteStage(self.session, robot_id, keys.DYNAMICS_QUERY, _dynamics_reply)
+            stages = Stages(RemoteStage(self.replicas["detector"], robot_id, keys.DETECT_QUERY, _keypoints_reply),
+                            RemoteStage(self.replicas["yolo"], robot_id, keys.DYNAMICS_QUERY, _dynamics_reply)
                             if config.yolo.enabled else None,
-                            RemoteMatcher(self.session, robot_id, header.session_id))
+                            RemoteMatcher(self.replicas["matcher"], robot_id, header.session_id))
             stored = self.loaded.get(header.session_id)
             world = None if stored is None else usable_map(stored, config, header.camera, f"map {stored.header.name}")
             control = self.maps.get(header.session_id)
@@ -327,7 +343,9 @@ class TrackerService(Service):
             return
         waited_ms = (time.time() - header.sent_at) * 1000 if header.sent_at else 0.0
         stale = len(self.inbox) and waited_ms > config.pipeline.max_frame_age_ms
-        if self.paced.get(header.session_id) and stale and track.skipped < config.pipeline.max_skipped_frames:
+        paced = self.paced.get(header.session_id)
+        if paced and (not self._fair_turn(track, header) or (
+                stale and track.skipped < config.pipeline.max_skipped_frames)):
             self.counters.add("dropped")
             track.dropped += 1
             track.skipped += 1
@@ -340,6 +358,9 @@ class TrackerService(Service):
         header = header.model_copy(update={"stamp": frame.stamp})
         track.last_header = header
         result, stats = track.schedule.process(frame)
+        if paced:
+            log = track.schedule.keyframe_log
+            self.fair.tracked(waited_ms, keyframes_late=bool(log) and log[-1].lag_frames > FAIR_KEYFRAME_LAG)
         track.health.add(dropped=False)
         if result.posed:
             self._publish_pose(header, result, stats, track.map_name)
@@ -349,11 +370,26 @@ class TrackerService(Service):
         self._publish_map(track, header)
         self._report_health(track, header)
 
+    def _fair_turn(self, track: SessionTrack, header: FrameMsg) -> bool:
+        """Whether this live frame is tracked under the robots' fair shares (:class:`~twohr.rates.FairShare`):
+        while the cameras ask more of the per-frame thread than it has, each session keeps an equal rate of evenly
+        spaced frames, and the others are dropped on their header."""
+        self.fair.saw(header.session_id, header.stamp)
+        rate = self.fair.rate(header.session_id)
+        track.share_hz = rate
+        if rate is None:
+            track.thinning = None
+            return True
+        if track.thinning is None:
+            track.thinning = RateThinning(rate)
+        track.thinning.period = 1.0 / rate
+        return track.thinning.keep(header.stamp)
+
     def _report_health(self, track: SessionTrack, header: FrameMsg) -> None:
         """``degraded`` (and why) or ``ok`` on the session's status, when it changes and every window while
         degraded."""
         log = track.schedule.keyframe_log
-        state, detail, figures = track.health.verdict(log[-1].lag_frames if log else 0)
+        state, detail, figures = track.health.verdict(log[-1].lag_frames if log else 0, track.share_hz)
         health = track.health
         if state == health.state and (state == "ok" or health.seen - health.reported_at < HEALTH_WINDOW):
             return
@@ -362,7 +398,8 @@ class TrackerService(Service):
 
     def _publish_map(self, track: SessionTrack, header: FrameMsg) -> None:
         """Whenever a keyframe has changed the map: its points on ``landmarks``, and the keyframes' poses after
-        bundle adjustment on ``path`` (a live correction: the robot's earlier poses move with their keyframe)."""
+        bundle adjustment on ``path`` (a live correction: the robot's earlier poses move with their keyframe), as
+        a delta of the keyframes that are new or moved, the full path every few messages (:class:`PathDeltas`)."""
         snapshot = track.schedule.map_snapshot(since=track.map_sent)
         if snapshot is None:
             return
@@ -372,9 +409,9 @@ class TrackerService(Service):
         if len(snapshot.points):
             self.publish(keys.key(header.robot_id, "landmarks"),
                          encode(LandmarksMsg(**ids), {"points": snapshot.points.astype(np.float32)}))
-        keyframes = Trajectory(snapshot.keyframe_stamps, snapshot.keyframe_poses)
-        path = PathMsg(**ids, final=False, frame_id=track.map_name)
-        self.publish(keys.key(header.robot_id, "path"), encode(path, path_arrays(keyframes)))
+        fields, arrays = track.path_deltas.next(Trajectory(snapshot.keyframe_stamps, snapshot.keyframe_poses))
+        path = PathMsg(**ids, final=False, frame_id=track.map_name, **fields)
+        self.publish(keys.key(header.robot_id, "path"), encode(path, arrays))
 
     def _publish_pose(self, header: FrameMsg, result: TrackResult, stats: FrameStats, frame_id: str = "") -> None:
         pose = PoseMsg(session_id=header.session_id, robot_id=header.robot_id, frame_index=header.frame_index,

@@ -1,8 +1,8 @@
 """The yolo service: dynamic-object detections and masks for the tracker's schedule.
 
-The tracker asks on ``twohr/<robot>/rpc/dynamics`` (query: the frame message; reply: that frame's detections and
-mask): every few frames and for keyframes in the ``keyframes`` schedule, for every frame in ``every_frame``. Each
-answer is also published on ``twohr/<robot>/dynamics``, for recordings and views.
+The tracker asks one replica on ``twohr/<robot>/rpc/dynamics/<replica>`` (query: the frame message; reply: that
+frame's detections and mask): every few frames and for keyframes in the ``keyframes`` schedule, for every frame in
+``every_frame``. Each answer is also published on ``twohr/<robot>/dynamics``, for recordings and views.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ class YoloService(Service):
         return []  # queries only
 
     def on_start(self) -> None:
-        self.queryable = self.session.declare_queryable(keys.all_robots(keys.DYNAMICS_QUERY), self._on_query)
+        self.queryable = self.declare_replica_queryable(keys.DYNAMICS_QUERY)
         default = YoloConfig()
         self.warm_up(f"the {default.model} network", lambda: self.network_for(default.model_dump_json()).detect(
             np.zeros((480, 640, 3), np.uint8)))
@@ -60,8 +60,7 @@ class YoloService(Service):
         return self.maskers[session_id]
 
     def handle(self, key: str, payload) -> None:
-        if key.endswith(keys.DYNAMICS_QUERY):
-            reply_to(payload, self._dynamics)
+        reply_to(payload, self._dynamics)
 
     def _dynamics(self, payload: bytes) -> bytes:
         """The dynamic regions of the frame in a query, from the session's masker (``yolo.every_n``: it detects

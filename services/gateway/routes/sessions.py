@@ -7,6 +7,7 @@ control message; the source, the cores and the recorder take it from there."""
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -23,11 +24,13 @@ from twohr.models import get_spec
 from twohr.paths import resolve_under_roots
 from twohr.trajectory import tum_text
 
+from ..admission import admit
 from ..deps import Bus, Caller, Settings, Table, Who, errors, require_token
 from ..sessions import ACTIVE, MapRequest, PoseOut, Session, SessionInfo, SessionRequest, SessionTable
 from ..settings import GatewaySettings
 
 router = APIRouter(dependencies=[Depends(require_token)])
+_admitting = threading.Lock()
 
 
 def validate_models(config: PipelineConfig) -> None:
@@ -113,16 +116,19 @@ def lookup(table: SessionTable, session_id: str, who: Caller) -> Session:
              responses=errors(400, 401, 403, 409, 413, 422, 503))
 def create_session(request: SessionRequest, settings: Settings, bus: Bus, table: Table, who: Who) -> SessionInfo:
     """Start a session on a sequence under the data roots. 409 if the robot already runs one, 503 if a
-    service is not running, 403 for a robot's token and another robot's session."""
+    service is not running or the stack is full (``Retry-After``; see ``admission``), 403 for a robot's token and
+    another robot's session."""
     who.check_robot(request.robot_id)
     config, folder = checked_start(request, settings)
     missing = bus.missing_services()
     if missing:
         raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, f"services not running: {', '.join(missing)}")
-    if table.active_for_robot(request.robot_id):
-        raise HTTPException(status.HTTP_409_CONFLICT, f"robot {request.robot_id} already runs a session")
-    session = Session(id=uuid.uuid4().hex[:12], request=request, folder=folder)
-    table.add(session)
+    with _admitting:  # two requests at once must not both take the last share
+        if table.active_for_robot(request.robot_id):
+            raise HTTPException(status.HTTP_409_CONFLICT, f"robot {request.robot_id} already runs a session")
+        admit(request, table, settings.max_robots)
+        session = Session(id=uuid.uuid4().hex[:12], request=request, folder=folder)
+        table.add(session)
     bus.send_control(session, "start", config)
     return session_info(session, settings.recordings)
 

@@ -125,7 +125,7 @@ def stack(zenoh_router):
     alive = client.session.liveliness()
     deadline = time.monotonic() + WAIT_S
     while time.monotonic() < deadline:  # the services declare themselves alive once warm
-        names = {str(r.ok.key_expr).rsplit("/", 1)[-1] for r in alive.get(f"{keys.ALIVE_PREFIX}/*") if r.ok}
+        names = {keys.parse_replica_key(r.ok.key_expr)[0] for r in alive.get(keys.alive_key("*")) if r.ok}
         if {"tracker", "detector", "matcher"} <= names:
             break
         time.sleep(0.2)

@@ -1,0 +1,98 @@
+"""Frame rates: which frames of a camera to keep at a lower rate, and how a stack's per-frame thread is shared
+fairly between robots when it cannot serve them all at their cameras' rates."""
+
+from __future__ import annotations
+
+import time
+
+
+class RateThinning:
+    """Which frames of a camera to keep at ``rate`` Hz: one per ``1/rate`` of camera time (a frame up to a quarter
+    period early counts as on time, so a 30 Hz camera at 15 Hz gives every other frame, evenly spaced); a camera
+    whose stamps go back in time (its driver restarted) or jump ahead starts again. ``rate`` may change as it goes
+    (:attr:`period`)."""
+
+    def __init__(self, rate: float) -> None:
+        self.period = 1.0 / rate
+        self.due: float | None = None
+
+    def keep(self, stamp: float) -> bool:
+        if self.due is not None and (stamp < self.due - 2 * self.period or stamp > self.due + 2 * self.period):
+            self.due = None  # back in time, or a long gap: a new start
+        if self.due is not None and stamp < self.due - self.period / 4:
+            return False
+        self.due = (self.due if self.due is not None else stamp) + self.period
+        return True
+
+
+class FairShare:
+    """Equal shares of one per-frame thread for the robots it serves.
+
+    It learns each session's camera rate (from its frames' stamps), how long the frames it tracks waited in its
+    queue, and whether the sessions' keyframe jobs come back late (the maps' work starved of CPU). Once per
+    ``window_s``, with two robots or more: while frames wait longer than ``high_ms`` (the thread does not keep up)
+    or keyframe jobs come back late, every session's rate goes down, to the share of what the thread tracked at
+    first, by a fifth after; while they wait less than ``low_ms`` it goes up by 1 Hz, until every camera has its
+    full rate again. The
+    same rate for every session, kept as evenly spaced frames (:class:`RateThinning`): equal shares, and none of
+    the bursts that a queue dropping stale frames makes under overload. Sessions not seen for ``idle_s`` no longer
+    count; one robot alone is never thinned (its queue's own drops serve it)."""
+
+    def __init__(self, window_s: float = 1.0, high_ms: float = 60.0, low_ms: float = 20.0, idle_s: float = 2.0,
+                 smoothing: float = 0.05) -> None:
+        self.window_s, self.high_ms, self.low_ms, self.idle_s = window_s, high_ms, low_ms, idle_s
+        self.smoothing = smoothing
+        self.share_hz: float | None = None  # every session's rate, None: each its camera's
+        self.waits: list[float] = []  # queue waits of the frames tracked in this window (ms)
+        self.late = False  # a keyframe job came back late in this window
+        self.window_start: float | None = None
+        self.sessions: dict[str, list[float]] = {}  # session -> [camera period EMA, last stamp, last seen]
+
+    def saw(self, session_id: str, stamp: float, now: float | None = None) -> None:
+        """A frame of ``session_id`` arrived (stamp: its camera time)."""
+        now = time.monotonic() if now is None else now
+        known = self.sessions.get(session_id)
+        if known is None:
+            self.sessions[session_id] = [0.0, stamp, now]
+            return
+        gap = stamp - known[1]
+        if 0 < gap < 1.0:
+            known[0] = gap if known[0] == 0 else known[0] + self.smoothing * (gap - known[0])
+        known[1], known[2] = stamp, now
+
+    def tracked(self, waited_ms: float, keyframes_late: bool = False, now: float | None = None) -> None:
+        """The thread tracked a frame that had waited ``waited_ms`` in its queue (``keyframes_late``: its session's
+        latest keyframe job came back late); once a window, the share moves."""
+        now = time.monotonic() if now is None else now
+        self.window_start = now if self.window_start is None else self.window_start
+        self.waits.append(waited_ms)
+        self.late |= keyframes_late
+        if now - self.window_start >= self.window_s:
+            self._adjust(now)
+            self.waits, self.late, self.window_start = [], False, now
+
+    def _adjust(self, now: float) -> None:
+        live = self._live(now)
+        if len(live) < 2:
+            self.share_hz = None
+            return
+        wait = sorted(self.waits)[len(self.waits) // 2]
+        full = max(1.0 / period for period, _, _ in live.values())
+        if wait > self.high_ms or self.late:
+            tracked_hz = len(self.waits) / (now - self.window_start) / len(live)
+            self.share_hz = max(1.0, tracked_hz if self.share_hz is None else 0.8 * self.share_hz)
+        elif wait < self.low_ms and self.share_hz is not None:
+            self.share_hz = None if self.share_hz + 1.0 >= full else self.share_hz + 1.0
+
+    def _live(self, now: float) -> dict[str, list[float]]:
+        return {s: v for s, v in self.sessions.items() if now - v[2] < self.idle_s and v[0] > 0}
+
+    def forget(self, session_id: str) -> None:
+        self.sessions.pop(session_id, None)
+
+    def rate(self, session_id: str, now: float | None = None) -> float | None:
+        """Frames per second ``session_id`` may have tracked now, or None while every camera gets its full rate."""
+        live = self._live(time.monotonic() if now is None else now)
+        if self.share_hz is None or session_id not in live or len(live) < 2:
+            return None
+        return min(1.0 / live[session_id][0], self.share_hz)
