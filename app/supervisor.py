@@ -246,7 +246,6 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
     rmw_zenoh in that domain. ``maps``: the map store's folder (the gateway serves it). ``replicas``: how many
     processes of each network service to run (:func:`check_replicas`; default one each). ``max_robots``: the
     gateway's admission limit (None: none)."""
-    from twohr.bus import open_session, wait_for_services
 
     if keys is not None:
         fleet = Fleet(keys)
@@ -257,8 +256,7 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
     else:
         access = StackAccess.generated(api_token) if secure else StackAccess()
     system = System(_start_router(router, access, ros2_domain or 0), ProcessGroup(), router, access)
-    base_env = {k: v for k, v in os.environ.items() if not k.startswith("TWOHR_ZENOH_")}
-    base_env |= {"TWOHR_ZENOH_ROUTER": router, "TWOHR_LOG_LEVEL": log_level}
+    base_env = _child_env(router, log_level)
     try:
         roots = [arg for root in data_roots for arg in ("--data-root", root)]
         counts = {name: 1 for name in PIPELINE_SERVICES} | check_replicas(replicas or {})
@@ -276,13 +274,9 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
         if ros2_domain is not None:
             system.group.start("ros2", ["twohr_services.ros2", "--domain", str(ros2_domain)],
                                base_env | access.env("ros2"))
-        client = open_session(system.bus("gateway" if access.keys else "client"))
-        try:
-            optional = ["ros2"] if ros2_domain is not None else []
-            wait_for_services(client, [*PIPELINE_SERVICES, *optional], timeout=timeout, replicas=started)
-            system.replicas = started
-        finally:
-            client.close()
+        optional = ["ros2"] if ros2_domain is not None else []
+        _wait_ready(system, system.bus("gateway" if access.keys else "client"), [*PIPELINE_SERVICES, *optional],
+                    started, timeout)
         _wait_http(gateway_url(host, port, access.keys), timeout, access.keys)
         if system.group.dead():
             raise RuntimeError(f"processes exited during start-up: {system.group.dead()}")
@@ -291,6 +285,25 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
         raise
     system.group.supervise()
     return system
+
+
+def _child_env(router: str, log_level: str) -> dict[str, str]:
+    """The environment of every child: this process's, without its bus identity, joined to ``router``."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TWOHR_ZENOH_")}
+    return env | {"TWOHR_ZENOH_ROUTER": router, "TWOHR_LOG_LEVEL": log_level}
+
+
+def _wait_ready(system: System, bus, names: list[str], started: dict[str, set[str]], timeout: float) -> None:
+    """Until every service in ``names``, and each replica ``started`` here, answers its health query (asked as
+    ``bus``); the system then knows its replicas."""
+    from twohr.bus import open_session, wait_for_services
+
+    client = open_session(bus)
+    try:
+        wait_for_services(client, names, timeout=timeout, replicas=started)
+        system.replicas = started
+    finally:
+        client.close()
 
 
 def check_replicas(replicas: dict[str, int]) -> dict[str, int]:
@@ -329,7 +342,6 @@ def join_stack(router: str, services: dict[str, int], keys: str | Path | None, t
     ``keys`` (a fleet's keys, or a folder holding ``services/<role>/`` for each service started) each with its
     service's certificate; without, with no credentials (a stack started ``--insecure``). Returns once each
     replica answers its health query."""
-    from twohr.bus import open_session, wait_for_services
 
     counts = check_replicas(services)
     access = StackAccess(keys=Fleet(keys)) if keys else StackAccess()
@@ -340,18 +352,12 @@ def join_stack(router: str, services: dict[str, int], keys: str | Path | None, t
         if missing:
             raise ConfigError(f"{keys} holds no key folder for {', '.join(missing)} (services/<role>/, as "
                               "`twohr keys init` makes them)")
-    base_env = {k: v for k, v in os.environ.items() if not k.startswith("TWOHR_ZENOH_")}
-    base_env |= {"TWOHR_ZENOH_ROUTER": router, "TWOHR_LOG_LEVEL": log_level}
+    base_env = _child_env(router, log_level)
     system = System(_NoRouter(), ProcessGroup(), router, access)
     try:
         started = {name: start_replicas(system.group, name, count, [], base_env | access.env(name))
                    for name, count in counts.items()}
-        client = open_session(access.bus(next(iter(counts)), router))
-        try:
-            wait_for_services(client, list(counts), timeout=timeout, replicas=started)
-            system.replicas = started
-        finally:
-            client.close()
+        _wait_ready(system, access.bus(next(iter(counts)), router), list(counts), started, timeout)
         if system.group.dead():
             raise RuntimeError(f"processes exited during start-up: {system.group.dead()}")
     except BaseException:
