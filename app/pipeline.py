@@ -20,7 +20,7 @@ from twohr.dataset import CameraIntrinsics, Frame
 from twohr.features import Keypoints
 from twohr.trajectory import Trajectory
 from twohr.workers import prefetch
-from twohr_services.detector.core import build_detector
+from twohr_services.detector.core import R2D2Detector, build_detector
 from twohr_services.matcher.core import build_matcher
 from twohr_services.tracker.loops import LoopLog
 from twohr_services.tracker.map import Map
@@ -64,6 +64,19 @@ class FrontEnd:
         return regions.mask, len(regions.dynamic)
 
 
+def detector_provenance(detector, image_size: tuple[int, int]) -> dict:
+    """What the detector chose on this machine: its network (``detector.model=auto``: with each candidate's timed
+    latency) and input scale (``latency_budget_ms``)."""
+    if not isinstance(detector, R2D2Detector):
+        return {}
+    chosen: dict = {"detector_model": detector.model}
+    if detector.model_timings_ms:
+        chosen["detector_model_timings_ms"] = {name: round(ms, 1) for name, ms in detector.model_timings_ms.items()}
+    if image_size in detector.input_scales:
+        chosen["detector_input_scale"] = detector.input_scales[image_size]
+    return chosen
+
+
 def local_stages(config: PipelineConfig, camera: CameraIntrinsics) -> Stages:
     """The detector, YOLO and matcher cores in this process, compiled for the camera's image size."""
     front = FrontEnd(config)
@@ -72,8 +85,7 @@ def local_stages(config: PipelineConfig, camera: CameraIntrinsics) -> Stages:
     if front.masker is not None:
         front.masker.detect_dynamic(blank)
     matcher = build_matcher(config.matcher)
-    scales = getattr(front.detector, "input_scales", {})
-    chosen = {"detector_input_scale": scales[(camera.width, camera.height)]} if scales else {}
+    chosen = detector_provenance(front.detector, (camera.width, camera.height))
     return Stages(lambda frame: front.detector.detect(frame.rgb),
                   None if front.masker is None else front.dynamic_mask,
                   lambda _frame, desc_a, desc_b: matcher(desc_a, desc_b), chosen)

@@ -99,6 +99,14 @@ def _bench(args: argparse.Namespace) -> int:
               f"the live view, {median['with_view']} ms/frame with it and a viewer subscribed: "
               f"+{result['view_cpu_ms_per_frame']} ms ({result['view_cpu_percent']} %); "
               f"FPS {result['fps_median']}")
+    elif args.networks:
+        from .student.bench import format_table, network_latency
+
+        result = network_latency(runs=args.runs, progress=not args.quiet)
+        report["networks"] = result
+        table = format_table(result)
+        (out / "networks.md").write_text(f"{stamp_line(args.argv)}\n\n{table}\n")
+        print(table)
     elif args.ablations:
         rows = bench.ablations(sequence, config, stop=args.frames, progress=not args.quiet)
         rows.append(bench.static_camera_row(sequence))
@@ -146,6 +154,9 @@ def register(sub: argparse._SubParsersAction) -> None:
             action.required = False
     p.add_argument("--runs", type=int, default=3, help="repetitions for throughput (median reported)")
     p.add_argument("--ablations", action="store_true", help="the ablation table instead of throughput")
+    p.add_argument("--networks", action="store_true", help="each keyframe network's latency (r2d2, faster2d2, "
+                   "faster2d2-int8, student) at input scales 0.75 and 0.5, f32 and, where native, bf16, 1 thread, "
+                   "interleaved runs, with the ratio to faster2d2 f32")
     p.add_argument("--view", action="store_true", help="CPU time per frame with the Foxglove live view (twohr run "
                    "--view, one viewer subscribed to every channel) against the same run without it")
     p.add_argument("--bus", action="store_true", help="frame->pose latency and FPS over Zenoh (twohr up as local "

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from .errors import ConfigError, validation_problems
 
@@ -27,7 +27,22 @@ class DetectorConfig(Section):
         "2hr", description="2hr = R2D2 + K-means filter; r2d2 = raw R2D2; orb, fast (ORB descriptors), sift = OpenCV "
         "baselines"
     )
-    model: str = Field("faster2d2_WASF_N16", description="registered r2d2-kind model")
+    model: str = Field("auto", description="the keyframe network: r2d2, faster2d2, faster2d2-int8 (INT8, heads in "
+                       "float), student (distilled by us, 3x cheaper), a registered r2d2-kind model, or auto = the "
+                       "fastest on this machine of those whose measured feature quality is within 2 points of "
+                       "R2D2's (twohr.models.auto_candidates; the choice goes into the run's provenance)")
+
+    @field_validator("model")
+    @classmethod
+    def _known_network(cls, value: str) -> str:
+        from .models import KEYFRAME_NETWORKS, registry
+
+        names = sorted(n for n, s in registry().items() if s.kind == "r2d2")
+        if value != "auto" and value not in KEYFRAME_NETWORKS and value not in names:
+            raise ValueError(f"unknown keyframe network {value!r}; choose auto, {', '.join(KEYFRAME_NETWORKS)} "
+                             f"or a registered one ({', '.join(names)})")
+        return value
+
     input_scale: float = Field(0.75, gt=0, le=2, description="network input size relative to the image (even sizes); "
                                "0.75 = 480x360 for a VGA camera: keyframes cost 0.6x, at no measured loss of accuracy; "
                                "the largest scale latency_budget_ms may choose")

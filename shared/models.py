@@ -9,6 +9,7 @@ Every file is checked against its sha256 before use.
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import shutil
 import tempfile
@@ -24,6 +25,7 @@ from pydantic import BaseModel, Field
 from .errors import ModelError
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+log = logging.getLogger("twohr.models")
 
 
 class ModelSpec(BaseModel):
@@ -38,6 +40,12 @@ class ModelSpec(BaseModel):
     url: str | None = None
     derived_from: str | None = None
     bundled: str | None = Field(None, description="path inside the installed package, for models we ship")
+    built_from: str | None = Field(None, description="registered model this file is built from on first use (INT8 "
+                                   "quantisation with the heads in float, twohr.quantise)")
+    calibration: str | None = Field(None, description="package path of the activation ranges a built model uses")
+    quality: dict[str, float] = Field(default_factory=dict, description="measured feature quality on the dev frames "
+                                      "(`twohr features eval`, 2HR rows at input scale 0.75): rep, prec (%, mean of "
+                                      "frame distances 1, 5, 10); detector.model=auto reads it")
     inputs: dict[str, str] = Field(default_factory=dict)
     outputs: dict[str, str] = Field(default_factory=dict)
 
@@ -59,6 +67,30 @@ def get_spec(name: str, kind: str | None = None) -> ModelSpec:
         choices = sorted(n for n, s in models.items() if s.kind == kind)
         raise ModelError(f"model {name!r} is a {spec.kind} model, not {kind}; choose one of {choices}")
     return spec
+
+
+#: detector.model's short names for the registered keyframe networks
+KEYFRAME_NETWORKS = {"r2d2": "r2d2_WASF_N16", "faster2d2": "faster2d2_WASF_N16",
+                     "faster2d2-int8": "faster2d2_WASF_N16_int8", "student": "twohr_student"}
+#: detector.model=auto takes a network only if its %Rep and %Prec are at most this many points below R2D2's
+QUALITY_FLOOR_POINTS = 2.0
+QUALITY_REFERENCE = "r2d2_WASF_N16"
+
+
+def keyframe_network(name: str) -> str:
+    """The registry name behind a ``detector.model`` value (a short name or a registered name)."""
+    return KEYFRAME_NETWORKS.get(name, name)
+
+
+def auto_candidates() -> list[str]:
+    """The networks ``auto`` may choose, best measured quality first: r2d2-kind models whose measured quality
+    (registry ``quality``) is within :data:`QUALITY_FLOOR_POINTS` of R2D2's in both repeatability and matching
+    precision."""
+    models = registry()
+    reference = models[QUALITY_REFERENCE].quality
+    meets = [spec for spec in models.values() if spec.kind == "r2d2" and spec.quality
+             and all(spec.quality[k] >= reference[k] - QUALITY_FLOOR_POINTS for k in ("rep", "prec"))]
+    return [spec.name for spec in sorted(meets, key=lambda spec: -(spec.quality["rep"] + spec.quality["prec"]))]
 
 
 def cache_dir() -> Path:
@@ -93,11 +125,34 @@ def _how_to_get(spec: ModelSpec) -> str:
     )
 
 
-def _bundled_path(spec: ModelSpec) -> Path | None:
-    if spec.bundled is None:
-        return None
-    package, _, rel = spec.bundled.partition(":")
+def package_file(where: str) -> Path:
+    """The file ``package:relative/path`` names inside an installed package."""
+    package, _, rel = where.partition(":")
     return Path(str(resources.files(package).joinpath(rel)))
+
+
+def _bundled_path(spec: ModelSpec) -> Path | None:
+    return None if spec.bundled is None else package_file(spec.bundled)
+
+
+def _build(spec: ModelSpec, target: Path) -> Path:
+    """Build ``spec`` from the model it is ``built_from`` (INT8 with float heads over the shipped activation
+    ranges: the same bytes on every machine), verify it and move it into place."""
+    from .quantise import quantise_heads_float
+
+    if spec.calibration is None:
+        raise ModelError(f"model {spec.name} is built from {spec.built_from} but names no calibration ranges")
+    source = fetch(spec.built_from)
+    tmp = target.with_suffix(".part.onnx")
+    log.info("building %s from %s (INT8, heads in float)", spec.name, spec.built_from)
+    try:
+        quantise_heads_float(source, tmp, package_file(spec.calibration))
+        verify_file(spec, tmp)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    tmp.replace(target)
+    return target
 
 
 def verify_file(spec: ModelSpec, path: Path) -> None:
@@ -124,6 +179,8 @@ def fetch(name: str, force: bool = False) -> Path:
         verify_file(spec, target)
         return target
     target.parent.mkdir(parents=True, exist_ok=True)
+    if spec.built_from:
+        return _build(spec, target)
     for mirror in mirror_dirs():
         source = mirror / spec.file
         if source.is_file():

@@ -104,7 +104,8 @@ def print_summary(summary: dict, out: Path) -> None:
     print(f"frames {summary['frames']}  tracked {summary['tracked_percent']:.1f} %  fps {summary['fps']}  "
           f"skipped {len(summary['skipped_frames'])}  per-frame ms {summary['ms_per_frame_median']}  "
           f"then final BA {summary.get('final_bundle_adjustment_s', 0):.1f} s"
-          + (f"  detector input scale {summary['detector_input_scale']}" if "detector_input_scale" in summary else ""))
+          + (f"  detector {summary['detector_model']}" if "detector_model" in summary else "")
+          + (f" at input scale {summary['detector_input_scale']}" if "detector_input_scale" in summary else ""))
     if "ate" in summary:
         a, r = summary["ate"], summary["ate_raw_gt"]
         print(f"ATE RMSE {a['ate']['rmse']:.4f} m (SE(3), max dt {a['max_dt']} s, camera-frame GT "
@@ -207,7 +208,8 @@ def _demo(args: argparse.Namespace) -> int:
     config, sequence = load_config_and_sequence(args)
     print(f"twohr demo: {sequence.name}, {len(sequence)} RGB-D frames; models "
           f"{config.detector.model} + {config.yolo.model} + {config.matcher.model}")
-    for name in (config.detector.model, config.yolo.model, config.matcher.model):
+    detector = models.auto_candidates() if config.detector.model == "auto" else [config.detector.model]
+    for name in [*map(models.keyframe_network, detector), config.yolo.model, config.matcher.model]:
         models.model_path(name)
     args.quiet = False
     return _run(args)

@@ -155,7 +155,8 @@ def _common(p: argparse.ArgumentParser, out_default: str = DEFAULT_OUT) -> None:
     p.add_argument("--config", help="pipeline YAML; its detector section is the starting point")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="config override, e.g. --set detector.score_threshold=0.5 (repeatable)")
-    p.add_argument("--model", help="R2D2 network: faster2d2_WASF_N16 (default), r2d2_WASF_N16, r2d2_WASF_N16_int8")
+    p.add_argument("--model", help="keyframe network: auto (default: the fastest that meets the quality floor), "
+                   "r2d2, faster2d2, faster2d2-int8, student or a registered r2d2-kind model")
     p.add_argument("--input-scale", type=float, help="network input size relative to the image, e.g. 0.5")
     p.add_argument("--threads", type=_positive_int, help="onnxruntime threads (default 2)")
 

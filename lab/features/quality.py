@@ -396,7 +396,7 @@ def kmeans_study(sequence: RGBDSequence, base: DetectorConfig | None = None, del
                  grid: dict[str, list[float]] = STUDY_GRID, progress: bool = True) -> StudyResult:
     """Score every setting of ``grid`` (one parameter changed at a time from ``base``) on the same frame pairs."""
     base = base or DetectorConfig(latency_budget_ms=None)
-    network = R2D2Network(base.model, base.threads)
+    network = R2D2Detector(base).network
     geometry = SequenceGeometry.of(sequence)
     pairs = [(a, b) for a, b in plan_pairs(len(sequence), deltas, step, start, stop)
              if geometry.valid[a] and geometry.valid[b]]

@@ -1,66 +1,68 @@
-"""Latency of the keyframe networks at 480x360, onnxruntime, 1 thread, median of 5 runs of 20 inferences.
+"""The keyframe networks' latency as the detector runs them (``twohr bench --networks``).
 
-Each network is timed twice: the dense ONNX as exported, and the graph the detector actually runs
-(``_prepare_model(..., sparse_descriptors=True)``: the dense descriptor normalisation, and for stride-2
-networks the 128-channel upsample, cut off).
+Each registered keyframe network (``detector.model``: r2d2, faster2d2, faster2d2-int8, student) runs through the
+detector's own :class:`R2D2Network` (the sparse-descriptor graph, the configured backend, 1 thread) on a VGA-sized
+input at each input scale and precision. Runs are interleaved (run i of every network, then run i + 1 ...) so that
+load from other processes on a shared machine hits all of them alike; each run is the mean of ``per_run``
+inferences and the table reports the median run, and the ratio to faster2d2 f32 at the same scale.
 
-``python -m twohr_lab.student.bench --student runs/student/run1/student.onnx``
+``twohr bench --networks [--runs 3] [--out runs/bench/networks]``
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
 import time
-from pathlib import Path
 
 import numpy as np
 
-from .int8 import SIZE, TEACHER, cpu_model, session
+from twohr.models import KEYFRAME_NETWORKS, cpu_has_bf16
+
+REFERENCE = ("faster2d2", "f32")
 
 
-def bench(models: dict[str, Path], size: tuple[int, int] = SIZE, runs: int = 5, per_run: int = 20) -> dict:
-    """ms per inference of every network in both forms; the runs are interleaved (run i of every network,
-    then run i + 1 ...) so that load from other processes on a shared machine hits all of them alike."""
-    from twohr_services.detector.core import _prepare_model
+def network_latency(networks: list[str] | None = None, scales: tuple[float, ...] = (0.75, 0.5),
+                    precisions: tuple[str, ...] | None = None, runs: int = 3, per_run: int = 10,
+                    backend: str = "auto", image_size: tuple[int, int] = (640, 480), progress: bool = True) -> dict:
+    """ms per inference of every ``networks`` x ``precisions`` x ``scales``; see the module docstring."""
+    from tqdm import tqdm
 
-    sessions = {}
-    for name, path in models.items():
-        if Path(path).exists():
-            sessions[(name, "dense")] = session(Path(path))
-            sessions[(name, "detector_sparse")] = session(_prepare_model(str(path), True).model)
-    x = np.random.default_rng(0).standard_normal((1, 3, size[1], size[0])).astype(np.float32)
-    times: dict = {key: [] for key in sessions}
-    for sess in sessions.values():
-        for _ in range(3):
-            sess.run(None, {"image": x})
-    for _ in range(runs):
-        for key, sess in sessions.items():
+    from twohr_services.detector.core import R2D2Network, network_size
+
+    networks = networks or list(KEYFRAME_NETWORKS)
+    precisions = precisions or (("f32", "bf16") if cpu_has_bf16() else ("f32",))
+    rgb = np.random.default_rng(0).integers(0, 255, (image_size[1], image_size[0], 3), dtype=np.uint8)
+    jobs = {}
+    for name in networks:
+        for precision in precisions:
+            net = R2D2Network(name, 1, backend=backend, precision=precision)
+            for scale in scales:
+                size = network_size(*image_size, scale)
+                for _ in range(2):
+                    net(rgb, size)  # compile and warm up
+                jobs[(name, precision, scale)] = (net, size)
+    times: dict = {key: [] for key in jobs}
+    for _ in tqdm(range(runs), desc="networks", disable=not progress):
+        for key, (net, size) in jobs.items():
             start = time.perf_counter()
             for _ in range(per_run):
-                sess.run(None, {"image": x})
+                net(rgb, size)
             times[key].append((time.perf_counter() - start) * 1000 / per_run)
-    result: dict = {"cpu": cpu_model(), "size": list(size), "threads": 1, "runs": runs, "per_run": per_run}
-    for (name, form), per in times.items():
-        result.setdefault(name, {})[form] = {"median_ms": statistics.median(per), "min_ms": min(per),
-                                             "max_ms": max(per), "runs_ms": per}
-    return result
+    rows = []
+    for (name, precision, scale), per in times.items():
+        reference = times.get((*REFERENCE, scale))
+        median = statistics.median(per)
+        rows.append({"network": name, "model": KEYFRAME_NETWORKS.get(name, name), "precision": precision,
+                     "input_scale": scale, "size": list(jobs[(name, precision, scale)][1]), "median_ms": median,
+                     "runs_ms": per, "ratio_to_faster2d2_f32": median / statistics.median(reference)
+                     if reference else None})
+    return {"backend": backend, "threads": 1, "runs": runs, "per_run": per_run, "rows": rows}
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m twohr_lab.student.bench", description=__doc__.split("\n")[0])
-    parser.add_argument("--student", default="runs/student/run1/student.onnx")
-    parser.add_argument("--int8", default="runs/student/faster2d2_WASF_N16_int8_heads_f32.onnx")
-    parser.add_argument("--out", default="runs/student/latency.json")
-    args = parser.parse_args(argv)
-    result = bench({"faster2d2_f32": TEACHER, "faster2d2_int8_heads_f32": Path(args.int8),
-                    "student_f32": Path(args.student)})
-    Path(args.out).write_text(json.dumps(result, indent=1))
-    print(json.dumps({k: ({m: round(v[m]["median_ms"], 1) for m in v} if isinstance(v, dict) else v)
-                      for k, v in result.items()}, indent=1))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+def format_table(result: dict) -> str:
+    lines = ["| network | precision | input scale | size | median ms | × faster2d2 f32 |", "|---|---|---|---|---|---|"]
+    for r in result["rows"]:
+        ratio = "" if r["ratio_to_faster2d2_f32"] is None else f"{r['ratio_to_faster2d2_f32']:.2f}"
+        lines.append(f"| {r['network']} | {r['precision']} | {r['input_scale']} | {r['size'][0]}x{r['size'][1]} | "
+                     f"{r['median_ms']:.1f} | {ratio} |")
+    return "\n".join(lines)

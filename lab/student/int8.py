@@ -23,10 +23,11 @@ import argparse
 import json
 import statistics
 import time
-from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
+
+from twohr.quantise import ImageBatches, quantise_heads_float
 
 from .data import images_dir, list_images, models_dir, network_input, split, spread
 
@@ -53,29 +54,6 @@ def session(model: str | bytes | Path, threads: int = 1):
 
 
 # ----------------------------------------------------------------------------- graph inspection
-
-
-def head_nodes(model) -> list[str]:
-    """Names of the head nodes: every node on a path to an output that is not also needed to compute the
-    descriptor features (the tensor the final L2 normalisation divides). For faster2d2 and r2d2 these are
-    the x*x, the reliability conv/softmax/slice, the repeatability conv/softplus/add/div and the L2 norm."""
-    graph = model.graph
-    producers = {out: node for node in graph.node for out in node.output}
-
-    def ancestors(tensors: Iterable[str]) -> set[str]:
-        seen: set[str] = set()
-        stack = list(tensors)
-        while stack:
-            node = producers.get(stack.pop())
-            if node is None or node.name in seen:
-                continue
-            seen.add(node.name)
-            stack.extend(node.input)
-        return seen
-
-    div = producers["descriptors"]
-    trunk = ancestors([div.input[0]])
-    return [node.name for node in graph.node if node.name in ancestors(OUTPUTS) - trunk]
 
 
 def node_table(path: str | Path) -> list[dict]:
@@ -183,48 +161,17 @@ def without_output_qdq(path: str | Path) -> bytes:
 # ----------------------------------------------------------------------------- quantisation
 
 
-class ImageReader:
-    """onnxruntime CalibrationDataReader over image files at a fixed network size."""
-
-    def __init__(self, paths: list[Path], size: tuple[int, int] = SIZE) -> None:
-        self.paths = list(paths)
-        self.size = size
-        self._iter = iter(self.paths)
-
-    def get_next(self):
-        path = next(self._iter, None)
-        return None if path is None else {"image": network_input(path, *self.size)}
-
-    def rewind(self) -> None:
-        self._iter = iter(self.paths)
-
-
 def quantise(src: Path, dst: Path, calibration: list[Path], keep_heads_float: bool = True,
              size: tuple[int, int] = SIZE) -> Path:
-    """Static QDQ quantisation of ``src``: per-channel int8 weights, uint8 activations, MinMax calibration.
+    """:func:`twohr.quantise.quantise_heads_float` calibrated on ``calibration`` images at ``size``; the activation
+    ranges are written beside ``dst`` (``<dst stem>.ranges.json``, what the registry ships).
 
-    ``keep_heads_float`` excludes :func:`head_nodes` (they stay float, fed by the dequantised descriptor
-    features); without it the head ops are quantised as well (:data:`HEAD_OPS`), which reproduces the NaN.
+    Without ``keep_heads_float`` the head ops are quantised as well (:data:`HEAD_OPS`), which reproduces the NaN.
     """
-    import onnx
-    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
-    from onnxruntime.quantization.shape_inference import quant_pre_process
-
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    pre = dst.with_suffix(".pre.onnx")
-    quant_pre_process(str(src), str(pre), skip_symbolic_shape=False)
-    model = onnx.load(str(pre))
-    exclude = head_nodes(model) if keep_heads_float else []
-    op_types = ["Conv", "MaxPool", "Relu"] if keep_heads_float else ["Conv", "MaxPool", "Relu", *HEAD_OPS]
-    quantize_static(
-        str(pre), str(dst), ImageReader(calibration, size),
-        quant_format=QuantFormat.QDQ, per_channel=True, activation_type=QuantType.QUInt8,
-        weight_type=QuantType.QInt8, calibrate_method=CalibrationMethod.MinMax,
-        op_types_to_quantize=op_types, nodes_to_exclude=exclude,
-        extra_options={"ActivationSymmetric": False, "WeightSymmetric": True},
-    )
-    pre.unlink(missing_ok=True)
-    return dst
+    ranges = dst.with_name(dst.stem + ".ranges.json")
+    ranges.unlink(missing_ok=True)
+    reader = ImageBatches(calibration, lambda path: network_input(path, *size))
+    return quantise_heads_float(src, dst, ranges, reader, keep_heads_float, () if keep_heads_float else HEAD_OPS)
 
 
 # ----------------------------------------------------------------------------- measurements
@@ -409,15 +356,14 @@ def markdown(r: dict, latency_extra: dict | None = None) -> str:
 def quantise_other(model: Path, out: Path, images_dir: Path, calibration_count: int = 200,
                    check_count: int = 10) -> dict:
     """The fix applied to another R2D2-contract ONNX (e.g. the student): heads float, the rest INT8; compared
-    with its own f32 export and with faster2d2, and timed (interleaved, see :mod:`.bench`)."""
-    from .bench import bench
-
+    with its own f32 export and with faster2d2, and timed (onnxruntime, 1 thread, :func:`latency`)."""
     train, held = split(list_images(images_dir))
     dst = quantise(model, out / f"{model.stem}_int8_heads_f32.onnx", spread(train, calibration_count))
     check = spread(held or train, check_count)
     report = {"model": str(model), "int8": str(dst), "int8_vs_f32": compare(model, dst, check),
               "int8_vs_faster2d2": compare(TEACHER, dst, check), "f32_vs_faster2d2": compare(TEACHER, model, check),
-              "latency": bench({"faster2d2_f32": TEACHER, "model_f32": model, "model_int8_heads_f32": dst})}
+              "latency": {name: latency(path) for name, path in
+                          {"faster2d2_f32": TEACHER, "model_f32": model, "model_int8_heads_f32": dst}.items()}}
     (out / f"{model.stem}_int8_report.json").write_text(json.dumps(report, indent=1))
     return report
 

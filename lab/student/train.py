@@ -415,6 +415,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lr", type=float, default=TrainConfig.lr)
     parser.add_argument("--seed", type=int, default=TrainConfig.seed)
     parser.add_argument("--save-every", type=int, default=TrainConfig.save_every)
+    parser.add_argument("--threads", type=int, default=TrainConfig.threads,
+                        help="torch and teacher threads (1 on a shared machine)")
     parser.add_argument("--eval-images", type=int, default=10)
     parser.add_argument("--no-latency", action="store_true", help="skip the latency measurement at the end")
     parser.add_argument("--snapshot", action="store_true",
@@ -428,7 +430,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--steps must be positive (or use --snapshot)")
     if args.crop % 2:
         parser.error("--crop must be even")
-    conf = TrainConfig(batch=args.batch, crop=args.crop, lr=args.lr, seed=args.seed, save_every=args.save_every)
+    conf = TrainConfig(batch=args.batch, crop=args.crop, lr=args.lr, seed=args.seed, save_every=args.save_every,
+                       threads=args.threads)
     summary = train(args.images, args.out, args.steps, args.teacher, conf, args.eval_images, not args.no_latency)
     print(json.dumps({k: v for k, v in summary.items() if k != "config"}, indent=1))
     return 0

@@ -28,8 +28,18 @@ import numpy as np
 import onnxruntime as ort
 
 from twohr.config import DetectorConfig
+from twohr.errors import ModelError
 from twohr.features import Keypoints
-from twohr.models import ORT_PROVIDERS, Network, model_path, ort_session, resolve_backend
+from twohr.models import (
+    ORT_PROVIDERS,
+    QUALITY_REFERENCE,
+    Network,
+    auto_candidates,
+    keyframe_network,
+    model_path,
+    ort_session,
+    resolve_backend,
+)
 
 log = logging.getLogger("twohr.detector")
 
@@ -317,10 +327,10 @@ class R2D2Network:
 
     def __init__(self, model: str = "faster2d2_WASF_N16", threads: int = 2, sparse_descriptors: bool = True,
                  backend: str = "onnxruntime", precision: str = "auto") -> None:
-        self.model = model
+        self.model = keyframe_network(model)
         self.threads = threads
         self.backend = resolve_backend(backend)
-        path = str(model_path(model, kind="r2d2"))
+        path = str(model_path(self.model, kind="r2d2"))
         if self.backend not in ORT_PROVIDERS:  # OpenVINO, on the CPU or a GPU
             prepared = _prepare_model(path, sparse_descriptors)
             self.openvino = Network(prepared.model, threads, self.backend, precision)  # compiled per input size
@@ -386,8 +396,18 @@ def check_image(rgb: np.ndarray) -> None:
         raise ValueError(f"image too small for keypoint detection: {rgb.shape[1]}x{rgb.shape[0]} (need 16x16)")
 
 
+#: ``auto`` keeps the best-quality candidate within this factor of the fastest (timing noise on a shared machine)
+AUTO_TIE = 1.05
+
+
 class R2D2Detector:
-    """2HR (or raw R2D2) keypoints with 128-D float descriptors."""
+    """2HR (or raw R2D2) keypoints with 128-D float descriptors.
+
+    ``conf.model`` names the network (a short name of :data:`twohr.models.KEYFRAME_NETWORKS` or a registered
+    r2d2-kind model), or ``auto``: on the first image, every network whose measured feature quality meets the
+    floor (:func:`twohr.models.auto_candidates`) is timed on it, and the fastest is kept (``model``,
+    ``model_timings_ms``).
+    """
 
     default_conf = DetectorConfig()
 
@@ -395,10 +415,54 @@ class R2D2Detector:
         self.conf = conf or self.default_conf
         if self.conf.features not in ("2hr", "r2d2"):
             raise ValueError(f"R2D2Detector builds 2hr or r2d2 features, not {self.conf.features!r}")
-        self.network = R2D2Network(self.conf.model, self.conf.threads, backend=self.conf.backend,
-                                   precision=self.conf.precision)
+        resolve_backend(self.conf.backend)  # a backend this machine lacks fails here, before any image
+        self.model: str | None = None if self.conf.model == "auto" else keyframe_network(self.conf.model)
+        """the registered network in use (None until ``auto`` has chosen)"""
+        self.model_timings_ms: dict[str, float] = {}
+        """each timed network's latency at ``min_input_scale`` on the first image (the basis of ``auto``)"""
+        self._network: R2D2Network | None = None if self.model is None else self._open(self.model)
         self.input_scales: dict[tuple[int, int], float] = {}
         """image (width, height) -> the input scale chosen for it (see ``latency_budget_ms``)"""
+
+    def _open(self, model: str) -> R2D2Network:
+        return R2D2Network(model, self.conf.threads, backend=self.conf.backend, precision=self.conf.precision)
+
+    @property
+    def network(self) -> R2D2Network:
+        """The network in use; ``auto`` chooses it now if no image has yet (timed on a blank VGA image: a
+        convolutional network's time does not depend on the pixels)."""
+        if self._network is None:
+            self._choose_model(np.zeros((480, 640, 3), np.uint8), network_size(640, 480, self.conf.min_input_scale))
+        return self._network
+
+    def _time(self, network: R2D2Network, rgb: np.ndarray, size: tuple[int, int]) -> float:
+        network(rgb, size)  # compiles for the size
+        timed = []
+        for _ in range(2):
+            t0 = time.perf_counter()
+            network(rgb, size)
+            timed.append((time.perf_counter() - t0) * 1000)
+        return min(timed)
+
+    def _choose_model(self, rgb: np.ndarray, size: tuple[int, int]) -> None:
+        """``auto``: time every candidate on ``rgb`` at ``size`` and keep the fastest. The quality reference, full
+        R2D2, is left out while others meet the floor: it does about 3x faster2d2's work on any CPU."""
+        networks = {}
+        candidates = auto_candidates()
+        for name in [n for n in candidates if n != QUALITY_REFERENCE] or candidates:
+            try:
+                networks[name] = self._open(name)
+            except (ModelError, OSError) as exc:  # e.g. a mirror without that file, a read-only cache
+                log.warning("detector.model=auto leaves out %s: %s", name, exc)
+        if not networks:
+            raise ModelError("detector.model=auto found no network it can load; run `twohr models fetch`")
+        self.model_timings_ms = {name: self._time(net, rgb, size) for name, net in networks.items()}
+        fastest = min(self.model_timings_ms.values())
+        # near-ties go to the earlier (better) network, so that timing noise does not flip the choice run to run
+        self.model = next(n for n, ms in self.model_timings_ms.items() if ms <= AUTO_TIE * fastest)
+        self._network = networks[self.model]
+        log.info("detector.model=auto chose %s (%s at %dx%d)", self.model,
+                 ", ".join(f"{n} {t:.0f} ms" for n, t in self.model_timings_ms.items()), *size)
 
     def input_scale(self, rgb: np.ndarray) -> float:
         """The network's input scale for images the size of ``rgb``: ``input_scale``, or with a latency budget the
@@ -407,17 +471,14 @@ class R2D2Detector:
         height, width = rgb.shape[:2]
         if (width, height) not in self.input_scales:
             scale, smallest = self.conf.input_scale, self.conf.min_input_scale
+            size = network_size(width, height, smallest)
+            if self._network is None:
+                self._choose_model(rgb, size)
             if self.conf.latency_budget_ms is not None and scale > smallest:
-                size = network_size(width, height, smallest)
-                self.network(rgb, size)  # compiles for the size
-                timed = []
-                for _ in range(2):
-                    t0 = time.perf_counter()
-                    self.network(rgb, size)
-                    timed.append((time.perf_counter() - t0) * 1000)
-                scale = choose_input_scale(min(timed), smallest, self.conf.latency_budget_ms, scale, smallest)
+                latency = self.model_timings_ms.get(self.model) or self._time(self.network, rgb, size)
+                scale = choose_input_scale(latency, smallest, self.conf.latency_budget_ms, scale, smallest)
                 log.info("%s at %dx%d: %.0f ms at input scale %g, %g chosen for the %.0f ms budget",
-                         self.conf.model, width, height, min(timed), smallest, scale, self.conf.latency_budget_ms)
+                         self.model, width, height, latency, smallest, scale, self.conf.latency_budget_ms)
             self.input_scales[(width, height)] = scale
         return self.input_scales[(width, height)]
 

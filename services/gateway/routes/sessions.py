@@ -20,7 +20,7 @@ from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
 from twohr.mapfile import MapStore, read_map
 from twohr.mcapfile import is_finalised, partial_marker
-from twohr.models import get_spec
+from twohr.models import get_spec, keyframe_network
 from twohr.paths import resolve_under_roots
 from twohr.trajectory import tum_text
 
@@ -35,8 +35,8 @@ _admitting = threading.Lock()
 
 def validate_models(config: PipelineConfig) -> None:
     """Every model the config names must be registered, and of the right kind."""
-    if config.detector.features != "orb":
-        get_spec(config.detector.model, "r2d2")
+    if config.detector.features != "orb" and config.detector.model != "auto":
+        get_spec(keyframe_network(config.detector.model), "r2d2")
     if config.yolo.enabled:
         spec = get_spec(config.yolo.model)
         if spec.kind not in ("yolov8", "yolov5"):

@@ -1,0 +1,64 @@
+"""A sequence played backwards: the same frames in reverse order, timestamps mirrored (issue 41's held-out variant).
+
+``python -m twohr_lab.tracking.backwards --sequence ../shared/data/rgbd_bonn_crowd_dev --out runs/seq/backwards``
+
+Every timestamp ``t`` becomes ``first + last - t`` (so the variant spans the same times and keeps the frame
+spacing), ``rgb.txt``, ``depth.txt``, ``associations.txt`` and ``groundtruth.txt`` are rewritten in the new order,
+the image folders are linked, not copied, and ``camera.yaml`` (if any) is copied. The output folder's name keeps
+the source's (the camera preset is chosen from it, e.g. ``rgbd_bonn``) with ``_backwards`` appended.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+LISTS = ("rgb.txt", "depth.txt", "groundtruth.txt", "associations.txt")
+
+
+def _rows(path: Path) -> tuple[list[str], list[list[str]]]:
+    header, rows = [], []
+    for line in path.read_text().splitlines():
+        (header if line.startswith("#") or not line.strip() else rows).append(line if line.startswith("#")
+                                                                             else line.split())
+    return [h for h in header if h], rows
+
+
+def backwards(sequence: Path, out: Path) -> Path:
+    """Write the backwards variant of ``sequence`` into ``out / (<name>_backwards)`` and return that folder."""
+    sequence = sequence.resolve()
+    stamps = [float(r[0]) for r in _rows(sequence / "rgb.txt")[1]]
+    mirror = min(stamps) + max(stamps)
+    target = out / f"{sequence.name}_backwards"
+    target.mkdir(parents=True, exist_ok=True)
+    for folder in ("rgb", "depth"):
+        link = target / folder
+        if not link.exists():
+            link.symlink_to(sequence / folder, target_is_directory=True)
+    if (sequence / "camera.yaml").is_file():
+        (target / "camera.yaml").write_text((sequence / "camera.yaml").read_text())
+    for name in LISTS:
+        if not (sequence / name).is_file():
+            continue
+        header, rows = _rows(sequence / name)
+        stamp_columns = (0, 2) if name == "associations.txt" else (0,)
+        for row in rows:
+            for column in stamp_columns:
+                decimals = len(row[column].partition(".")[2])
+                row[column] = f"{mirror - float(row[column]):.{decimals}f}"
+        rows.sort(key=lambda row: float(row[0]))
+        (target / name).write_text("\n".join([*header, *(" ".join(row) for row in rows)]) + "\n")
+    return target
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m twohr_lab.tracking.backwards", description=__doc__.split("\n")[0])
+    parser.add_argument("--sequence", required=True, help="TUM-layout RGB-D folder")
+    parser.add_argument("--out", default="runs/sequences", help="parent folder of the variant")
+    args = parser.parse_args(argv)
+    print(backwards(Path(args.sequence), Path(args.out)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

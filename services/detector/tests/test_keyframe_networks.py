@@ -1,0 +1,114 @@
+"""detector.model: every keyframe network loads through the registry and detects on a real frame; the INT8 network
+is rebuilt byte for byte from the shipped ranges with its heads in float; ``auto`` keeps the fastest network that
+meets the quality floor and says what it timed."""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import pytest
+from pydantic import ValidationError
+from scipy.spatial import cKDTree
+
+from twohr.config import DetectorConfig
+from twohr.dataset import RGBDSequence
+from twohr.models import (
+    KEYFRAME_NETWORKS,
+    QUALITY_FLOOR_POINTS,
+    QUALITY_REFERENCE,
+    auto_candidates,
+    fetch,
+    get_spec,
+    keyframe_network,
+    registry,
+    sha256_of,
+)
+from twohr.quantise import head_nodes
+from twohr_services.detector.core import AUTO_TIE, R2D2Detector
+
+
+@pytest.fixture(scope="module")
+def real_frame(dev_sequence):
+    return RGBDSequence(dev_sequence).read(120).rgb
+
+
+@pytest.fixture(scope="module")
+def faster2d2_keypoints(real_frame):
+    return R2D2Detector(DetectorConfig(model="faster2d2", latency_budget_ms=None, precision="f32")).detect(real_frame)
+
+
+def agreement(keypoints, reference) -> tuple[float, float]:
+    """The share of ``keypoints`` within 1.5 px of a reference keypoint, and their median descriptor cosine."""
+    distance, nearest = cKDTree(reference.xy).query(keypoints.xy, k=1)
+    close = distance <= 1.5
+    cosine = np.sum(keypoints.descriptors[close] * reference.descriptors[nearest[close]], axis=1)
+    return float(close.mean()), float(np.median(cosine))
+
+
+@pytest.mark.parametrize("name", list(KEYFRAME_NETWORKS))
+def test_every_keyframe_network_loads_and_finds_keypoints_on_a_real_frame(name, real_frame, faster2d2_keypoints):
+    detector = R2D2Detector(DetectorConfig(model=name, latency_budget_ms=None, precision="f32"))
+    assert detector.model == KEYFRAME_NETWORKS[name] == get_spec(detector.model, "r2d2").name
+    kp = detector.detect(real_frame)
+    assert 150 <= len(kp) <= 1500
+    assert np.all(np.isfinite(kp.scores)) and np.allclose(np.linalg.norm(kp.descriptors, axis=1), 1, atol=1e-4)
+    near, cosine = agreement(kp, faster2d2_keypoints)
+    if name == "faster2d2-int8":  # the same network, quantised: the same keypoints and descriptors
+        assert near > 0.85 and cosine > 0.98
+    elif name == "student":  # distilled from faster2d2: most keypoints and descriptors follow it
+        assert near > 0.4 and cosine > 0.8
+
+
+def test_the_int8_network_is_rebuilt_from_the_shipped_ranges_byte_for_byte(tmp_path, monkeypatch):
+    monkeypatch.setenv("TWOHR_CACHE", str(tmp_path))
+    spec = get_spec("faster2d2_WASF_N16_int8")
+    path = fetch(spec.name)  # builds it: faster2d2 from the mirror, quantised over the shipped ranges
+    assert path.parent == tmp_path / "models" and sha256_of(path) == spec.sha256
+    model = onnx.load(str(path))
+    producers = {out: node for node in model.graph.node for out in node.output}
+
+    def reads_int8(node) -> bool:
+        return any(producers.get(name) is not None and producers[name].op_type == "DequantizeLinear"
+                   for name in node.input)
+
+    heads = set(head_nodes(model))
+    trunk_convs = [n for n in model.graph.node if n.op_type == "Conv" and n.name not in heads]
+    assert heads and len(trunk_convs) >= 7 and all(reads_int8(conv) for conv in trunk_convs)
+    float_heads = [n for n in model.graph.node if n.name in heads and n.op_type in ("Softplus", "Div", "ReduceL2")]
+    assert len(float_heads) >= 3 and not any(reads_int8(node) for node in float_heads)
+
+
+def test_auto_candidates_are_the_networks_within_the_quality_floor():
+    models = registry()
+    reference = models[QUALITY_REFERENCE].quality
+    candidates = auto_candidates()
+    assert QUALITY_REFERENCE in candidates and "faster2d2_WASF_N16" in candidates
+    for name, spec in models.items():
+        if spec.kind != "r2d2":
+            continue
+        meets = bool(spec.quality) and all(spec.quality[k] >= reference[k] - QUALITY_FLOOR_POINTS
+                                           for k in ("rep", "prec"))
+        assert (name in candidates) == meets, name
+    quality = [models[n].quality["rep"] + models[n].quality["prec"] for n in candidates]
+    assert quality == sorted(quality, reverse=True)
+
+
+def test_auto_keeps_the_fastest_candidate_and_says_what_it_timed(real_frame):
+    detector = R2D2Detector(DetectorConfig(model="auto", precision="f32"))
+    assert detector.model is None
+    kp = detector.detect(real_frame)
+    timings = detector.model_timings_ms
+    # every candidate but the quality reference (full R2D2, never the fastest) is timed, best quality first
+    assert list(timings) == [n for n in auto_candidates() if n != QUALITY_REFERENCE]
+    assert len(timings) >= 2 and all(ms > 0 for ms in timings.values())
+    assert detector.model == next(n for n, ms in timings.items() if ms <= AUTO_TIE * min(timings.values()))
+    assert len(kp) > 150 and detector.input_scales[(640, 480)] >= DetectorConfig().min_input_scale
+
+
+def test_unknown_networks_are_refused_in_one_line():
+    assert keyframe_network("faster2d2-int8") == "faster2d2_WASF_N16_int8"
+    assert keyframe_network("r2d2_WASF_N16") == "r2d2_WASF_N16"
+    with pytest.raises(ValidationError, match="unknown keyframe network 'superpoint'; choose auto, r2d2"):
+        DetectorConfig(model="superpoint")
+    with pytest.raises(ValidationError, match="unknown keyframe network 'yolov8n'"):
+        DetectorConfig(model="yolov8n")  # registered, but not a keyframe network
