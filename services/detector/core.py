@@ -444,9 +444,10 @@ class R2D2Detector:
             timed.append((time.perf_counter() - t0) * 1000)
         return min(timed)
 
-    def _choose_model(self, rgb: np.ndarray, size: tuple[int, int]) -> None:
-        """``auto``: time every candidate on ``rgb`` at ``size`` and keep the fastest. The quality reference, full
-        R2D2, is left out while others meet the floor: it does about 3x faster2d2's work on any CPU."""
+    def _choose_model(self, rgb: np.ndarray, size: tuple[int, int]) -> float:
+        """``auto``: time every candidate on ``rgb`` at ``size``, keep the fastest and return its latency. The
+        quality reference, full R2D2, is left out while others meet the floor: it does about 3x faster2d2's work on
+        any CPU."""
         networks = {}
         candidates = auto_candidates()
         for name in [n for n in candidates if n != QUALITY_REFERENCE] or candidates:
@@ -463,6 +464,7 @@ class R2D2Detector:
         self._network = networks[self.model]
         log.info("detector.model=auto chose %s (%s at %dx%d)", self.model,
                  ", ".join(f"{n} {t:.0f} ms" for n, t in self.model_timings_ms.items()), *size)
+        return self.model_timings_ms[self.model]
 
     def input_scale(self, rgb: np.ndarray) -> float:
         """The network's input scale for images the size of ``rgb``: ``input_scale``, or with a latency budget the
@@ -472,10 +474,9 @@ class R2D2Detector:
         if (width, height) not in self.input_scales:
             scale, smallest = self.conf.input_scale, self.conf.min_input_scale
             size = network_size(width, height, smallest)
-            if self._network is None:
-                self._choose_model(rgb, size)
+            timed = self._choose_model(rgb, size) if self._network is None else None  # auto: timed at this size
             if self.conf.latency_budget_ms is not None and scale > smallest:
-                latency = self.model_timings_ms.get(self.model) or self._time(self.network, rgb, size)
+                latency = timed or self._time(self.network, rgb, size)
                 scale = choose_input_scale(latency, smallest, self.conf.latency_budget_ms, scale, smallest)
                 log.info("%s at %dx%d: %.0f ms at input scale %g, %g chosen for the %.0f ms budget",
                          self.model, width, height, latency, smallest, scale, self.conf.latency_budget_ms)
