@@ -27,10 +27,11 @@ class DetectorConfig(Section):
         "2hr", description="2hr = R2D2 + K-means filter; r2d2 = raw R2D2; orb, fast (ORB descriptors), sift = OpenCV "
         "baselines"
     )
-    model: str = Field("faster2d2_WASF_N16", description="the keyframe network: r2d2, faster2d2, faster2d2-int8 "
-                       "(INT8, heads in float), student (distilled by us, 3x cheaper), a registered r2d2-kind model, or auto = the "
-                       "fastest on this machine of those whose measured feature quality is within 2 points of "
-                       "R2D2's (twohr.models.auto_candidates; the choice goes into the run's provenance)")
+    model: str = Field(
+        "faster2d2_WASF_N16", description="the keyframe network: r2d2, faster2d2, faster2d2-int8 (INT8, heads in "
+        "float), student (distilled by us, 3x cheaper), a registered r2d2-kind model, or auto = the fastest on this "
+        "machine of those whose measured feature quality is within 2 points of R2D2's (twohr.models.auto_candidates; "
+        "the choice goes into the run's provenance)")
 
     @field_validator("model")
     @classmethod
