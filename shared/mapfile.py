@@ -30,6 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from .config import DetectorConfig
 from .dataset import CameraIntrinsics
 from .errors import TwohrError, validation_problems
+from .models import descriptor_space
 
 FORMAT = "twohr-map"
 VERSION = 1
@@ -55,7 +56,7 @@ class MapHeader(BaseModel):
     parent: str | None = Field(None, description="the map it extends (name@created), if any")
     camera: CameraIntrinsics
     detector_model: str = Field(description="the 2HR detector model its descriptors come from")
-    detector_sha256: str = Field("", description="that model's file checksum")
+    detector_sha256: str = Field("", description="the file checksum of the network of its descriptor space")
     detector_config: dict = Field(default_factory=dict, description="the detector config it was built with")
     descriptor_dim: int = Field(gt=0)
     descriptor_dtype: str
@@ -68,10 +69,11 @@ class MapHeader(BaseModel):
         return self.name
 
     def check_built_with(self, detector: DetectorConfig, where: str = "map") -> None:
-        """:class:`MapFileError` unless the map's descriptors come from the same detector model and features as
-        ``detector`` would give (other descriptors would not match them)."""
+        """:class:`MapFileError` unless the map's descriptors come from the same descriptor space
+        (:func:`twohr.models.descriptor_space`) and features as ``detector`` would give (other descriptors would not
+        match them)."""
         built = (self.detector_model, self.detector_config.get("features", detector.features))
-        if built != (detector.model, detector.features):
+        if (descriptor_space(built[0]), built[1]) != (descriptor_space(detector.model), detector.features):
             raise MapFileError(f"{where}: built with detector {built[0]!r} ({built[1]} features), this run uses "
                                f"{detector.model!r} ({detector.features} features); its descriptors would not match")
 

@@ -32,7 +32,6 @@ from twohr.errors import ModelError
 from twohr.features import Keypoints
 from twohr.models import (
     ORT_PROVIDERS,
-    QUALITY_REFERENCE,
     Network,
     auto_candidates,
     keyframe_network,
@@ -445,12 +444,10 @@ class R2D2Detector:
         return min(timed)
 
     def _choose_model(self, rgb: np.ndarray, size: tuple[int, int]) -> float:
-        """``auto``: time every candidate on ``rgb`` at ``size``, keep the fastest and return its latency. The
-        quality reference, full R2D2, is left out while others meet the floor: it does about 3x faster2d2's work on
-        any CPU."""
+        """``auto``: time every candidate (:func:`twohr.models.auto_candidates`) on ``rgb`` at ``size``, keep the
+        fastest and return its latency."""
         networks = {}
-        candidates = auto_candidates()
-        for name in [n for n in candidates if n != QUALITY_REFERENCE] or candidates:
+        for name in auto_candidates():
             try:
                 networks[name] = self._open(name)
             except (ModelError, OSError) as exc:  # e.g. a mirror without that file, a read-only cache

@@ -32,7 +32,7 @@ def map_file(world: Map, config: PipelineConfig, name: str, built_by: str = "",
     """``world`` as a map file named ``name``, with what it was built with."""
     arrays = world.arrays()
     try:
-        sha256 = models.get_spec(models.keyframe_network(config.detector.model)).sha256
+        sha256 = models.get_spec(models.descriptor_space(config.detector.model)).sha256
     except ModelError:
         sha256 = ""
     header = MapHeader(name=name, built_by=built_by,

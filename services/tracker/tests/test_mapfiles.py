@@ -15,6 +15,7 @@ from twohr.config import DetectorConfig, load_config
 from twohr.dataset import RGBDSequence
 from twohr.evaluation import evaluate
 from twohr.mapfile import MapFileError, read_header, read_map, verify_bytes
+from twohr.models import get_spec
 from twohr.trajectory import Trajectory, read_tum
 from twohr_services.tracker.mapfiles import load_map, save_map
 from twohr_services.tracker.pose import pose_difference
@@ -86,6 +87,28 @@ def test_a_bad_map_file_is_one_line(orb_synthetic, tmp_path):
     assert verify_bytes(good.read_bytes()).name == "room"
     with pytest.raises(MapFileError):
         verify_bytes(b"PK\x03\x04 not really")
+
+
+def test_a_map_is_read_by_every_network_of_its_descriptor_space(orb_synthetic, tmp_path):
+    """faster2d2, its INT8 build and auto (whose candidates are those two) give descriptors of one space: a map
+    built by any of them is read by the others, with faster2d2's checksum in its header. R2D2 and the student give
+    other descriptors: their runs are refused."""
+    world = _built(orb_synthetic).map
+    faster2d2_sha = get_spec("faster2d2_WASF_N16").sha256
+    one_space = ("faster2d2", "faster2d2_WASF_N16", "faster2d2-int8", "auto")
+    for built_with in ("faster2d2", "faster2d2-int8", "auto"):
+        path = tmp_path / f"{built_with}.map"
+        header, _, _ = save_map(path, world, ORB.model_copy(update={"detector": _detector(built_with)}))
+        assert (header.detector_model, header.detector_sha256) == (built_with, faster2d2_sha)
+        for reader in one_space:
+            assert read_map(path, detector=_detector(reader)).header.keyframes == len(world.keyframes)
+        for reader in ("r2d2", "student"):
+            with pytest.raises(MapFileError, match=f"built with detector '{built_with}'"):
+                read_map(path, detector=_detector(reader))
+
+
+def _detector(model: str) -> DetectorConfig:
+    return ORB.detector.model_copy(update={"model": model})
 
 
 def test_a_tracker_finds_itself_in_a_loaded_map_with_no_prior_pose(orb_synthetic, tmp_path):
