@@ -96,11 +96,13 @@ def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 
     latency: dict[str, list[float]] = {"keyframe_frames": [], "other_frames": []}
     keyframe_ms: dict[str, list[float]] = {"ms_detector": [], "ms_yolo": [], "ms_mapping": [], "lag_frames": []}
     pipeline_rss = None
+    chosen: dict = {}  # what the first run chose at warm-up (detector.model=auto: the network and its timings)
     for _ in range(runs):
         for label, conf in (("pipeline", config), ("baseline", baseline)):
             run = run_sequence(sequence, conf, start=start, stop=stop, progress=progress)
             results[label].append(len(run.stats) / run.wall_s)
             if label == "pipeline":
+                chosen = chosen or run.chosen
                 if sequence.has_ground_truth() and len(run.trajectory) >= 3:
                     extrinsic = sequence.default_gt_extrinsic()
                     ate_runs.append(evaluate(sequence.ground_truth(extrinsic), run.trajectory,
@@ -135,7 +137,7 @@ def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 
         "stages_ms": {k.removeprefix("ms_"): _percentiles(v) for k, v in stage_ms.items()},
         "per_frame_latency_ms": {k: _percentiles(v) for k, v in latency.items() if v},
         "keyframe_jobs": {k.removeprefix("ms_"): _percentiles(v) for k, v in keyframe_ms.items() if v},
-        "mode": config.pipeline.mode,
+        "mode": config.pipeline.mode, "chosen": chosen,
         "peak_rss_mib": round(pipeline_rss or peak_rss_mib(), 1),
         **({"peak_rss_mib_with_orbslam3": round(peak_rss_mib(), 1)} if pipeline_rss else {}),
         "machine": {**machine(), "platform": platform.platform()},

@@ -126,6 +126,9 @@ def _bench(args: argparse.Namespace) -> int:
               + (f" ({result['peak_rss_mib_with_orbslam3']} MiB once ORB-SLAM3 ran in this process)"
                  if "peak_rss_mib_with_orbslam3" in result else "")
               + f"; ATE median {result['ate_rmse_median']} m")
+        if "detector_model" in result["chosen"]:
+            print(f"keyframe network {result['chosen']['detector_model']} at input scale "
+                  f"{result['chosen'].get('detector_input_scale', config.detector.input_scale)}")
         orbslam3 = result["orbslam3"]
         if isinstance(orbslam3, dict):
             print(f"ORB-SLAM3 RGB-D (pyorbslam3): {orbslam3['ms_per_frame_median']} ms/frame; ours/ORB-SLAM3 "
