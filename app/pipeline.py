@@ -72,6 +72,7 @@ def detector_provenance(detector, image_size: tuple[int, int]) -> dict:
     chosen: dict = {"detector_model": detector.model}
     if detector.model_timings_ms:
         chosen["detector_model_timings_ms"] = {name: round(ms, 1) for name, ms in detector.model_timings_ms.items()}
+        chosen["detector_model_timed_at"] = detector.model_timed_at
     if image_size in detector.input_scales:
         chosen["detector_input_scale"] = detector.input_scales[image_size]
     return chosen

@@ -28,10 +28,11 @@ class DetectorConfig(Section):
         "baselines"
     )
     model: str = Field(
-        "faster2d2_WASF_N16", description="the keyframe network: r2d2, faster2d2, faster2d2-int8 (INT8, heads in "
+        "auto", description="the keyframe network: r2d2, faster2d2, faster2d2-int8 (INT8, heads in "
         "float), student (distilled by us, 3x cheaper), a registered r2d2-kind model, or auto = the fastest on this "
-        "machine of those whose measured feature quality is within 2 points of R2D2's (twohr.models.auto_candidates; "
-        "the choice goes into the run's provenance)")
+        "machine of those whose measured feature quality is within 2 points of R2D2's (twohr.models.auto_candidates), "
+        "timed once per host and kept in $TWOHR_CACHE/models/auto-choices.json (`twohr models auto`); the choice goes "
+        "into the run's provenance")
 
     @field_validator("model")
     @classmethod

@@ -16,24 +16,34 @@ the same interface.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import json
 import logging
 import threading
 import time
 from bisect import bisect_right
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from functools import cache
+from pathlib import Path
 
 import cv2
 import numpy as np
 import onnxruntime as ort
+from pydantic import BaseModel, ValidationError
 
 from twohr.config import DetectorConfig
 from twohr.errors import ModelError
 from twohr.features import Keypoints
+from twohr.machine import machine
+from twohr.mapfile import write_bytes_atomically
 from twohr.models import (
     ORT_PROVIDERS,
     Network,
     auto_candidates,
+    cache_dir,
+    get_spec,
     keyframe_network,
     model_path,
     ort_session,
@@ -399,26 +409,96 @@ def check_image(rgb: np.ndarray) -> None:
 AUTO_TIE = 1.05
 
 
+def auto_choices_path() -> Path:
+    """Where ``detector.model=auto`` keeps its choices on this host (``$TWOHR_CACHE/models/auto-choices.json``);
+    delete it, or run ``twohr models auto --again``, to time the candidates again."""
+    return cache_dir() / "auto-choices.json"
+
+
+class AutoChoice(BaseModel):
+    """One ``auto`` choice: the network kept, each candidate's timed latency and when it was timed."""
+
+    model: str
+    timings_ms: dict[str, float]
+    timed_at: str
+
+
+def auto_choice_key(conf: DetectorConfig, candidates: list[str], size: tuple[int, int]) -> str:
+    """What an ``auto`` choice depends on: the CPU, the backend, precision and threads, the timing size, and each
+    candidate's exact bytes (a new model version is timed again)."""
+    cpu = machine()
+    networks = ",".join(f"{name}@{get_spec(name).sha256[:12]}" for name in candidates)
+    return (f"{cpu['cpu_model']} x{cpu['cpus']} | {resolve_backend(conf.backend)} {conf.precision} "
+            f"threads={conf.threads} | {size[0]}x{size[1]} | {networks}")
+
+
+def read_auto_choices(path: Path) -> dict[str, AutoChoice]:
+    """The choices kept in ``path``; an absent, unreadable or malformed file holds none (they are timed again)."""
+    try:
+        raw = json.loads(path.read_text())
+        return {key: AutoChoice.model_validate(value) for key, value in raw.items()}
+    except FileNotFoundError:
+        return {}
+    except (OSError, ValueError, ValidationError, AttributeError) as exc:
+        log.warning("detector.model=auto ignores %s (%s); it times the networks again", path, exc)
+        return {}
+
+
+@contextlib.contextmanager
+def auto_choice_lock(path: Path):
+    """Hold the host's ``auto`` lock: replicas that start together time one after the other (undisturbed by each
+    other) and the later ones find the first one's choice. A cache without write access goes without the lock."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle = open(path.with_suffix(".lock"), "a")
+    except OSError:
+        yield
+        return
+    with handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def keep_auto_choice(path: Path, key: str, choice: AutoChoice) -> None:
+    """Add ``choice`` under ``key`` to ``path`` (atomically); a read-only cache only costs a warning."""
+    choices = read_auto_choices(path)
+    choices[key] = choice
+    data = json.dumps({k: v.model_dump() for k, v in choices.items()}, indent=1).encode()
+    try:
+        write_bytes_atomically(path, data)
+    except OSError as exc:
+        log.warning("detector.model=auto cannot keep its choice in %s (%s): every process times again", path, exc)
+
+
 class R2D2Detector:
     """2HR (or raw R2D2) keypoints with 128-D float descriptors.
 
     ``conf.model`` names the network (a short name of :data:`twohr.models.KEYFRAME_NETWORKS` or a registered
-    r2d2-kind model), or ``auto``: on the first image, every network whose measured feature quality meets the
-    floor (:func:`twohr.models.auto_candidates`) is timed on it, and the fastest is kept (``model``,
-    ``model_timings_ms``).
+    r2d2-kind model), or ``auto``: every network whose measured feature quality meets the floor
+    (:func:`twohr.models.auto_candidates`) is timed once per host, and the fastest is kept (``model``,
+    ``model_timings_ms``) in ``auto_choices`` (default :func:`auto_choices_path`). Every later process on the host
+    reads that choice instead of timing again, so processes that must agree (replicas, ``twohr run`` and the
+    services) use one network, whatever load each started under.
     """
 
     default_conf = DetectorConfig()
 
-    def __init__(self, conf: DetectorConfig | None = None) -> None:
+    def __init__(self, conf: DetectorConfig | None = None, auto_choices: Path | None = None) -> None:
         self.conf = conf or self.default_conf
+        self.auto_choices = auto_choices or auto_choices_path()
+        """where ``auto`` keeps its choices on this host"""
         if self.conf.features not in ("2hr", "r2d2"):
             raise ValueError(f"R2D2Detector builds 2hr or r2d2 features, not {self.conf.features!r}")
         resolve_backend(self.conf.backend)  # a backend this machine lacks fails here, before any image
         self.model: str | None = None if self.conf.model == "auto" else keyframe_network(self.conf.model)
         """the registered network in use (None until ``auto`` has chosen)"""
         self.model_timings_ms: dict[str, float] = {}
-        """each timed network's latency at ``min_input_scale`` on the first image (the basis of ``auto``)"""
+        """each timed network's latency at ``min_input_scale`` (the basis of ``auto``)"""
+        self.model_timed_at: str | None = None
+        """when ``auto`` timed them (UTC, ISO 8601); earlier than this process where the choice was kept"""
         self._network: R2D2Network | None = None if self.model is None else self._open(self.model)
         self.input_scales: dict[tuple[int, int], float] = {}
         """image (width, height) -> the input scale chosen for it (see ``latency_budget_ms``)"""
@@ -434,34 +514,56 @@ class R2D2Detector:
             self._choose_model(np.zeros((480, 640, 3), np.uint8), network_size(640, 480, self.conf.min_input_scale))
         return self._network
 
-    def _time(self, network: R2D2Network, rgb: np.ndarray, size: tuple[int, int]) -> float:
+    def _time(self, network: R2D2Network, rgb: np.ndarray, size: tuple[int, int], runs: int = 2) -> float:
         network(rgb, size)  # compiles for the size
         timed = []
-        for _ in range(2):
+        for _ in range(runs):
             t0 = time.perf_counter()
             network(rgb, size)
             timed.append((time.perf_counter() - t0) * 1000)
         return min(timed)
 
     def _choose_model(self, rgb: np.ndarray, size: tuple[int, int]) -> float:
-        """``auto``: time every candidate (:func:`twohr.models.auto_candidates`) on ``rgb`` at ``size``, keep the
-        fastest and return its latency."""
+        """``auto``: the network kept on this host for ``size``, else time every candidate
+        (:func:`twohr.models.auto_candidates`) on ``rgb`` at ``size`` and keep the fastest. Returns its latency."""
+        candidates = auto_candidates()
+        key = auto_choice_key(self.conf, candidates, size)
+        with auto_choice_lock(self.auto_choices):
+            kept = read_auto_choices(self.auto_choices).get(key)
+            if kept is not None and kept.model in candidates:
+                try:
+                    self._network = self._open(kept.model)
+                except (ModelError, OSError) as exc:
+                    log.warning("detector.model=auto cannot load %s, its choice on this host: %s", kept.model, exc)
+                else:
+                    self.model, self.model_timings_ms, self.model_timed_at = kept.model, kept.timings_ms, kept.timed_at
+                    log.info("detector.model=auto uses %s, chosen on this host at %s (%s)", self.model,
+                             kept.timed_at, self.auto_choices)
+                    return self.model_timings_ms[self.model]
+            self._time_candidates(candidates, rgb, size)
+            if set(self.model_timings_ms) == set(candidates):  # a choice made without some candidate is not kept
+                keep_auto_choice(self.auto_choices, key, AutoChoice(
+                    model=self.model, timings_ms=self.model_timings_ms, timed_at=self.model_timed_at))
+        return self.model_timings_ms[self.model]
+
+    def _time_candidates(self, candidates: list[str], rgb: np.ndarray, size: tuple[int, int]) -> None:
         networks = {}
-        for name in auto_candidates():
+        for name in candidates:
             try:
                 networks[name] = self._open(name)
             except (ModelError, OSError) as exc:  # e.g. a mirror without that file, a read-only cache
                 log.warning("detector.model=auto leaves out %s: %s", name, exc)
         if not networks:
             raise ModelError("detector.model=auto found no network it can load; run `twohr models fetch`")
-        self.model_timings_ms = {name: self._time(net, rgb, size) for name, net in networks.items()}
+        # kept for every later process on this host: worth a few more runs than one process's own scale choice
+        self.model_timings_ms = {name: self._time(net, rgb, size, runs=5) for name, net in networks.items()}
+        self.model_timed_at = datetime.now(timezone.utc).isoformat(timespec="seconds")
         fastest = min(self.model_timings_ms.values())
         # near-ties go to the earlier (better) network, so that timing noise does not flip the choice run to run
         self.model = next(n for n, ms in self.model_timings_ms.items() if ms <= AUTO_TIE * fastest)
         self._network = networks[self.model]
         log.info("detector.model=auto chose %s (%s at %dx%d)", self.model,
                  ", ".join(f"{n} {t:.0f} ms" for n, t in self.model_timings_ms.items()), *size)
-        return self.model_timings_ms[self.model]
 
     def input_scale(self, rgb: np.ndarray) -> float:
         """The network's input scale for images the size of ``rgb``: ``input_scale``, or with a latency budget the

@@ -15,7 +15,7 @@ import numpy as np
 from twohr import keys
 from twohr.config import DetectorConfig
 from twohr.dataset import undistorted
-from twohr.messages import FrameMsg, KeypointsMsg, decode, encode
+from twohr.messages import ControlMsg, FrameMsg, KeypointsMsg, decode, encode
 from twohr.service import MODEL_CACHE_SIZE, Service, reply_to, serve
 
 from .core import build_detector
@@ -39,9 +39,17 @@ class DetectorService(Service):
 
     def on_start(self) -> None:
         self.queryable = self.declare_replica_queryable(keys.DETECT_QUERY)
-        default = DetectorConfig()
-        self.warm_up(f"the {default.model} network", lambda: self.detector_for(default.model_dump_json()).detect(
+        self._warm(DetectorConfig())
+
+    def _warm(self, conf: DetectorConfig) -> None:
+        conf_json = conf.model_dump_json()
+        self.warm_up(f"the {conf.model} network", lambda: self.detector_for(conf_json).detect(
             np.zeros((480, 640, 3), np.uint8)))
+
+    def on_session_start(self, control: ControlMsg) -> None:
+        """A session with a detector config of its own gets its network compiled now, not on its first keyframe:
+        a live camera does not wait, so frames that queue behind a first keyframe are dropped."""
+        self._warm(control.config.detector)
 
     def handle(self, key: str, payload) -> None:
         reply_to(payload, self._keypoints)

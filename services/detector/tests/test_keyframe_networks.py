@@ -24,7 +24,17 @@ from twohr.models import (
     sha256_of,
 )
 from twohr.quantise import head_nodes
-from twohr_services.detector.core import AUTO_TIE, R2D2Detector
+from twohr_services.detector.core import (
+    AUTO_TIE,
+    AutoChoice,
+    R2D2Detector,
+    auto_choice_key,
+    keep_auto_choice,
+    network_size,
+    read_auto_choices,
+)
+
+TIMED_AT = network_size(640, 480, DetectorConfig().min_input_scale)  # where auto times the candidates for VGA
 
 
 @pytest.fixture(scope="module")
@@ -94,8 +104,9 @@ def test_auto_candidates_are_the_networks_within_the_quality_floor():
     assert quality == sorted(quality, reverse=True)
 
 
-def test_auto_keeps_the_fastest_candidate_and_says_what_it_timed(real_frame):
-    detector = R2D2Detector(DetectorConfig(model="auto", precision="f32"))
+def test_auto_keeps_the_fastest_candidate_and_says_what_it_timed(real_frame, tmp_path):
+    choices = tmp_path / "auto-choices.json"
+    detector = R2D2Detector(DetectorConfig(model="auto", precision="f32"), auto_choices=choices)
     assert detector.model is None
     kp = detector.detect(real_frame)
     timings = detector.model_timings_ms
@@ -104,6 +115,45 @@ def test_auto_keeps_the_fastest_candidate_and_says_what_it_timed(real_frame):
     assert len(timings) >= 2 and all(ms > 0 for ms in timings.values())
     assert detector.model == next(n for n, ms in timings.items() if ms <= AUTO_TIE * min(timings.values()))
     assert len(kp) > 150 and detector.input_scales[(640, 480)] >= DetectorConfig().min_input_scale
+    # and keeps the choice for this host, under what it depends on
+    kept = read_auto_choices(choices)
+    assert list(kept) == [auto_choice_key(detector.conf, auto_candidates(), TIMED_AT)]
+    assert kept[next(iter(kept))] == AutoChoice(model=detector.model, timings_ms=timings,
+                                                timed_at=detector.model_timed_at)
+
+
+def test_auto_uses_the_choice_kept_on_this_host_and_times_again_when_it_is_stale(real_frame, tmp_path):
+    """Every process on a host must use one network (replicas, `twohr run` beside the services), whatever load each
+    started under: a kept choice is used as it is, even one that a fresh timing would not make."""
+    choices = tmp_path / "auto-choices.json"
+    conf = DetectorConfig(model="auto", precision="f32")
+    candidates = auto_candidates()
+    slowest = candidates[0]  # faster2d2: about 3x the INT8 network's time in f32 on every CPU we measured
+    kept = AutoChoice(model=slowest, timings_ms={n: 1.0 + i for i, n in enumerate(candidates)}, timed_at="2026-01-01")
+    keep_auto_choice(choices, auto_choice_key(conf, candidates, TIMED_AT), kept)
+
+    detector = R2D2Detector(conf, auto_choices=choices)
+    kp = detector.detect(real_frame)
+    assert (detector.model, detector.model_timings_ms, detector.model_timed_at) == (slowest, kept.timings_ms,
+                                                                                   "2026-01-01")
+    named = R2D2Detector(DetectorConfig(model=slowest, precision="f32", input_scale=detector.input_scales[(640, 480)],
+                                        latency_budget_ms=None)).detect(real_frame)
+    np.testing.assert_array_equal(kp.xy, named.xy)  # the very network it names
+
+    # a choice for other model bytes (a new version) or another precision is not this one: timed again, both kept
+    other = auto_choice_key(DetectorConfig(model="auto", precision="bf16"), candidates, TIMED_AT)
+    choices.write_text(choices.read_text().replace(get_spec(slowest).sha256[:12], "0" * 12))
+    keep_auto_choice(choices, other, kept)
+    detector = R2D2Detector(conf, auto_choices=choices)
+    detector.detect(real_frame)
+    assert detector.model_timed_at != "2026-01-01" and min(detector.model_timings_ms.values()) > 1.0
+    assert len(read_auto_choices(choices)) == 3 and read_auto_choices(choices)[other] == kept
+
+    # a damaged file costs one warning and a timing, never the run
+    choices.write_text("{not json")
+    detector = R2D2Detector(conf, auto_choices=choices)
+    assert len(detector.detect(real_frame)) > 150 and detector.model_timed_at != "2026-01-01"
+    assert list(read_auto_choices(choices)) == [auto_choice_key(conf, candidates, TIMED_AT)]
 
 
 def test_unknown_networks_are_refused_in_one_line():
