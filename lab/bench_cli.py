@@ -158,8 +158,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--runs", type=int, default=3, help="repetitions for throughput (median reported)")
     p.add_argument("--ablations", action="store_true", help="the ablation table instead of throughput")
     p.add_argument("--networks", action="store_true", help="each keyframe network's latency (r2d2, faster2d2, "
-                   "faster2d2-int8, student) at input scales 0.75 and 0.5, f32 and, where native, bf16, 1 thread, "
-                   "interleaved runs, with the ratio to faster2d2 f32")
+                   "faster2d2-int8, faster2d2-int8-coarse, student) at input scales 0.75 and 0.5, f32 and, where "
+                   "native, bf16, 1 thread, interleaved runs, with the ratio to faster2d2 f32")
     p.add_argument("--view", action="store_true", help="CPU time per frame with the Foxglove live view (twohr run "
                    "--view, one viewer subscribed to every channel) against the same run without it")
     p.add_argument("--bus", action="store_true", help="frame->pose latency and FPS over Zenoh (twohr up as local "

@@ -29,7 +29,8 @@ class DetectorConfig(Section):
     )
     model: str = Field(
         "auto", description="the keyframe network: r2d2, faster2d2, faster2d2-int8 (INT8, heads in "
-        "float), student (distilled by us, 3x cheaper), a registered r2d2-kind model, or auto = the fastest on this "
+        "float), faster2d2-int8-coarse (its heads before the upsample: 2x faster in f32, 4 points below R2D2), "
+        "student (distilled by us, 3x cheaper), a registered r2d2-kind model, or auto = the fastest on this "
         "machine of those whose measured feature quality is within 2 points of R2D2's (twohr.models.auto_candidates), "
         "timed once per host and kept in $TWOHR_CACHE/models/auto-choices.json (`twohr models auto`); the choice goes "
         "into the run's provenance")

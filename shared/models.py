@@ -17,6 +17,7 @@ import urllib.request
 from functools import cache
 from importlib import resources
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import yaml
@@ -43,6 +44,9 @@ class ModelSpec(BaseModel):
     built_from: str | None = Field(None, description="registered model this file is built from on first use (INT8 "
                                    "quantisation with the heads in float, twohr.quantise)")
     calibration: str | None = Field(None, description="package path of the activation ranges a built model uses")
+    recipe: Literal["int8", "coarse_heads"] = Field("int8", description="how a built model is built: int8 "
+                                                     "(twohr.quantise.quantise_heads_float over ``calibration``) or "
+                                                     "coarse_heads (twohr.quantise.heads_before_upsample)")
     quality: dict[str, float] = Field(default_factory=dict, description="measured feature quality on the dev frames "
                                       "(`twohr features eval`, 2HR rows at input scale 0.75): rep, prec (%, mean of "
                                       "frame distances 1, 5, 10); detector.model=auto reads it")
@@ -71,7 +75,8 @@ def get_spec(name: str, kind: str | None = None) -> ModelSpec:
 
 #: detector.model's short names for the registered keyframe networks
 KEYFRAME_NETWORKS = {"r2d2": "r2d2_WASF_N16", "faster2d2": "faster2d2_WASF_N16",
-                     "faster2d2-int8": "faster2d2_WASF_N16_int8", "student": "twohr_student"}
+                     "faster2d2-int8": "faster2d2_WASF_N16_int8",
+                     "faster2d2-int8-coarse": "faster2d2_WASF_N16_int8_coarse", "student": "twohr_student"}
 #: detector.model=auto takes a network only if its %Rep and %Prec are at most this many points below R2D2's
 QUALITY_FLOOR_POINTS = 2.0
 QUALITY_REFERENCE = "r2d2_WASF_N16"
@@ -150,18 +155,22 @@ def _bundled_path(spec: ModelSpec) -> Path | None:
 
 
 def _build(spec: ModelSpec, target: Path) -> Path:
-    """Build ``spec`` from the model it is ``built_from`` (INT8 with float heads over the shipped activation
-    ranges: the same bytes on every machine), verify it and move it into place."""
-    from .quantise import quantise_heads_float
+    """Build ``spec`` from the model it is ``built_from`` by its ``recipe`` (INT8 with float heads over the shipped
+    activation ranges, or heads before the upsample: the same bytes on every machine), verify it and move it into
+    place."""
+    from .quantise import heads_before_upsample, quantise_heads_float
 
-    if spec.calibration is None:
+    if spec.recipe == "int8" and spec.calibration is None:
         raise ModelError(f"model {spec.name} is built from {spec.built_from} but names no calibration ranges")
     source = fetch(spec.built_from)
     # a name of its own: replicas that start together on one cache each build their own copy
     tmp = Path(tempfile.mkstemp(dir=target.parent, prefix=f"{spec.name}.", suffix=".part.onnx")[1])
-    log.info("building %s from %s (INT8, heads in float)", spec.name, spec.built_from)
+    log.info("building %s from %s (%s)", spec.name, spec.built_from, spec.recipe)
     try:
-        quantise_heads_float(source, tmp, package_file(spec.calibration))
+        if spec.recipe == "coarse_heads":
+            heads_before_upsample(source, tmp)
+        else:
+            quantise_heads_float(source, tmp, package_file(spec.calibration))
         verify_file(spec, tmp)
     except ImportError as exc:
         tmp.unlink(missing_ok=True)

@@ -156,7 +156,7 @@ def _common(p: argparse.ArgumentParser, out_default: str = DEFAULT_OUT) -> None:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="config override, e.g. --set detector.score_threshold=0.5 (repeatable)")
     p.add_argument("--model", help="keyframe network: auto (default: the fastest that meets the quality floor), "
-                   "r2d2, faster2d2, faster2d2-int8, student or a registered r2d2-kind model")
+                   "r2d2, faster2d2, faster2d2-int8, faster2d2-int8-coarse, student or a registered r2d2-kind model")
     p.add_argument("--input-scale", type=float, help="network input size relative to the image, e.g. 0.5")
     p.add_argument("--threads", type=_positive_int, help="onnxruntime threads (default 2)")
 

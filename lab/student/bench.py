@@ -1,10 +1,11 @@
 """The keyframe networks' latency as the detector runs them (``twohr bench --networks``).
 
-Each registered keyframe network (``detector.model``: r2d2, faster2d2, faster2d2-int8, student) runs through the
-detector's own :class:`R2D2Network` (the sparse-descriptor graph, the configured backend, 1 thread) on a VGA-sized
-input at each input scale and precision. Runs are interleaved (run i of every network, then run i + 1 ...) so that
-load from other processes on a shared machine hits all of them alike; each run is the mean of ``per_run``
-inferences and the table reports the median run, and the ratio to faster2d2 f32 at the same scale.
+Each registered keyframe network (``detector.model``: r2d2, faster2d2, faster2d2-int8, faster2d2-int8-coarse,
+student) runs through the detector's own :class:`R2D2Network` (the sparse-descriptor graph, the configured backend,
+1 thread) on a VGA-sized input at each input scale and precision. Runs are interleaved (run i of every network,
+then run i + 1 ...) so that load from other processes on a shared machine hits all of them alike; each run is the
+mean of ``per_run`` inferences and the table reports the median run, and the ratio to faster2d2 f32 at the same
+scale.
 
 ``twohr bench --networks [--runs 3] [--out runs/bench/networks]``
 """

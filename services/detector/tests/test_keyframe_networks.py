@@ -28,6 +28,7 @@ from twohr_services.detector.core import (
     AUTO_TIE,
     AutoChoice,
     R2D2Detector,
+    _prepare_model,
     auto_choice_key,
     keep_auto_choice,
     network_size,
@@ -63,7 +64,7 @@ def test_every_keyframe_network_loads_and_finds_keypoints_on_a_real_frame(name, 
     assert 150 <= len(kp) <= 1500
     assert np.all(np.isfinite(kp.scores)) and np.allclose(np.linalg.norm(kp.descriptors, axis=1), 1, atol=1e-4)
     near, cosine = agreement(kp, faster2d2_keypoints)
-    if name == "faster2d2-int8":  # the same network, quantised: the same keypoints and descriptors
+    if name in ("faster2d2-int8", "faster2d2-int8-coarse"):  # faster2d2 quantised (heads moved): near-identical
         assert near > 0.85 and cosine > 0.98
     elif name == "student":  # distilled from faster2d2: most keypoints and descriptors follow it
         assert near > 0.4 and cosine > 0.8
@@ -86,6 +87,24 @@ def test_the_int8_network_is_rebuilt_from_the_shipped_ranges_byte_for_byte(tmp_p
     assert heads and len(trunk_convs) >= 7 and all(reads_int8(conv) for conv in trunk_convs)
     float_heads = [n for n in model.graph.node if n.name in heads and n.op_type in ("Softplus", "Div", "ReduceL2")]
     assert len(float_heads) >= 3 and not any(reads_int8(node) for node in float_heads)
+
+
+def test_the_coarse_heads_network_is_built_byte_for_byte_with_its_heads_before_the_upsample(tmp_path, monkeypatch):
+    monkeypatch.setenv("TWOHR_CACHE", str(tmp_path))
+    spec = get_spec(keyframe_network("faster2d2-int8-coarse"))
+    path = fetch(spec.name)  # builds INT8 from faster2d2, then moves its heads
+    assert sha256_of(path) == spec.sha256
+    # the graph the detector runs (descriptors read before the upsample, see _prepare_model)
+    graph = onnx.load_from_string(_prepare_model(str(path), True).model).graph
+    producers = {out: node for node in graph.node for out in node.output}
+    upsamples = [n for n in graph.node if n.op_type == "Resize"]
+    # only the heads' logits are upsampled (reliability 2 channels, repeatability 1), never the 128 features
+    heads = [producers[n.input[0]] for n in upsamples]
+    assert len(upsamples) == 2 and all(h.op_type == "Conv" for h in heads)
+    weights = {init.name: init.dims for init in graph.initializer}
+    assert sorted(weights[h.input[1]][0] for h in heads) == [1, 2]
+    square = {producers[h.input[0]].name for h in heads}
+    assert len(square) == 1 and producers[heads[0].input[0]].op_type == "Mul"
 
 
 def test_auto_candidates_are_the_networks_within_the_quality_floor():
