@@ -530,7 +530,7 @@ class R2D2Detector:
         key = auto_choice_key(self.conf, candidates, size)
         with auto_choice_lock(self.auto_choices):
             kept = read_auto_choices(self.auto_choices).get(key)
-            if kept is not None and kept.model in candidates:
+            if kept is not None and kept.model in candidates and kept.model in kept.timings_ms:
                 try:
                     self._network = self._open(kept.model)
                 except (ModelError, OSError) as exc:
