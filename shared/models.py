@@ -41,8 +41,8 @@ class ModelSpec(BaseModel):
     url: str | None = None
     derived_from: str | None = None
     bundled: str | None = Field(None, description="path inside the installed package, for models we ship")
-    built_from: str | None = Field(None, description="registered model this file is built from on first use (INT8 "
-                                   "quantisation with the heads in float, twohr.quantise)")
+    built_from: str | None = Field(None, description="registered model this file is built from on first use, by "
+                                   "its ``recipe`` (twohr.quantise)")
     calibration: str | None = Field(None, description="package path of the activation ranges a built model uses")
     recipe: Literal["int8", "coarse_heads"] = Field("int8", description="how a built model is built: int8 "
                                                      "(twohr.quantise.quantise_heads_float over ``calibration``) or "

@@ -43,8 +43,13 @@ class DetectorService(Service):
 
     def _warm(self, conf: DetectorConfig) -> None:
         conf_json = conf.model_dump_json()
-        self.warm_up(f"the {conf.model} network", lambda: self.detector_for(conf_json).detect(
-            np.zeros((480, 640, 3), np.uint8)))
+
+        def compile_for_vga() -> None:
+            detector = self.detector_for(conf_json)
+            if (640, 480) not in getattr(detector, "input_scales", {}):  # not yet run at this size (OpenCV: none)
+                detector.detect(np.zeros((480, 640, 3), np.uint8))
+
+        self.warm_up(f"the {conf.model} network", compile_for_vga)
 
     def on_session_start(self, control: ControlMsg) -> None:
         """A session with a detector config of its own gets its network compiled now, not on its first keyframe:
