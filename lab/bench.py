@@ -100,7 +100,8 @@ def orbslam3_run(sequence, start: int, stop: int, files: tuple[Path, Path]) -> d
                 poses.append(np.asarray(result.pose_wc, np.float64))
     finally:
         slam.shutdown()
-    out = {"ms_per_frame": {**_percentiles(ms), "mean": round(float(np.mean(ms)), 2)}, "tracked_percent": round(100 * len(poses) / max(1, len(ms)), 1)}
+    out = {"ms_per_frame": {**_percentiles(ms), "mean": round(float(np.mean(ms)), 2)},
+           "tracked_percent": round(100 * len(poses) / max(1, len(ms)), 1)}
     if sequence.has_ground_truth() and len(poses) >= 3:
         extrinsic = sequence.default_gt_extrinsic()
         report, _ = evaluate(sequence.ground_truth(extrinsic), Trajectory(np.array(stamps), np.array(poses)),
