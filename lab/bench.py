@@ -122,21 +122,25 @@ def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 
     in_memory: FramesInMemory | None = None
     in_memory_ms: list[float] = []  # ours, wall ms per frame with the frames decoded before the clock
     ate_runs: list[float] = []
+    in_memory_ate: list[float] = []
     stage_ms: dict[str, list[float]] = {"ms_detector": [], "ms_yolo": [], "ms_tracker": [], "ms_total": []}
     latency: dict[str, list[float]] = {"keyframe_frames": [], "other_frames": []}
     keyframe_ms: dict[str, list[float]] = {"ms_detector": [], "ms_yolo": [], "ms_mapping": [], "lag_frames": []}
     pipeline_rss = None
     chosen: dict = {}  # what the first run chose at warm-up (detector.model=auto: the network and its timings)
+
+    def score(run, into: list[float]) -> None:
+        if sequence.has_ground_truth() and len(run.trajectory) >= 3:
+            extrinsic = sequence.default_gt_extrinsic()
+            into.append(evaluate(sequence.ground_truth(extrinsic), run.trajectory, gt_extrinsic=extrinsic)[0].ate.rmse)
+
     for _ in range(runs):
         for label, conf in (("pipeline", config), ("baseline", baseline)):
             run = run_sequence(sequence, conf, start=start, stop=stop, progress=progress)
             results[label].append(len(run.stats) / run.wall_s)
             if label == "pipeline":
                 chosen = chosen or run.chosen
-                if sequence.has_ground_truth() and len(run.trajectory) >= 3:
-                    extrinsic = sequence.default_gt_extrinsic()
-                    ate_runs.append(evaluate(sequence.ground_truth(extrinsic), run.trajectory,
-                                             gt_extrinsic=extrinsic)[0].ate.rmse)
+                score(run, ate_runs)
                 for key in stage_ms:
                     stage_ms[key] += [getattr(s, key) for s in run.stats]
                 for s in run.stats:
@@ -150,6 +154,7 @@ def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 
                 in_memory = FramesInMemory(sequence, start, stop)
             run = run_sequence(in_memory, config, start=start, stop=stop, progress=progress)
             in_memory_ms.append(1000 * run.wall_s / max(1, len(run.stats)))
+            score(run, in_memory_ate)
             orbslam3_runs.append(orbslam3_run(in_memory, start, stop, orbslam3))
     fps = float(np.median(results["pipeline"]))
     base = float(np.median(results["baseline"]))
@@ -166,6 +171,8 @@ def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 
                     "ORB-SLAM3: the median of its track_rgbd calls on frames read before",
             "like_for_like": {
                 "ours_ms_per_frame": round(ours_ms, 2), "ours_runs": [round(m, 2) for m in in_memory_ms],
+                "ours_ate_rmse_runs": [round(a, 4) for a in in_memory_ate],
+                "ours_ate_rmse_median": round(float(np.median(in_memory_ate)), 4) if in_memory_ate else None,
                 "orbslam3_ms_per_frame": round(orb_mean_ms, 2),
                 "ratio_ms_per_frame": round(ours_ms / orb_mean_ms, 3),
                 "note": "both on the same frames decoded before the clock, both a mean over every frame: ours the "
