@@ -7,7 +7,7 @@ import numpy as np
 from twohr.config import load_config
 from twohr.dataset import RGBDSequence
 from twohr_app.pipeline import run_sequence
-from twohr_lab.bench import FramesInMemory
+from twohr_lab.bench import FramesInMemory, frames_fit_in_memory, memory_available_mib
 
 
 def test_frames_held_in_memory_are_the_sequences_own_handed_out_afresh(synthetic_sequence):
@@ -28,3 +28,14 @@ def test_frames_held_in_memory_are_the_sequences_own_handed_out_afresh(synthetic
     run = run_sequence(held, load_config(preset="orb"), start=3, stop=12, progress=False)
     assert [s.index for s in run.stats] == list(range(3, 12))
     assert run.tracked_percent > 80
+
+
+def test_frames_are_held_only_where_they_fit_in_the_memory_available(synthetic_sequence):
+    sequence = RGBDSequence(synthetic_sequence)
+    frame = sequence.read(0)
+    need_mib = (frame.rgb.nbytes + frame.depth.nbytes) * 10 / 2**20
+    available = memory_available_mib()
+    assert available is not None and available > need_mib  # Linux, and ten small frames fit
+    assert frames_fit_in_memory(sequence, 0, 10) == (True, "")
+    fits, why = frames_fit_in_memory(sequence, 0, 10, share=need_mib / available / 2)
+    assert not fits and "bench fewer --frames" in why and f"{need_mib:.0f} MiB" in why
