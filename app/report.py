@@ -12,10 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
-from twohr.plots import plot_timeline, plot_trajectories, plot_trajectory
 from twohr.trajectory import Trajectory
 from twohr_services.tracker.stages import FrameStats
 from twohr_services.tracker.trajectory import TRACKED_STATUSES
+
+from .plots import plot_timeline, plot_trajectories, plot_trajectory
 
 
 def keyframe_indices(result) -> set[int] | None:

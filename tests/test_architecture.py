@@ -183,3 +183,69 @@ def test_every_package_folder_is_in_the_installed_wheel():
             if "tests" not in parts and not any(p.startswith((".", "_")) for p in parts):
                 folders.add(".".join([package, *parts]))
     assert folders - listed == set(), f"add to [tool.setuptools] packages: {sorted(folders - listed)}"
+
+
+def import_cycles(graph, package: str) -> list[tuple[str, str]]:
+    """(a, b) for every direct import a -> b inside ``package`` (its tests aside) where b also reaches a: the
+    edges of import cycles, ``if TYPE_CHECKING:`` imports included (grimp counts them unless told not to)."""
+    modules = {m for m in graph.find_descendants(package) if ".tests" not in m} | {package}
+    return [(a, b) for a in sorted(modules) for b in sorted(graph.find_modules_directly_imported_by(a) & modules)
+            if graph.chain_exists(importer=b, imported=a)]
+
+
+def test_the_cycle_check_sees_a_type_checking_cycle(tmp_path, monkeypatch):
+    """Today's circle was made of ``if TYPE_CHECKING:`` imports; the check below must see one."""
+    import grimp
+    room = tmp_path / "cyclic_room"
+    room.mkdir()
+    (room / "__init__.py").write_text("")
+    (room / "tracking.py").write_text("from .mapping import LocalMapping\n")
+    (room / "mapping.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                                     "    from .tracking import Tracker\n")
+    (room / "pose.py").write_text("import numpy\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    graph = grimp.build_graph("cyclic_room", cache_dir=None)
+    assert import_cycles(graph, "cyclic_room") == [("cyclic_room.mapping", "cyclic_room.tracking"),
+                                                   ("cyclic_room.tracking", "cyclic_room.mapping")]
+
+
+def test_no_service_room_has_an_import_cycle():
+    """Each room's files can be read, tested and replaced apart (the tracker's search lives in ``local_map``, its
+    mapping worker above the tracker in ``mapper``)."""
+    import grimp
+    graph = grimp.build_graph("twohr_services", cache_dir=None)
+    rooms = [f"twohr_services.{room}" for room in service_rooms()]
+    assert {"twohr_services.tracker.local_map", "twohr_services.tracker.mapper"} <= graph.modules
+    assert {room: cycles for room in rooms if (cycles := import_cycles(graph, room))} == {}
+
+
+#: ``shared/`` modules with a single user for now, and why they stay there.
+SHARED_WITH_ONE_USER = {
+    "replicas": "the tracker places detector jobs on replicas; the gateway placing sessions on trackers (the "
+                "fleet-capacity issue) is its second user",
+}
+
+
+def shared_module_users() -> dict[str, set[str]]:
+    """For each ``shared/`` module, the users that import it: a service room (``services/<room>``), ``app``,
+    ``lab`` or another shared module (``shared/<name>``); tests aside."""
+    shared = {p.stem for p in (REPO / "shared").glob("*.py") if p.stem != "__init__"}
+    users: dict[str, set[str]] = {name: set() for name in shared}
+    for package, module, path in product_modules():
+        relative = path.relative_to(REPO)
+        user = {"twohr": f"shared/{path.stem}", "twohr_services": f"services/{relative.parts[1]}"}.get(
+            package, relative.parts[0])
+        for name in imported_modules(path.read_text(), module):
+            parts = name.split(".")
+            if parts[0] == "twohr" and len(parts) > 1 and parts[1] in shared and user != f"shared/{parts[1]}":
+                users[parts[1]].add(user)
+    return users
+
+
+def test_shared_keeps_only_what_two_users_need():
+    """``shared/`` is the common library: a module only one room uses lives in that room."""
+    users = shared_module_users()
+    assert users["replicas"] == {"services/tracker"}  # the check counts rooms, not files
+    assert {"services/tracker", "app", "lab", "shared/dataset"} <= users["geometry"]
+    lonely = {name: sorted(found) for name, found in users.items() if len(found) < 2}
+    assert lonely.keys() == SHARED_WITH_ONE_USER.keys(), lonely

@@ -12,8 +12,9 @@ from twohr.errors import TwohrError
 def _eval(args: argparse.Namespace) -> int:
     from twohr.dataset import load_gt_extrinsic
     from twohr.evaluation import evaluate
-    from twohr.plots import plot_trajectories
     from twohr.trajectory import read_tum
+
+    from ..plots import plot_trajectories
 
     name, left, right = load_gt_extrinsic(args.gt_extrinsic)
     gt = read_tum(args.gt).transformed(left, right)

@@ -32,7 +32,7 @@ from twohr.workers import Worker
 from .flow import FrameTracker, MapUpdate
 from .loops import Loop, LoopLog, LoopQuery, LoopVerdict, verify
 from .map import Map, MapSnapshot
-from .mapping import Detected, KeyframeJob, Mapper
+from .mapper import Detected, KeyframeJob, Mapper
 from .stages import FrameStats, KeyframeLog, Stages
 from .tracking import Tracker
 from .trajectory import AnchoredTrajectory, FrameObservations, TrackResult
@@ -217,7 +217,7 @@ class KeyframePipeline:
         self.mask = mask
         ms_yolo = (time.perf_counter() - t_mask) * 1000
         result = self.frames.track(frame.stamp, frame.gray, frame.depth, mask)
-        in_given_map = not self.frames.initialised and self.mapper.tracker.given_map
+        in_given_map = not self.frames.initialised and self.mapper.given_map
         if in_given_map:  # no pose before the camera is found in a given map
             result = TrackResult(frame.stamp, np.eye(4), "relocalising", reason="looking for the camera in the map")
         else:

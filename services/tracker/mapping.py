@@ -1,49 +1,40 @@
-"""Mapping: the keyframe work over the one :class:`~.map.Map`, as ORB-SLAM3's LocalMapping, and the worker that
-runs it off the per-frame path.
+"""Local mapping: the keyframe work over the one :class:`~.map.Map`, as ORB-SLAM3's LocalMapping.
 
-* :class:`LocalMapping`: keyframe insertion (a tracked frame's keypoints, or a tracked keyframe's tracks and new
-  corners, become a keyframe and new landmarks; local bundle adjustment and culling follow) and description (2HR
-  keypoints detected later are joined to a tracked keyframe). The :class:`~.tracking.Tracker` hands it the
-  keyframes it decides on.
-* :class:`Mapper`: the mapping worker's jobs (:class:`KeyframeJob`, :class:`Detected`, a verified
-  :class:`~.loops.Loop`), each coming back to the schedule as a :class:`~.flow.MapUpdate`.
+:class:`LocalMapping` does keyframe insertion (a tracked frame's keypoints, or a tracked keyframe's tracks and new
+corners, become a keyframe and new landmarks; local bundle adjustment and culling follow) and description (2HR
+keypoints detected later are joined to a tracked keyframe). The :class:`~.tracking.Tracker` hands it the keyframes
+it decides on; the worker that runs it off the per-frame path is :class:`~.mapper.Mapper`.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from twohr.config import PipelineConfig
-from twohr.dataset import Frame
-from twohr.features import Keypoints, drop_masked
-from twohr.geometry import backproject, invert_pose, transform_points
+from twohr.features import Keypoints
+from twohr.geometry import backproject, transform_points
 
-from .flow import MapUpdate, new_corners, on_flat_depth, static_in_reference
-from .loops import Loop, LoopClosing, LoopLog, LoopQuery
-from .map import Keyframe, MapSnapshot
-from .places import Vocabulary, vocabulary_path
+from .local_map import LocalMapSearch
+from .map import Keyframe
+from .motion import MotionModel
 from .pose import MatchFn, PoseEstimate, sample_depth
-from .stages import Stages
 from .trajectory import TrackResult, near_any_keyframe
-
-if TYPE_CHECKING:
-    from .tracking import Tracker
 
 
 class LocalMapping:
-    """Keyframe insertion and description over the map of one :class:`~.tracking.Tracker` (whose motion model,
-    input checks and local-map matching it shares)."""
+    """Keyframe insertion and description over the map that ``search`` reads, sharing its input checks and
+    local-map matching with tracking; a new keyframe's pose updates ``motion``. ``match`` is the default match
+    function of :meth:`describe_keyframe`."""
 
-    def __init__(self, tracker: Tracker) -> None:
-        self.tracker = tracker
-        self.map = tracker.map
-        self.conf = tracker.conf
-        self.K = tracker.K
+    def __init__(self, search: LocalMapSearch, motion: MotionModel, match: MatchFn | None = None) -> None:
+        self.search = search
+        self.motion = motion
+        self.match = match
+        self.map = search.map
+        self.conf = search.conf
+        self.K = search.K
         self.inliers_at_keyframe = 0
         """inliers of the frame at the latest keyframe: tracking asks for a keyframe when they fall well below"""
 
@@ -80,8 +71,8 @@ class LocalMapping:
         num_tracked = len(tracked_landmarks)
         counts = dict(num_keypoints=len(xy), num_with_depth=int((z > 0).sum()), num_matches=num_tracked,
                       num_inliers=num_tracked)
-        self.tracker.motion.tracked(stamp, pose)
-        self.tracker.motion.advance(stamp, pose)
+        self.motion.tracked(stamp, pose)
+        self.motion.advance(stamp, pose)
         if self.covered(pose, num_tracked):
             return TrackResult(stamp, pose, "tracking", reason=f"{num_tracked} tracks in a place older keyframes "
                                "cover: no keyframe", observed_xy=tracked_xy, observed_landmarks=tracked_landmarks,
@@ -109,12 +100,12 @@ class LocalMapping:
         other keypoints are matched to the local map at the keyframe's pose (the same gates as tracking) and
         become observations; the rest with depth become new landmarks. Returns the keypoints that now observe a
         landmark: (xy (M, 2), landmark ids (M,))."""
-        match = match or self.tracker.match
+        match = match or self.match
         conf, landmarks = self.conf, self.map.landmarks
         keyframe = self.map.keyframes[keyframe_id]
         if keyframe.culled or len(keypoints) == 0:
             return np.zeros((0, 2)), np.zeros(0, np.int64)
-        self.tracker.check_inputs(keypoints, depth)
+        self.search.check_inputs(keypoints, depth)
         pose = self.map.keyframe_poses[keyframe_id]
         xy = np.asarray(keypoints.xy, np.float64)
         z = sample_depth(depth, xy, conf.min_depth, conf.max_depth, conf.depth_edge_ratio)
@@ -134,7 +125,7 @@ class LocalMapping:
         new_xy, new_z, new_ids = [], [], []
         if match is not None:
             # matched to the local map as a keyframe job would, the keyframe's pose as the prediction
-            estimate = self.tracker.match_local_map(pose, keypoints, xy, z, conf.match_radius_px, False, match)
+            estimate = self.search.match_local_map(pose, keypoints, xy, z, conf.match_radius_px, False, match)
             if estimate.ok:
                 kp = np.flatnonzero((estimate.keypoint_landmarks >= 0) & free)
                 lm = estimate.keypoint_landmarks[kp]
@@ -197,163 +188,6 @@ class LocalMapping:
             self.map.local_bundle_adjustment()
             timings["bundle_adjustment"] = (time.perf_counter() - t0) * 1000.0
             pose = self.map.keyframe_poses[keyframe_id].copy()
-            self.tracker.motion.good_pose = pose
+            self.motion.good_pose = pose
         self.map.cull_redundant(self.map.local_keyframes(pose, conf.local_map_keyframes))
         return pose
-
-
-@dataclass
-class KeyframeJob:
-    """A frame handed to the mapping worker, with the pose optical flow gave it. With ``tracks`` (the frame's
-    inlier tracks: image positions and landmark ids) it becomes a tracked keyframe, without a network; without,
-    the 2HR detector runs on it first (the first map, a lost camera, relocalisation)."""
-
-    frame: Frame
-    pose: np.ndarray
-    tracks: tuple[np.ndarray, np.ndarray] | None = None
-    mask: np.ndarray | None = None
-    """the dynamic mask the per-frame path used for this frame (None: none fresh enough)"""
-    reference: tuple[np.ndarray, int] | None = None
-    """(grayscale image, keyframe id) of the latest keyframe: new corners must be static against it"""
-
-
-@dataclass
-class Detected:
-    """2HR keypoints of an earlier tracked keyframe, detected off the mapping path, for the map to join."""
-
-    keyframe_id: int
-    frame: Frame
-    keypoints: Keypoints
-    ms_detector: float
-    kept: int
-
-
-class Mapper:
-    """The mapping worker: keyframe work, off the per-frame path, over the :class:`~.map.Map` of ``tracker`` (a
-    :class:`~.tracking.Tracker` and its :class:`LocalMapping`): tracked keyframes (tracks and new corners, local
-    bundle adjustment), 2HR keyframe jobs (YOLO and 2HR detection, then tracking against the local map, keyframe
-    insertion, local bundle adjustment and relocalisation), the 2HR keypoints of earlier tracked keyframes joined to
-    the map (:meth:`describe`), and verified loops closed (:meth:`close_loop`)."""
-
-    def __init__(self, config: PipelineConfig, tracker: Tracker, stages: Stages) -> None:
-        world = tracker.map
-        self.stages = stages
-        self.map = world
-        self.conf = config.tracker
-        self.tracker = tracker
-        self.local_mapping = tracker.local_mapping
-        self.loops = None
-        self.loop_log = LoopLog()
-        if config.loop_closing.vocabulary is not None:
-            vocabulary = Vocabulary.load(vocabulary_path(config.loop_closing.vocabulary))
-            self.loops = LoopClosing(world, vocabulary, config.loop_closing)
-
-    def __call__(self, job: KeyframeJob | Detected | Loop) -> MapUpdate:
-        if isinstance(job, Detected):
-            return self.describe(job)
-        if isinstance(job, Loop):
-            return self.close_loop(job)
-        if job.tracks is not None and self.tracker.localised:
-            return self._tracked_keyframe(job)
-        return self._detected_keyframe(job)
-
-    def _tracked_keyframe(self, job: KeyframeJob) -> MapUpdate:
-        frame = job.frame
-        t0 = time.perf_counter()
-        mask = job.mask
-        if mask is None and self.stages.dynamic_mask is not None:
-            mask, _ = self.stages.dynamic_mask(frame)
-        t1 = time.perf_counter()
-        tracks_xy, tracks_landmark = job.tracks
-        corners = new_corners(frame.gray, self.conf.keyframe_corners, self.conf.corner_min_distance_px, mask,
-                              tracks_xy)
-        corners = corners[on_flat_depth(frame.depth, corners, self.conf.corner_depth_radius_px,
-                                        self.conf.depth_edge_ratio)]
-        if job.reference is not None and len(corners):
-            reference, keyframe_id = job.reference
-            z = sample_depth(frame.depth, corners, self.conf.min_depth, self.conf.max_depth,
-                             self.conf.depth_edge_ratio)
-            corners, z = corners[z > 0], z[z > 0]
-            corners = corners[static_in_reference(frame.gray, job.pose, corners, z, reference,
-                                                  self.map.keyframe_poses[keyframe_id], self.map.K, self.conf)]
-        result = self.local_mapping.add_tracked_keyframe(frame.stamp, job.pose, tracks_xy, tracks_landmark, corners,
-                                                   frame.depth)
-        keyframe_id = self.map.keyframes[-1].id if result.is_keyframe else -1
-        timings = {"detector": 0.0, "yolo": (t1 - t0) * 1000, "mapping": (time.perf_counter() - t1) * 1000,
-                   "keypoints": len(corners), "kept": len(corners)}
-        return MapUpdate(frame.index, frame.stamp, result, keyframe_id, result.observed_xy, result.observed_landmarks,
-                         self.map.snapshot(), frame.gray, timings, kind="tracked", mask=mask)
-
-    def _detected_keyframe(self, job: KeyframeJob) -> MapUpdate:
-        frame = job.frame
-        t0 = time.perf_counter()
-        keypoints = self.stages.detect(frame)
-        t1 = time.perf_counter()
-        kept = keypoints
-        if self.stages.dynamic_mask is not None:
-            mask, _ = self.stages.dynamic_mask(frame)
-            kept = drop_masked(keypoints, mask)
-        t2 = time.perf_counter()
-        tracker = self.tracker
-        prediction = job.pose if tracker.initialised else None
-        result = tracker.track(frame.stamp, kept, frame.depth, prediction=prediction, force_keyframe=True,
-                               match=lambda a, b: self.stages.match(frame, a, b))
-        seeds_xy, seeds_landmark = np.zeros((0, 2)), np.zeros(0, np.int64)
-        if result.observed_landmarks is not None:
-            # best observed first
-            order = np.argsort(-self.map.landmarks.accepted[result.observed_landmarks], kind="stable")
-            seeds_xy, seeds_landmark = result.observed_xy[order], result.observed_landmarks[order]
-        keyframe_id = self.map.keyframes[-1].id if result.is_keyframe else -1
-        t3 = time.perf_counter()
-        timings = {"detector": (t1 - t0) * 1000, "yolo": (t2 - t1) * 1000, "mapping": (t3 - t2) * 1000,
-                   "keypoints": len(keypoints), "kept": len(kept)}
-        # until the camera is found in a given map, the per-frame path gets none of it
-        snapshot = self.map.snapshot() if tracker.localised else MapSnapshot.empty()
-        return MapUpdate(frame.index, frame.stamp, result, keyframe_id, seeds_xy, seeds_landmark, snapshot,
-                         frame.gray, timings, loop_query=self._loop_query(keyframe_id))
-
-    def _loop_query(self, keyframe_id: int) -> LoopQuery | None:
-        """Place recognition for a keyframe whose landmarks have descriptors (off without a vocabulary)."""
-        if self.loops is None or keyframe_id < 0 or not self.tracker.localised:
-            return None
-        return self.loops.query(keyframe_id)
-
-    def close_loop(self, loop: Loop) -> MapUpdate:
-        """Correct the map for a verified loop (:meth:`~.loops.LoopClosing.close`); the per-frame path gets the
-        corrected map, and its tracks follow the fused landmarks."""
-        t0 = time.perf_counter()
-        latest = self.map.keyframe_poses[-1].copy()
-        closed = self.loops.close(loop, self.loops.conf.ba_iterations)
-        self.tracker.motion.move_world(self.map.keyframe_poses[-1] @ invert_pose(latest))  # where the camera is
-        self.loop_log.closed += 1
-        self.loop_log.loops.append({**closed, "ms": round((time.perf_counter() - t0) * 1000, 1)})
-        pose = self.map.keyframe_poses[loop.keyframe_id].copy()
-        result = TrackResult(loop.stamp, pose, "loop", reason=f"loop closed at keyframe {loop.keyframe_id} against "
-                             f"keyframe {loop.candidate_id}: {closed['correction_m']} m corrected")
-        timings = {"detector": 0.0, "yolo": 0.0, "mapping": (time.perf_counter() - t0) * 1000, "keypoints": 0,
-                   "kept": 0}
-        return MapUpdate(-1, loop.stamp, result, -1, np.zeros((0, 2)), np.zeros(0, np.int64), self.map.snapshot(),
-                         None, timings, kind="loop", fused=loop.pairs)
-
-    def detect(self, keyframe_id: int, frame: Frame, mask: np.ndarray | None) -> Detected:
-        """The 2HR keypoints of tracked keyframe ``keyframe_id`` (outside its dynamic mask); reads no map, so it
-        runs on its own worker while the mapping worker goes on."""
-        t0 = time.perf_counter()
-        keypoints = self.stages.detect(frame)
-        kept = keypoints if mask is None else drop_masked(keypoints, mask)
-        return Detected(keyframe_id, frame, kept, (time.perf_counter() - t0) * 1000, len(keypoints))
-
-    def describe(self, detected: Detected) -> MapUpdate:
-        """Join a tracked keyframe's 2HR keypoints to the map (:meth:`LocalMapping.describe_keyframe`); the
-        landmarks they add come back as seeds for the per-frame path."""
-        frame = detected.frame
-        t0 = time.perf_counter()
-        xy, landmark = self.local_mapping.describe_keyframe(detected.keyframe_id, detected.keypoints, frame.depth,
-                                                      match=lambda a, b: self.stages.match(frame, a, b))
-        result = TrackResult(frame.stamp, self.map.keyframe_poses[detected.keyframe_id], "described",
-                             num_keypoints=detected.kept, num_matches=len(detected.keypoints),
-                             reason=f"2HR keypoints of keyframe {detected.keyframe_id} joined to the map")
-        timings = {"detector": detected.ms_detector, "yolo": 0.0, "mapping": (time.perf_counter() - t0) * 1000,
-                   "keypoints": detected.kept, "kept": len(detected.keypoints)}
-        return MapUpdate(frame.index, frame.stamp, result, -1, xy, landmark, self.map.snapshot(), frame.gray,
-                         timings, kind="describe", loop_query=self._loop_query(detected.keyframe_id))

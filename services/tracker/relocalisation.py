@@ -2,32 +2,29 @@
 
 RANSAC PnP of a frame's keypoints against the landmarks of candidate keyframes (those nearest to the last good pose
 and to the coasted prediction, the latest first), then against the whole map; the best candidate's pose is verified
-on the local map around it (:meth:`~.tracking.Tracker.match_local_map`)."""
+on the local map around it (:meth:`~.local_map.LocalMapSearch.match_local_map`)."""
 
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from twohr.features import Keypoints
 from twohr.geometry import invert_pose
 
+from .local_map import LocalMapSearch
 from .pose import MatchFn, PoseEstimate, matched_pnp
 from .trajectory import TrackResult
 
-if TYPE_CHECKING:
-    from .tracking import Tracker
-
 
 class Relocaliser:
-    """Finds a lost camera again over the map of one :class:`~.tracking.Tracker`."""
+    """Finds a lost camera again over the map that ``search`` reads."""
 
-    def __init__(self, tracker: Tracker) -> None:
-        self.tracker = tracker
-        self.map = tracker.map
-        self.conf = tracker.conf
+    def __init__(self, search: LocalMapSearch) -> None:
+        self.search = search
+        self.map = search.map
+        self.conf = search.conf
 
     def relocalise(self, keypoints: Keypoints, xy: np.ndarray, z: np.ndarray, around: list[np.ndarray],
                    match: MatchFn) -> PoseEstimate:
@@ -37,8 +34,8 @@ class Relocaliser:
         best = self.candidate(keypoints, xy, around, match)
         if not best.ok:
             return best
-        verified = self.tracker.match_local_map(invert_pose(best.T_cw), keypoints, xy, z, conf.match_radius_px, False,
-                                                match)
+        verified = self.search.match_local_map(invert_pose(best.T_cw), keypoints, xy, z, conf.match_radius_px, False,
+                                               match)
         if not verified.ok or verified.num_inliers < conf.relocalisation_min_inliers:
             return PoseEstimate(False, f"relocalisation against {best.reason} not confirmed by the local map "
                                 f"({verified.num_inliers} inliers)")

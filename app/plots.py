@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .trajectory import Trajectory  # noqa: E402
+from twohr.trajectory import Trajectory  # noqa: E402
 
 #: how :func:`plot_trajectories` draws each kind of marked pose: marker, colour, size
 MARK_STYLES = {"keyframe": ("D", "tab:green", 24), "masked": ("o", "tab:orange", 14), "lost": ("x", "tab:red", 30)}
