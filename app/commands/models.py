@@ -49,7 +49,8 @@ def _auto(args: argparse.Namespace) -> int:
     """Which network ``detector.model=auto`` uses on this host for VGA frames, timing the candidates if no choice is
     kept (or ``--again``)."""
     from twohr.config import DetectorConfig
-    from twohr_services.detector.core import R2D2Detector, auto_choices_path
+    from twohr_services.detector.auto import auto_choices_path
+    from twohr_services.detector.core import R2D2Detector
 
     path = auto_choices_path()
     if args.again:

@@ -14,7 +14,11 @@ import numpy as np
 from tqdm import tqdm
 
 from twohr.config import DetectorConfig
-from twohr_services.detector.core import ORBDetector, R2D2Detector, R2D2Network, network_size, twohr_filter
+from twohr_services.detector.classic import ORBDetector
+from twohr_services.detector.core import R2D2Detector
+from twohr_services.detector.filter import twohr_filter
+from twohr_services.detector.images import network_size
+from twohr_services.detector.networks import R2D2Network
 
 DEFAULT_MODELS = ("faster2d2_WASF_N16", "r2d2_WASF_N16", "r2d2_WASF_N16_int8")
 DEFAULT_SCALES = (1.0, 0.5)

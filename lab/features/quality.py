@@ -22,14 +22,10 @@ from twohr.dataset import Frame, RGBDSequence
 from twohr.errors import DatasetError
 from twohr.features import Keypoints
 from twohr_lab.pairs import frame_poses, relative_pose
-from twohr_services.detector.core import (
-    R2D2Detector,
-    R2D2Network,
-    build_detector,
-    local_maxima,
-    network_size,
-    select_keypoints,
-)
+from twohr_services.detector.core import R2D2Detector, build_detector
+from twohr_services.detector.filter import local_maxima, select_keypoints
+from twohr_services.detector.images import network_size
+from twohr_services.detector.networks import R2D2Network
 
 from .evaluation import clustered_fraction, match_precision, repeatability
 

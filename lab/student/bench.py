@@ -28,7 +28,8 @@ def network_latency(networks: list[str] | None = None, scales: tuple[float, ...]
     """ms per inference of every ``networks`` x ``precisions`` x ``scales``; see the module docstring."""
     from tqdm import tqdm
 
-    from twohr_services.detector.core import R2D2Network, network_size
+    from twohr_services.detector.images import network_size
+    from twohr_services.detector.networks import R2D2Network
 
     networks = networks or list(KEYFRAME_NETWORKS)
     precisions = precisions or (("f32", "bf16") if cpu_has_bf16() else ("f32",))

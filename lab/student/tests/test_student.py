@@ -83,7 +83,7 @@ def test_onnx_contract(short_run, size):
 def test_detector_sparse_path_recognises_the_export(short_run):
     """The detector's graph surgery finds the L2 normalisation after a 2x bilinear upsample (stride 2), as
     for faster2d2, and its per-keypoint descriptors equal the dense output."""
-    from twohr_services.detector.core import R2D2Maps, _prepare_model
+    from twohr_services.detector.networks import R2D2Maps, _prepare_model
 
     out, _, _, _ = short_run
     path = str(out / "student.onnx")

@@ -11,21 +11,11 @@ from twohr.config import DetectorConfig
 from twohr.dataset import RGBDSequence
 from twohr.errors import ModelError
 from twohr.models import BACKENDS, WHAT_IT_NEEDS, available_backends
-from twohr_services.detector.core import (
-    FASTDetector,
-    ORBDetector,
-    R2D2Detector,
-    R2D2Network,
-    SIFTDetector,
-    build_detector,
-    choose_input_scale,
-    kmeans_1d,
-    local_maxima,
-    network_size,
-    select_keypoints,
-    subpixel_offsets,
-    twohr_filter,
-)
+from twohr_services.detector.classic import FASTDetector, ORBDetector, SIFTDetector
+from twohr_services.detector.core import R2D2Detector, build_detector, choose_input_scale
+from twohr_services.detector.filter import kmeans_1d, local_maxima, select_keypoints, subpixel_offsets, twohr_filter
+from twohr_services.detector.images import network_size
+from twohr_services.detector.networks import R2D2Network
 
 
 def nearest_neighbours(points: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -248,7 +238,7 @@ def test_every_registered_network_gets_its_dense_normalisation_pruned(model, str
     import onnx
 
     from twohr.models import model_path
-    from twohr_services.detector.core import _prepare_model
+    from twohr_services.detector.networks import _prepare_model
 
     prepared = _prepare_model(str(model_path(model, kind="r2d2")), True)
     ops = {node.op_type for node in onnx.load_from_string(prepared.model).graph.node}

@@ -24,16 +24,10 @@ from twohr.models import (
     sha256_of,
 )
 from twohr.quantise import head_nodes
-from twohr_services.detector.core import (
-    AUTO_TIE,
-    AutoChoice,
-    R2D2Detector,
-    _prepare_model,
-    auto_choice_key,
-    keep_auto_choice,
-    network_size,
-    read_auto_choices,
-)
+from twohr_services.detector.auto import AUTO_TIE, AutoChoice, auto_choice_key, keep_auto_choice, read_auto_choices
+from twohr_services.detector.core import R2D2Detector
+from twohr_services.detector.images import network_size
+from twohr_services.detector.networks import _prepare_model
 
 TIMED_AT = network_size(640, 480, DetectorConfig().min_input_scale)  # where auto times the candidates for VGA
 
