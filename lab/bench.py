@@ -150,7 +150,8 @@ def throughput(sequence, config: PipelineConfig, frames: int = 60, start: int = 
     in_memory_ate: list[float] = []
     stage_ms: dict[str, list[float]] = {"ms_detector": [], "ms_yolo": [], "ms_tracker": [], "ms_total": []}
     latency: dict[str, list[float]] = {"keyframe_frames": [], "other_frames": []}
-    keyframe_ms: dict[str, list[float]] = {"ms_detector": [], "ms_yolo": [], "ms_mapping": [], "lag_frames": []}
+    keyframe_ms: dict[str, list[float]] = {"ms_detector": [], "ms_yolo": [], "ms_mapping": [], "ms_job": [],
+                                           "lag_frames": []}
     pipeline_rss = None
     chosen: dict = {}  # what the first run chose at warm-up (detector.model=auto: the network and its timings)
 
@@ -410,9 +411,10 @@ def session_latency(bus, gateway_url: str, sequence_name: str, frames: int = 60,
 
     from twohr import keys
     from twohr.bus import open_session
-    from twohr.messages import PoseMsg, decode
+    from twohr.messages import PoseMsg, StatusMsg, decode
 
     received: list[tuple[float, PoseMsg]] = []
+    keyframe_jobs: dict[str, dict[str, int]] = {}  # session id -> the tracker's keyframe job latency
     lock = threading.Lock()
 
     def on_pose(sample) -> None:
@@ -421,8 +423,14 @@ def session_latency(bus, gateway_url: str, sequence_name: str, frames: int = 60,
         with lock:
             received.append((now, pose))
 
+    def on_status(sample) -> None:
+        status, _ = decode(sample.payload.to_bytes(), StatusMsg)
+        if status.service == "tracker" and status.state == "keyframe_jobs":
+            keyframe_jobs[status.session_id] = status.counters
+
     listener = open_session(bus)
     sub = listener.declare_subscriber(keys.all_robots("pose"), on_pose)
+    status_sub = listener.declare_subscriber(keys.all_robots("status"), on_status)
     headers = {"Authorization": f"Bearer {api_token}"} if api_token else {}
     try:
         with httpx.Client(base_url=gateway_url, timeout=30, headers=headers, verify=verify) as client:
@@ -439,6 +447,7 @@ def session_latency(bus, gateway_url: str, sequence_name: str, frames: int = 60,
             time.sleep(0.5)  # the listener's last samples may still be in flight
     finally:
         sub.undeclare()
+        status_sub.undeclare()
         listener.close()
     with lock:
         mine = sorted(((t, p) for t, p in received if p.session_id == session_id), key=lambda tp: tp[0])
@@ -453,7 +462,8 @@ def session_latency(bus, gateway_url: str, sequence_name: str, frames: int = 60,
             "latency_ms": {"p50": round(float(np.percentile(latencies, 50)), 1) if mine else None,
                            "p99": round(float(np.percentile(latencies, 99)), 1) if mine else None},
             "fps": round((len(mine) - 1) / span, 3) if len(mine) > 1 else 0.0,
-            "first_pose_s": round(first_pose_s, 2) if first_pose_s is not None else None}
+            "first_pose_s": round(first_pose_s, 2) if first_pose_s is not None else None,
+            "keyframe_jobs": keyframe_jobs.get(session_id, {})}
 
 
 def bus_latency(sequence_root, config_overrides: dict, frames: int = 60, rate: float = 0.0,
@@ -497,6 +507,14 @@ def bus_latency(sequence_root, config_overrides: dict, frames: int = 60, rate: f
             "per_robot": per_robot}
 
 
+def keyframe_job_medians(bus_runs: list[dict]) -> dict[str, float | None]:
+    """The median over bus runs (and their robots) of the tracker's keyframe job latency, p50 and p90 (ms)."""
+    reports = [robot.get("keyframe_jobs", {}) for run in bus_runs for robot in run.get("per_robot", [run])]
+    return {f"{key}_median": float(np.median(found)) if (found := [r[key] for r in reports if key in r]) else None
+            for key in ("ms_job_median", "ms_job_p90")}
+
+
 def latency_summary(result: dict) -> dict:
     """The numbers of a :func:`session_latency` result, without the per-frame detail."""
-    return {k: result[k] for k in ("frames", "rate", "dropped_percent", "latency_ms", "fps", "first_pose_s")}
+    return {k: result[k] for k in ("frames", "rate", "dropped_percent", "latency_ms", "fps", "first_pose_s",
+                                   "keyframe_jobs")}

@@ -62,6 +62,7 @@ def _bench(args: argparse.Namespace) -> int:
 
         from twohr.config import merge_overrides
         from twohr_app.pipeline import run_sequence
+        from twohr_services.tracker.stages import keyframe_job_latency
 
         overrides = merge_overrides({}, args.set or [])
         frames = args.frames or 60
@@ -79,6 +80,7 @@ def _bench(args: argparse.Namespace) -> int:
                         for _ in range(args.runs)]
         report["bus"] = {
             "in_process": {"fps_median": round(float(np.median([len(r.stats) / r.wall_s for r in local])), 3),
+                           "keyframe_jobs": keyframe_job_latency([job for r in local for job in r.keyframe_log]),
                            "latency_ms": {"p50": round(float(np.percentile(lat, 50)), 1),
                                           "p99": round(float(np.percentile(lat, 99)), 1)}},
             "zenoh_runs": bus_runs, "zenoh_system": args.gateway or "twohr up (local processes)",
@@ -86,6 +88,7 @@ def _bench(args: argparse.Namespace) -> int:
                       "latency_p50_median": float(np.median([r["latency_ms"]["p50"] for r in bus_runs])),
                       "latency_p99_median": float(np.median([r["latency_ms"]["p99"] for r in bus_runs])),
                       "dropped_percent_median": float(np.median([r["dropped_percent"] for r in bus_runs])),
+                      "keyframe_job_ms": bench.keyframe_job_medians(bus_runs),
                       "first_pose_s_median": float(np.median([np.nan if r["first_pose_s"] is None else r["first_pose_s"]
                                                                for r in bus_runs]))},
         }

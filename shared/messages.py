@@ -25,6 +25,7 @@ from pydantic import BaseModel, Field, ValidationError
 from .config import PipelineConfig
 from .dataset import CameraIntrinsics, Frame, depth_in_metres, undistorted
 from .errors import TwohrError
+from .features import Matches
 from .trajectory import Trajectory
 
 MAGIC = b"2HR"
@@ -108,11 +109,31 @@ class MatchesMsg(Message):
 
 
 class MatchRequestMsg(Message):
-    """A matching query to the matcher service: descriptors ``desc_a`` and ``desc_b``."""
+    """A matching query to the matcher service: descriptors ``desc_a`` and ``desc_b``. With ``desc_b_sizes`` (int64),
+    ``desc_b`` holds several reference sets one after another, of those sizes, each matched to ``desc_a`` apart:
+    the reply's ``set_counts`` says how many of its matches belong to each set, in order, and ``idx_b`` counts
+    within its set (see :func:`split_matches`)."""
 
     schema_name: ClassVar[str] = "twohr.MatchRequest"
     required_arrays: ClassVar[tuple[str, ...]] = ("desc_a", "desc_b")
     reference: str = ""
+
+
+def split_matches(matches: Matches, set_counts: np.ndarray | None) -> list[Matches]:
+    """The matches of a reply, one :class:`~twohr.features.Matches` per reference set (``set_counts`` None: one)."""
+    if set_counts is None:
+        return [matches]
+    bounds = np.cumsum(np.asarray(set_counts, np.int64))[:-1]
+    return [Matches(a, b, s) for a, b, s in zip(np.split(matches.idx_a, bounds), np.split(matches.idx_b, bounds),
+                                                 np.split(matches.scores, bounds), strict=True)]
+
+
+def joined_matches(per_set: list[Matches]) -> dict[str, np.ndarray]:
+    """The arrays of a reply to a query over several reference sets (the inverse of :func:`split_matches`)."""
+    return {"idx_a": np.concatenate([m.idx_a for m in per_set]).astype("int64"),
+            "idx_b": np.concatenate([m.idx_b for m in per_set]).astype("int64"),
+            "scores": np.concatenate([m.scores for m in per_set]).astype("float32"),
+            "set_counts": np.array([len(m) for m in per_set], np.int64)}
 
 
 class PoseMsg(Message):

@@ -31,6 +31,7 @@ def write_run(out: Path, sequence, config, result) -> dict:
     from twohr.evaluation import evaluate
     from twohr.machine import machine
     from twohr.trajectory import write_tum
+    from twohr_services.tracker.stages import keyframe_job_latency
     from twohr_services.tracker.trajectory import TRACKED_STATUSES
 
     from ..pipeline import stats_rows
@@ -60,10 +61,10 @@ def write_run(out: Path, sequence, config, result) -> dict:
     if result.keyframe_log:
         log = result.keyframe_log
         summary["keyframe_jobs"] = {
-            "count": len(log), "keyframes": sum(job.keyframe for job in log),
+            **keyframe_job_latency(log), "keyframes": sum(job.keyframe for job in log),
             **{f"{key}_median": round(float(_median([getattr(job, key) for job in log])), 2)
                for key in ("ms_detector", "ms_yolo", "ms_mapping", "lag_frames")},
-            "by_kind": {kind: {"count": len(jobs), "keyframes": sum(job.keyframe for job in jobs),
+            "by_kind": {kind: {**keyframe_job_latency(jobs), "keyframes": sum(job.keyframe for job in jobs),
                                **{f"{key}_median": round(float(_median([getattr(job, key) for job in jobs])), 2)
                                   for key in ("ms_detector", "ms_yolo", "ms_mapping", "lag_frames")}}
                         for kind in sorted({job.kind for job in log})

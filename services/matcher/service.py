@@ -15,7 +15,7 @@ import numpy as np
 
 from twohr import keys
 from twohr.config import MatcherConfig
-from twohr.messages import MatchesMsg, MatchRequestMsg, decode, encode
+from twohr.messages import MatchesMsg, MatchRequestMsg, MessageError, decode, encode, joined_matches
 from twohr.service import MODEL_CACHE_SIZE, Service, reply_to, serve
 
 from .core import build_matcher
@@ -49,12 +49,20 @@ class MatcherService(Service):
         request, arrays = decode(payload, MatchRequestMsg)
         match = self.matcher_for(self.config_for(request.session_id).matcher.model_dump_json())
         t0 = time.perf_counter()
-        matches = match(arrays["desc_a"], arrays["desc_b"])
+        desc_a, desc_b = arrays["desc_a"], arrays["desc_b"]
+        if "desc_b_sizes" in arrays:  # several reference sets, each matched apart
+            sizes = np.asarray(arrays["desc_b_sizes"], np.int64)
+            if sizes.ndim != 1 or (sizes < 0).any() or int(sizes.sum()) != len(desc_b):
+                raise MessageError(f"desc_b_sizes {sizes.tolist()} do not add up to desc_b's {len(desc_b)} rows")
+            found = joined_matches([match(desc_a, b) for b in np.split(desc_b, np.cumsum(sizes)[:-1])])
+        else:
+            matches = match(desc_a, desc_b)
+            found = {"idx_a": matches.idx_a.astype("int64"), "idx_b": matches.idx_b.astype("int64"),
+                     "scores": matches.scores.astype("float32")}
         reply = MatchesMsg(session_id=request.session_id, robot_id=request.robot_id, frame_index=request.frame_index,
                            stamp=request.stamp, reference=request.reference,
                            elapsed_ms=(time.perf_counter() - t0) * 1000)
-        data = encode(reply, {"idx_a": matches.idx_a.astype("int64"), "idx_b": matches.idx_b.astype("int64"),
-                              "scores": matches.scores.astype("float32")})
+        data = encode(reply, found)
         self.publish(keys.key(request.robot_id, "matches"), data)
         return data
 

@@ -43,7 +43,7 @@ class EveryFrameSchedule:
         self.mask = mask
         t2 = time.perf_counter()
         kept = keypoints if mask is None else drop_masked(keypoints, mask)
-        result = self.tracker.track(frame.stamp, kept, frame.depth, match=lambda a, b: self.stages.match(frame, a, b))
+        result = self.tracker.track(frame.stamp, kept, frame.depth, match=self.stages.matcher_for(frame))
         if result.posed:
             self.record.add(frame.stamp, result.pose, result.tracked, len(self.map.keyframes) - 1,
                             self.map.keyframe_poses)

@@ -101,7 +101,7 @@ class KeyframePipeline:
         query, frame = job
         try:
             return verify(query, self.map.K, self.config.loop_closing, self.config.tracker,
-                          match=lambda a, b: self.stages.match(frame, a, b))
+                          match=self.stages.matcher_for(frame))
         except (MessageError, TimeoutError) as exc:  # the matcher behind the bus failed: a loop not verified
             return LoopVerdict(None, f"verification failed: {exc}")
 
@@ -154,7 +154,8 @@ class KeyframePipeline:
         t = update.timings
         self.keyframe_log.append(KeyframeLog(update.frame_index, update.result.status, update.keyframe_id >= 0,
                                              int(t["keypoints"]), int(t["kept"]), t["detector"], t["yolo"],
-                                             t["mapping"], self._number - self._job_number, update.kind))
+                                             t["mapping"], self._number - self._job_number, update.kind,
+                                             t.get("job", 0.0)))
 
     @property
     def tracked_keyframes(self) -> bool:
@@ -306,6 +307,7 @@ class KeyframePipeline:
         self.closing.close()
         if self.masking is not None:
             self.masking.close()
+        self.mapper.close()
 
     def trajectory(self) -> Trajectory:
         """Every frame's pose, re-attached to its keyframe as bundle adjustment left it, the latest frames measured

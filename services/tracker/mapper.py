@@ -8,6 +8,7 @@ and its :class:`~.mapping.LocalMapping`, as the thread that drives them.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,11 +68,17 @@ class Mapper:
         self.conf = config.tracker
         self.tracker = tracker
         self.local_mapping = tracker.local_mapping
+        self.asking = ThreadPoolExecutor(1, thread_name_prefix="twohr-mask")
+        """asks for a keyframe's dynamic mask while the detector runs"""
         self.loops = None
         self.loop_log = LoopLog()
         if config.loop_closing.vocabulary is not None:
             vocabulary = Vocabulary.load(vocabulary_path(config.loop_closing.vocabulary))
             self.loops = LoopClosing(world, vocabulary, config.loop_closing)
+
+    def close(self) -> None:
+        """Stop the thread that asks for masks."""
+        self.asking.shutdown()
 
     @property
     def given_map(self) -> bool:
@@ -79,13 +86,32 @@ class Mapper:
         return self.tracker.given_map
 
     def __call__(self, job: KeyframeJob | Detected | Loop) -> MapUpdate:
+        t0 = time.perf_counter()
         if isinstance(job, Detected):
-            return self.describe(job)
-        if isinstance(job, Loop):
-            return self.close_loop(job)
-        if job.tracks is not None and self.tracker.localised:
-            return self._tracked_keyframe(job)
-        return self._detected_keyframe(job)
+            update = self.describe(job)
+        elif isinstance(job, Loop):
+            update = self.close_loop(job)
+        elif job.tracks is not None and self.tracker.localised:
+            update = self._tracked_keyframe(job)
+        else:
+            update = self._detected_keyframe(job)
+        update.timings["job"] = (time.perf_counter() - t0) * 1000
+        return update
+
+    def _keypoints_and_mask(self, job: KeyframeJob) -> tuple[Keypoints, np.ndarray | None, float, float]:
+        """The frame's 2HR keypoints and its dynamic mask, asked at once (neither needs the other); the mask the job
+        carries is the frame's own, so it is not asked again. Returns (keypoints, mask, ms detector, ms yolo: the wait
+        for the mask after the keypoints came)."""
+        frame, mask = job.frame, job.mask
+        asked = None
+        t0 = time.perf_counter()
+        if mask is None and self.stages.dynamic_mask is not None:
+            asked = self.asking.submit(self.stages.dynamic_mask, frame)
+        keypoints = self.stages.detect(frame)
+        t1 = time.perf_counter()
+        if asked is not None:
+            mask, _ = asked.result()
+        return keypoints, mask, (t1 - t0) * 1000, (time.perf_counter() - t1) * 1000
 
     def _tracked_keyframe(self, job: KeyframeJob) -> MapUpdate:
         frame = job.frame
@@ -116,18 +142,13 @@ class Mapper:
 
     def _detected_keyframe(self, job: KeyframeJob) -> MapUpdate:
         frame = job.frame
-        t0 = time.perf_counter()
-        keypoints = self.stages.detect(frame)
-        t1 = time.perf_counter()
-        kept = keypoints
-        if self.stages.dynamic_mask is not None:
-            mask, _ = self.stages.dynamic_mask(frame)
-            kept = drop_masked(keypoints, mask)
+        keypoints, mask, ms_detector, ms_yolo = self._keypoints_and_mask(job)
+        kept = keypoints if mask is None else drop_masked(keypoints, mask)
         t2 = time.perf_counter()
         tracker = self.tracker
         prediction = job.pose if tracker.initialised else None
         result = tracker.track(frame.stamp, kept, frame.depth, prediction=prediction, force_keyframe=True,
-                               match=lambda a, b: self.stages.match(frame, a, b))
+                               match=self.stages.matcher_for(frame))
         seeds_xy, seeds_landmark = np.zeros((0, 2)), np.zeros(0, np.int64)
         if result.observed_landmarks is not None:
             # best observed first
@@ -135,7 +156,7 @@ class Mapper:
             seeds_xy, seeds_landmark = result.observed_xy[order], result.observed_landmarks[order]
         keyframe_id = self.map.keyframes[-1].id if result.is_keyframe else -1
         t3 = time.perf_counter()
-        timings = {"detector": (t1 - t0) * 1000, "yolo": (t2 - t1) * 1000, "mapping": (t3 - t2) * 1000,
+        timings = {"detector": ms_detector, "yolo": ms_yolo, "mapping": (t3 - t2) * 1000,
                    "keypoints": len(keypoints), "kept": len(kept)}
         # until the camera is found in a given map, the per-frame path gets none of it
         snapshot = self.map.snapshot() if tracker.localised else MapSnapshot.empty()
@@ -179,7 +200,7 @@ class Mapper:
         frame = detected.frame
         t0 = time.perf_counter()
         xy, landmark = self.local_mapping.describe_keyframe(detected.keyframe_id, detected.keypoints, frame.depth,
-                                                      match=lambda a, b: self.stages.match(frame, a, b))
+                                                      match=self.stages.matcher_for(frame))
         result = TrackResult(frame.stamp, self.map.keyframe_poses[detected.keyframe_id], "described",
                              num_keypoints=detected.kept, num_matches=len(detected.keypoints),
                              reason=f"2HR keypoints of keyframe {detected.keyframe_id} joined to the map")

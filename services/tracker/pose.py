@@ -32,7 +32,18 @@ from twohr.geometry import (
 )
 
 MatchFn = Callable[[np.ndarray, np.ndarray], Matches]
-"""(descriptors_a, descriptors_b) -> Matches; injected so the tracker does not depend on the matcher service."""
+"""(descriptors_a, descriptors_b) -> Matches; injected so the tracker does not depend on the matcher service. A
+match function may also offer ``sets(descriptors_a, [descriptors_b, ...]) -> [Matches, ...]``, answering several
+reference sets in one call (one query to a matcher service), see :func:`match_each`."""
+
+
+def match_each(match: MatchFn, descriptors: np.ndarray, sets: list[np.ndarray]) -> list[Matches]:
+    """The matches of ``descriptors`` against each reference set: in one call where ``match`` offers ``sets``, else
+    one call per set (the same matches either way)."""
+    if not sets:
+        return []
+    batched = getattr(match, "sets", None)
+    return batched(descriptors, sets) if batched is not None else [match(descriptors, b) for b in sets]
 
 # ----------------------------------------------------------------------------- SE(3) helpers
 
@@ -205,7 +216,13 @@ def matched_pnp(K: np.ndarray, match, descriptors: np.ndarray, xy: np.ndarray, m
     """Descriptor matches of a view's keypoints (``descriptors``, ``xy``) to map points, then RANSAC PnP on them:
     ``(T_cw or None, keypoint index, map point index, inlier mask)`` per match; None when fewer than
     ``min_matches`` match (relocalisation and loop verification both start this way)."""
-    matches = match(descriptors, map_descriptors)
+    return pnp_on_matches(K, match(descriptors, map_descriptors), xy, map_positions, min_matches, threshold_px,
+                          iterations)
+
+
+def pnp_on_matches(K: np.ndarray, matches: Matches, xy: np.ndarray, map_positions: np.ndarray, min_matches: int,
+                   threshold_px: float, iterations: int):
+    """RANSAC PnP on matches already found (see :func:`matched_pnp`)."""
     if len(matches) < min_matches:
         return None
     a, b = np.asarray(matches.idx_a, np.int64), np.asarray(matches.idx_b, np.int64)

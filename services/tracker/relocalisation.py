@@ -10,11 +10,11 @@ import time
 
 import numpy as np
 
-from twohr.features import Keypoints
+from twohr.features import Keypoints, Matches
 from twohr.geometry import invert_pose
 
 from .local_map import LocalMapSearch
-from .pose import MatchFn, PoseEstimate, matched_pnp
+from .pose import MatchFn, PoseEstimate, match_each, pnp_on_matches
 from .trajectory import TrackResult
 
 
@@ -68,12 +68,18 @@ class Relocaliser:
         candidates = np.unique(np.concatenate([np.zeros(0, np.int64)] + [
             world.local_keyframes(pose, conf.relocalisation_candidates) for pose in around]))
         landmarks = world.landmarks
-        best: PoseEstimate | None = None
+        tried = []
         for i in candidates[::-1]:  # the latest keyframes first
             kf = world.keyframes[i]
             ids = kf.landmark_ids[kf.landmark_ids >= 0]
             ids = ids[~landmarks.bad[ids] & landmarks.described[ids]]
-            estimate = self._attempt(keypoints, xy, ids, f"keyframe {kf.id}", match)
+            if len(ids) >= conf.relocalisation_min_inliers:
+                tried.append((f"keyframe {kf.id}", ids))
+        # every candidate's landmarks in one match query (one round trip to a matcher service)
+        found = match_each(match, keypoints.descriptors, [landmarks.descriptors[ids] for _, ids in tried])
+        best: PoseEstimate | None = None
+        for (what, ids), matches in zip(tried, found, strict=True):
+            estimate = self._pnp(xy, ids, what, matches)
             if estimate is not None and (best is None or estimate.num_inliers > best.num_inliers):
                 best = estimate
         if (best is None or best.num_inliers < conf.relocalisation_min_inliers) and conf.relocalisation_max_landmarks:
@@ -93,12 +99,15 @@ class Relocaliser:
     def _attempt(self, keypoints: Keypoints, xy: np.ndarray, ids: np.ndarray, what: str,
                  match: MatchFn) -> PoseEstimate | None:
         """RANSAC PnP of the frame's keypoints against landmarks ``ids``, or None when too few match."""
-        conf, world = self.conf, self.map
-        if len(ids) < conf.relocalisation_min_inliers:
+        if len(ids) < self.conf.relocalisation_min_inliers:
             return None
-        found = matched_pnp(world.K, match, keypoints.descriptors, xy, world.landmarks.descriptors[ids],
-                            world.landmarks.positions[ids], conf.relocalisation_min_inliers,
-                            conf.ransac_reprojection_px, conf.ransac_iterations)
+        return self._pnp(xy, ids, what, match(keypoints.descriptors, self.map.landmarks.descriptors[ids]))
+
+    def _pnp(self, xy: np.ndarray, ids: np.ndarray, what: str, matches: Matches) -> PoseEstimate | None:
+        """RANSAC PnP of the frame's keypoints matched to landmarks ``ids``, or None when too few match."""
+        conf, world = self.conf, self.map
+        found = pnp_on_matches(world.K, matches, xy, world.landmarks.positions[ids], conf.relocalisation_min_inliers,
+                               conf.ransac_reprojection_px, conf.ransac_iterations)
         if found is None or found[0] is None:
             return None
         T_cw, kp, _, inliers = found

@@ -50,6 +50,7 @@ from twohr.messages import (
     encode,
     path_arrays,
     received_frame,
+    split_matches,
 )
 from twohr.rates import FairShare, RateThinning
 from twohr.replicas import Replicas
@@ -58,7 +59,7 @@ from twohr.trajectory import Trajectory
 
 from .mapfiles import map_file, usable_map
 from .schedule import Schedule, build_schedule
-from .stages import FrameStats, Stages
+from .stages import FrameStats, Stages, keyframe_job_latency
 from .trajectory import TrackResult
 
 #: a live session is ``degraded`` when, over its latest HEALTH_WINDOW frames, more than DEGRADED_DROPPED_PERCENT
@@ -107,13 +108,20 @@ class RemoteMatcher:
         self.replicas, self.robot_id, self.session_id, self.timeout = replicas, robot_id, session_id, timeout
 
     def __call__(self, frame: Frame, desc_a: np.ndarray, desc_b: np.ndarray) -> Matches:
+        return self._ask(frame, "local map", {"desc_a": desc_a, "desc_b": desc_b})[0]
+
+    def sets(self, frame: Frame, desc_a: np.ndarray, sets: list[np.ndarray]) -> list[Matches]:
+        """Matches against several reference sets (a relocalisation's candidate keyframes) in one query."""
+        sizes = np.array([len(desc_b) for desc_b in sets], np.int64)
+        return self._ask(frame, "candidate keyframes", {"desc_a": desc_a, "desc_b": np.concatenate(sets),
+                                                        "desc_b_sizes": sizes})
+
+    def _ask(self, frame: Frame, reference: str, arrays: dict[str, np.ndarray]) -> list[Matches]:
         request = MatchRequestMsg(session_id=self.session_id, robot_id=self.robot_id, frame_index=frame.index,
-                                  stamp=frame.stamp, reference="local map")
-        answer = self.replicas.call(self.robot_id, keys.MATCH_QUERY, encode(request, {"desc_a": desc_a,
-                                                                                      "desc_b": desc_b}),
-                                    self.timeout)
-        _, arrays = decode(answer, MatchesMsg)
-        return Matches(arrays["idx_a"], arrays["idx_b"], arrays["scores"])
+                                  stamp=frame.stamp, reference=reference)
+        answer = self.replicas.call(self.robot_id, keys.MATCH_QUERY, encode(request, arrays), self.timeout)
+        _, found = decode(answer, MatchesMsg)
+        return split_matches(Matches(found["idx_a"], found["idx_b"], found["scores"]), found.get("set_counts"))
 
 
 @dataclass
@@ -264,6 +272,9 @@ class TrackerService(Service):
         message = PathMsg(session_id=session_id, robot_id=header.robot_id, frame_index=header.frame_index,
                           stamp=header.stamp, final=True, frame_id=track.map_name)
         self.publish(keys.key(header.robot_id, "path"), encode(message, path_arrays(refined)))
+        latency = keyframe_job_latency(track.schedule.keyframe_log)
+        self.report(header, "keyframe_jobs", f"{latency['count']} keyframe jobs",
+                    **{key: round(value) for key, value in latency.items()})
         if config is not None and config.loop_closing.vocabulary:
             loops = track.schedule.loop_log
             self.report(header, "loops", f"{loops.closed} loops closed", detected=loops.detected,
@@ -277,10 +288,10 @@ class TrackerService(Service):
         if header.session_id not in self.tracks:
             config = self.config_for(header.session_id)
             robot_id = header.robot_id
+            matcher = RemoteMatcher(self.replicas["matcher"], robot_id, header.session_id)
             stages = Stages(RemoteStage(self.replicas["detector"], robot_id, keys.DETECT_QUERY, _keypoints_reply),
                             RemoteStage(self.replicas["yolo"], robot_id, keys.DYNAMICS_QUERY, _dynamics_reply)
-                            if config.yolo.enabled else None,
-                            RemoteMatcher(self.replicas["matcher"], robot_id, header.session_id))
+                            if config.yolo.enabled else None, matcher, match_sets=matcher.sets)
             stored = self.loaded.get(header.session_id)
             world = None if stored is None else usable_map(stored, config, header.camera, f"map {stored.header.name}")
             control = self.maps.get(header.session_id)

@@ -27,6 +27,30 @@ class Stages:
     """(frame, its descriptors, the map's descriptors) -> Matches"""
     chosen: dict[str, float] = field(default_factory=dict)
     """settings the stages chose for this camera at warm-up (the detector's input scale), for the run's summary"""
+    match_sets: Callable[[Frame, np.ndarray, list[np.ndarray]], list[Matches]] | None = None
+    """(frame, its descriptors, several reference sets) -> Matches per set, in one query; None: :attr:`match` per
+    set (in process, where a call costs no round trip)"""
+
+    def matcher_for(self, frame: Frame) -> FrameMatch:
+        """The match stage bound to ``frame``, as the tracker's match function."""
+        return FrameMatch(self, frame)
+
+
+@dataclass
+class FrameMatch:
+    """The match stage for one frame: called with one reference set, or :meth:`sets` with several (one query to a
+    matcher service where the stages offer it, see :func:`~.pose.match_each`)."""
+
+    stages: Stages
+    frame: Frame
+
+    def __call__(self, desc_a: np.ndarray, desc_b: np.ndarray) -> Matches:
+        return self.stages.match(self.frame, desc_a, desc_b)
+
+    def sets(self, desc_a: np.ndarray, sets: list[np.ndarray]) -> list[Matches]:
+        if self.stages.match_sets is None:
+            return [self(desc_a, desc_b) for desc_b in sets]
+        return self.stages.match_sets(self.frame, desc_a, sets)
 
 
 @dataclass
@@ -70,3 +94,14 @@ class KeyframeLog:
     """``2hr``: detection and matching on the keyframe; ``tracked``: a keyframe from the optical-flow tracks and new
     corners, no network; ``describe``: 2HR detection of an earlier tracked keyframe joined to the map; ``loop``: a
     verified loop closed (:mod:`.loops`)"""
+    ms_job: float = 0.0
+    """the job's whole latency on the mapping worker, every stage it asked (over the bus or in process) included"""
+
+
+def keyframe_job_latency(log: list[KeyframeLog]) -> dict[str, float]:
+    """Median and 90th percentile of the keyframe jobs' whole latency (ms), and their count."""
+    ms = [job.ms_job for job in log]
+    if not ms:
+        return {"count": 0}
+    return {"count": len(ms), "ms_job_median": round(float(np.median(ms)), 2),
+            "ms_job_p90": round(float(np.percentile(ms, 90)), 2)}

@@ -101,3 +101,34 @@ def test_keyframe_jobs_rest_for_their_share_of_camera_time(synthetic_sequence):
             rested += 1
         assert rested >= 1, jobs[duty]
     assert len(jobs[0.1]) < len(jobs[1.0]), {duty: len(log) for duty, log in jobs.items()}
+
+
+def test_a_keyframe_job_asks_for_the_mask_only_when_it_carries_none(synthetic_sequence):
+    """Detection and the dynamic mask are asked at once; a job that carries its frame's own mask asks yolo no
+    more, and its keypoints are masked all the same; the job's whole latency is reported."""
+    from twohr_services.tracker.mapper import KeyframeJob, Mapper
+    from twohr_services.tracker.stages import Stages
+    from twohr_services.tracker.tracking import Tracker
+
+    sequence = RGBDSequence(synthetic_sequence)
+    config = load_config(None, {"detector.features": "orb", "yolo.enabled": False, "matcher.method": "mutual_nn"})
+    local = local_stages(config, sequence.camera)
+    frame = next(iter(sequence.frames(0, 1)))
+    left_half = np.zeros(frame.depth.shape, bool)
+    left_half[:, : frame.depth.shape[1] // 2] = True
+    asked: list[int] = []
+
+    def dynamic_mask(asked_frame):
+        asked.append(asked_frame.index)
+        return left_half, 1
+
+    stages = Stages(local.detect, dynamic_mask, local.match)
+    for carried in (None, left_half):
+        mapper = Mapper(config, Tracker(sequence.camera, config.tracker), stages)
+        update = mapper(KeyframeJob(frame, np.eye(4), mask=carried))
+        mapper.close()
+        kept = update.result.observed_xy
+        assert update.keyframe_id == 0 and len(kept) > 20
+        assert (kept[:, 0] >= frame.depth.shape[1] // 2 - 1).all()  # no keypoint under the mask
+        assert update.timings["job"] >= update.timings["mapping"] > 0
+    assert asked == [frame.index]  # once, for the job without a mask

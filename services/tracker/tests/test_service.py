@@ -8,6 +8,7 @@ import gc
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from twohr import keys
@@ -163,6 +164,9 @@ def test_a_session_that_ends_holds_up_no_other_robots_frames(stack, dev_sequence
     client.control("r1", "ending", "stop", PipelineConfig())
     assert store.saving.wait(WAIT_S), "r1's map was never saved"
     assert client.wait_for(lambda: any(m.final for m in client.messages("r1", PathMsg))), "no final path"
+    jobs = [m for m in client.messages("r1", StatusMsg) if m.state == "keyframe_jobs"]
+    assert jobs and jobs[-1].counters["count"] > 0 and jobs[-1].counters["ms_job_p90"] >= jobs[-1].counters[
+        "ms_job_median"] > 0, jobs  # each keyframe job's whole latency, for `twohr bench --bus`
 
     client.put(keys.key("r2", "frames"), _frames(dev_sequence, "r2", "going-on", 1, start=100)[0])
     posed = client.wait_for(lambda: client.messages("r2", PoseMsg), timeout=20.0)
@@ -195,3 +199,35 @@ def test_a_session_in_a_named_map_keeps_the_map_not_the_file(stack, dev_sequence
     assert client.wait_for(lambda: len(store.saves) > saves), "the extended map was never saved"
     saved = read_map(store.saves[-1][1]).header
     assert (saved.name, saved.parent) == ("shelf", parent)
+
+
+def test_one_match_query_answers_every_candidate_set(stack):
+    """A relocalisation's candidate keyframes go to the matcher service in one query, answered per set with the
+    matches that one query per set gives; sizes that do not add up are refused."""
+    from types import SimpleNamespace
+
+    from twohr.errors import TwohrError
+    from twohr_services.tracker.service import RemoteMatcher
+
+    tracker, client, _ = stack
+    _start(tracker, client, "r5", "sets")
+    replies = []
+    listener = client.session.declare_subscriber(keys.key("r5", "matches"), lambda sample: replies.append(1))
+    rng = np.random.default_rng(5)
+    frame_desc = rng.normal(size=(120, 128)).astype(np.float32)
+    frame_desc /= np.linalg.norm(frame_desc, axis=1, keepdims=True)
+    sets = [frame_desc[rng.permutation(120)[:n]] + 0.02 * rng.normal(size=(n, 128)).astype(np.float32)
+            for n in (80, 40, 60)]
+    matcher = RemoteMatcher(tracker.replicas["matcher"], "r5", "sets")
+    frame = SimpleNamespace(index=7, stamp=1.0)
+    one_each = [matcher(frame, frame_desc, desc_b) for desc_b in sets]
+    assert client.wait_for(lambda: len(replies) == 3)
+    together = matcher.sets(frame, frame_desc, sets)
+    assert client.wait_for(lambda: len(replies) == 4)  # one query, one reply
+    assert [len(m) for m in together] == [len(m) for m in one_each] and min(len(m) for m in together) > 30
+    for a, b in zip(one_each, together, strict=True):
+        assert np.array_equal(a.idx_a, b.idx_a) and np.array_equal(a.idx_b, b.idx_b)
+    with pytest.raises(TwohrError, match="do not add up"):
+        matcher._ask(frame, "bad", {"desc_a": frame_desc, "desc_b": sets[0], "desc_b_sizes": np.array([5, 5])})
+    listener.undeclare()
+    client.control("r5", "sets", "stop", PipelineConfig())

@@ -300,3 +300,32 @@ def test_redundant_keyframes_are_culled_where_the_camera_stays(orb_synthetic):
     for index, result in zip(order, results, strict=True):
         moved, _ = pose_difference(truth_in_first_camera(orb_synthetic, index), result.pose)
         assert result.tracked and moved < 0.01, (index, moved)
+
+
+class CountedMatch:
+    """A match function that can also answer several reference sets in one call, counting its calls."""
+
+    def __init__(self, match) -> None:
+        self.match, self.single, self.batches = match, 0, []
+
+    def __call__(self, desc_a, desc_b):
+        self.single += 1
+        return self.match(desc_a, desc_b)
+
+    def sets(self, desc_a, sets):
+        self.batches.append(len(sets))
+        return [self.match(desc_a, desc_b) for desc_b in sets]
+
+
+def test_a_relocalisation_matches_its_candidates_in_one_call(orb_synthetic):
+    """The candidate keyframes of a relocalisation go to the matcher in one query; the poses are those of one query
+    per candidate."""
+    conf = SYNTHETIC.model_copy(update={"match_radius_px": 10.0, "lost_radius_growth_px": 0.0})
+    frames = [*range(30), None, None, None, *range(0, 15)]
+    plain = feed(Tracker(orb_synthetic.camera, conf, match=orb_synthetic.match), orb_synthetic, frames)
+    counted = CountedMatch(orb_synthetic.match)
+    batched = feed(Tracker(orb_synthetic.camera, conf, match=counted), orb_synthetic, frames)
+    assert batched[33].status == "relocalised"
+    assert counted.batches and max(counted.batches) > 1  # several candidate keyframes in one call
+    for a, b in zip(plain, batched, strict=True):
+        assert a.status == b.status and np.array_equal(a.pose, b.pose)
