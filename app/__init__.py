@@ -5,6 +5,7 @@ library (``twohr``) into the program people run; no service imports it.
   (``run`` and ``demo``, ``up``, ``camera``, ``maps``, ``health``, ``router``, ``eval``, ``synth``, ``models``).
 - :mod:`twohr_app.pipeline`: the cores composed in one process (``twohr run``, the lab's benches).
 - :mod:`twohr_app.supervisor`: the stack as local processes (router, services, gateway) under supervision.
-- :mod:`twohr_app.access`: the router's roles, credentials and access-control list.
+- :mod:`twohr_app.access`: what each role may do on the bus, the routers' access-control lists.
+- :mod:`twohr_app.fleet`: every credential: passwords, tokens, users lists, a fleet's certificates and keys folder.
 - :mod:`twohr_app.report`, :mod:`twohr_app.live_view`: a run's plots and report page; its live Foxglove view.
 """

@@ -1,4 +1,5 @@
-"""Who may do what on the bus: the roles, their credentials and the router's access-control list.
+"""Who may do what on the bus: each role's grants and the router's access-control list. The roles' credentials
+(passwords, users lists, certificates) are made and written by :mod:`twohr_app.fleet`.
 
 Every process joins the router with a user name and password (Zenoh's ``usrpwd`` authentication); the
 user name is its role. The router's access-control list, made here from :data:`GRANTS`, denies everything
@@ -14,11 +15,6 @@ id) the mirror of that: results out to its clients, camera frames in.
 """
 
 from __future__ import annotations
-
-import json
-import os
-import secrets
-from pathlib import Path
 
 from pydantic import BaseModel, Field
 
@@ -40,9 +36,6 @@ class Grants(BaseModel):
     matching: list[str] | None = Field(None, description="subscriber declarations it may learn of, so that it sends "
                                        "what it publishes at all (default: its publish keys); a robot learns of "
                                        "every camera subscriber, since they subscribe to all cameras at once")
-
-
-SERVICE_ROLES = ("source", "detector", "yolo", "matcher", "tracker", "recorder")
 
 
 def ros2_keys(domain: int) -> list[str]:
@@ -88,9 +81,6 @@ def uplink_grants(ros2_domain: int = 0) -> Grants:
     the results its clients read, receive the cameras they publish, answer health queries."""
     client = role_grants(ros2_domain)["client"]
     return Grants(publish=client.subscribe, subscribe=client.publish, serve=[f"{HEALTH_PREFIX}/**"])
-
-
-ROLES = tuple(role_grants())
 
 
 def _rule(rule_id: str, messages: list[str], flow: str, key_exprs: list[str]) -> dict:
@@ -165,63 +155,6 @@ def access_control(ros2_domain: int = 0, uplinks: list[str] | None = None, robot
                              role_rules("uplink", uplink_grants(ros2_domain))))
     return {"enabled": True, "default_permission": "deny", "rules": [r for rules, _, _ in parts for r in rules],
             "subjects": [subject for _, subject, _ in parts], "policies": [policy for _, _, policy in parts]}
-
-
-class Credentials(BaseModel):
-    """One password per role, plus the HTTP API token; made once per deployment by :func:`generate`."""
-
-    passwords: dict[str, str]
-    api_token: str
-
-    @classmethod
-    def generate(cls, api_token: str | None = None) -> Credentials:
-        return cls(passwords={role: secrets.token_urlsafe(24) for role in ROLES},
-                   api_token=api_token or secrets.token_urlsafe(24))
-
-    def dictionary(self) -> str:
-        """The router's ``user:password`` dictionary file."""
-        return "".join(f"{role}:{password}\n" for role, password in self.passwords.items())
-
-    def save(self, folder: Path) -> Path:
-        """Write ``credentials.json``, the router's dictionary ``users.txt``, one ``<role>.password`` per role
-        (what ``TWOHR_ZENOH_PASSWORD_FILE`` names) and ``api-token`` into ``folder``, all private (0600)."""
-        folder.mkdir(parents=True, exist_ok=True, mode=0o700)
-        files = {"credentials.json": self.model_dump_json(indent=1), "users.txt": self.dictionary(),
-                 "api-token": self.api_token, **{f"{role}.password": pw for role, pw in self.passwords.items()}}
-        for name, text in files.items():
-            path = folder / name
-            path.write_text(text)
-            path.chmod(0o600)
-        return folder / "credentials.json"
-
-    @classmethod
-    def load(cls, path: Path) -> Credentials:
-        return cls.model_validate_json(Path(path).read_text())
-
-
-def client_config(endpoint: str, user: str, password: str) -> dict:
-    """A Zenoh client configuration for ``user`` on the router at ``endpoint`` (what ``--write-client-config``
-    writes and what ``BusConfig.from_file`` reads)."""
-    conf: dict = {
-        "mode": "client",
-        "connect": {"endpoints": [endpoint]},
-        "scouting": {"multicast": {"enabled": False}},
-        # no shared memory with the stack: an outside client's memory is not ours to map, and every client process
-        # that sent through shared memory left its pool (about 19 MB) mapped in each receiver for good
-        "transport": {"auth": {"usrpwd": {"user": user, "password": password}}, "shared_memory": {"enabled": False}},
-    }
-    return conf
-
-
-def write_client_config(path: Path, endpoint: str, credentials: Credentials, role: str = "client") -> Path:
-    """Write a private (0600) JSON5 client config for ``role``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as fh:
-        fh.write("// twohr: a Zenoh client of the twohr router, with its credentials. Keep it private.\n")
-        json.dump(client_config(endpoint, role, credentials.passwords[role]), fh, indent=2)
-    return path
 
 
 def is_loopback(endpoint: str) -> bool:

@@ -30,7 +30,7 @@ from twohr.bus import RouterSecurity, start_router
 from twohr.identity import load_identity
 
 from .access import access_control
-from .fleet import active_robots
+from .fleet import USERS_FILE, active_robots
 
 log = logging.getLogger("twohr.router")
 
@@ -161,7 +161,7 @@ class FleetRouter:
         self._watcher.start()
 
     def _open(self):
-        security = RouterSecurity(users_file=self.folder / "users.txt", identity=self.identity,
+        security = RouterSecurity(users_file=self.folder / USERS_FILE, identity=self.identity,
                                   access_control=access_control(self.ros2_domain, robots=self.robots))
         return start_router(self.listen, security)
 

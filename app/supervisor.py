@@ -8,7 +8,7 @@ that crashes (with backoff) and stops them all together (SIGTERM, then SIGKILL a
 
 Secure by default: the router admits only the users generated here for the stack's own processes (one per
 role, passwords in a private folder that is removed at exit) and enforces each role's access-control list
-(:mod:`twohr_app.access`).
+(:mod:`twohr_app.access`); :mod:`twohr_app.fleet` makes and writes the credentials.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from pathlib import Path
 
 from twohr.keys import PIPELINE_SERVICES
 
-from .fleet import Fleet
+from .fleet import USERS_FILE, Credentials, Fleet, password_file
 
 
 def _die_with_parent() -> None:
@@ -148,15 +148,13 @@ class StackAccess:
     """How the stack's own processes prove who they are: nothing (insecure), per-role passwords generated for this
     run (kept in a private folder removed at exit), or a fleet's keys (each process its own key folder)."""
 
-    credentials: object | None = field(default=None, repr=False)  # twohr_app.access.Credentials
+    credentials: Credentials | None = field(default=None, repr=False)
     secrets_dir: Path | None = None
     keys: Fleet | None = None
 
     @classmethod
-    def generated(cls, api_token: str | None) -> StackAccess:
-        from .access import Credentials
-
-        credentials = Credentials.generate(api_token)
+    def generated(cls) -> StackAccess:
+        credentials = Credentials.generate()
         secrets_dir = Path(tempfile.mkdtemp(prefix="twohr-secrets-"))
         credentials.save(secrets_dir)
         return cls(credentials=credentials, secrets_dir=secrets_dir)
@@ -166,7 +164,7 @@ class StackAccess:
         if self.keys is not None:
             return {"TWOHR_ZENOH_KEYS": str(self.keys.service_folder(role))}
         if self.credentials is not None:
-            return {"TWOHR_ZENOH_USER": role, "TWOHR_ZENOH_PASSWORD_FILE": str(self.secrets_dir / f"{role}.password")}
+            return {"TWOHR_ZENOH_USER": role, "TWOHR_ZENOH_PASSWORD_FILE": str(password_file(self.secrets_dir, role))}
         return {}
 
     def bus(self, role: str, endpoint: str):
@@ -223,7 +221,7 @@ def _start_router(endpoint: str, access: StackAccess, ros2_domain: int):
         return FleetRouter(access.keys.service_folder("router"), [endpoint], ros2_domain)
     if access.credentials is None:
         return start_router([endpoint])
-    return start_router([endpoint], RouterSecurity(users_file=access.secrets_dir / "users.txt",
+    return start_router([endpoint], RouterSecurity(users_file=access.secrets_dir / USERS_FILE,
                                                    access_control=access_control(ros2_domain)))
 
 
@@ -254,7 +252,7 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
         fleet.ensure_serving("gateway", [host, *(hosts or [])])
         access = StackAccess(keys=fleet)
     else:
-        access = StackAccess.generated(api_token) if secure else StackAccess()
+        access = StackAccess.generated() if secure else StackAccess()
     system = System(_start_router(router, access, ros2_domain or 0), ProcessGroup(), router, access)
     base_env = _child_env(router, log_level)
     try:

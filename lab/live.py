@@ -290,7 +290,7 @@ def _stack(system, scratch: Path, router: str, port: int, robot: str, keys: Path
 
     from twohr.bus import BusConfig
     from twohr.identity import load_identity
-    from twohr_app.access import write_client_config
+    from twohr_app.fleet import write_client_config
 
     if keys is None:
         config = write_client_config(scratch / "C.json5", router, system.credentials)

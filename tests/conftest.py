@@ -171,7 +171,7 @@ def self_signed_bundle():
     from pydantic import SecretStr
 
     from twohr.identity import Bundle
-    from twohr_app.fleet import _dump, _pem
+    from twohr_app.fleet import pem, reveal
 
     def make(name: str, path: Path) -> Path:
         key = ec.generate_private_key(ec.SECP256R1())
@@ -180,9 +180,9 @@ def self_signed_bundle():
         cert = (x509.CertificateBuilder().subject_name(subject).issuer_name(subject).public_key(key.public_key())
                 .serial_number(1).not_valid_before(now - datetime.timedelta(hours=1))
                 .not_valid_after(now + datetime.timedelta(days=1)).sign(key, hashes.SHA256()))
-        bundle = Bundle(name=name, ca_pem=_pem(cert), cert_pem=_pem(cert), key_pem=SecretStr(_pem(key)),
+        bundle = Bundle(name=name, ca_pem=pem(cert), cert_pem=pem(cert), key_pem=SecretStr(pem(key)),
                         password=SecretStr("guess"))
-        path.write_text(json.dumps(_dump(bundle)))
+        path.write_text(json.dumps(reveal(bundle)))
         return path
 
     return make

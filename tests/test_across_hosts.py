@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
 import signal
 import sys
@@ -27,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from twohr_app.fleet import write_private
 
 ROBOT = "far1"
 TOKEN = "across-hosts-token"
@@ -49,12 +50,6 @@ def _wait_for_signal() -> None:
         time.sleep(0.1)
 
 
-def _write_private(path: Path, text: str) -> None:
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-
-
 def _server_host(args: argparse.Namespace) -> int:
     """The router, the services and the gateway on this host's address; writes what the robot's router needs."""
     from twohr_app.supervisor import start_system
@@ -62,7 +57,7 @@ def _server_host(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     system = start_system(f"tcp/{SERVER}:{ROUTER_PORT}", [args.data_root], args.recordings, SERVER, GATEWAY_PORT,
                           api_token=TOKEN, timeout=150)
-    _write_private(Path(args.out), json.dumps({"zid": str(system.router.info.zid()),
+    write_private(Path(args.out), json.dumps({"zid": str(system.router.info.zid()),
                                                "router_password": system.credentials.passwords["router"],
                                                "up_s": time.monotonic() - t0}))
     try:
@@ -159,7 +154,7 @@ def role(net, host: str, *argv: str):
 
 @pytest.fixture(scope="module")
 def hosts(tmp_path_factory, dev_sequence, network):
-    from twohr_app.access import Credentials, client_config
+    from twohr_app.fleet import Credentials, client_config
 
     tmp = tmp_path_factory.mktemp("across_hosts")
     net = network(tmp, ["robot", "server", "third"])
@@ -180,8 +175,8 @@ def hosts(tmp_path_factory, dev_sequence, network):
         robot_secrets = tmp / "robot-secrets"
         robot_credentials = Credentials.generate()
         robot_credentials.save(robot_secrets)
-        _write_private(robot_secrets / "uplink.password", server_info["router_password"])
-        _write_private(robot_secrets / "wrong.password", "not-the-router-password")
+        write_private(robot_secrets / "uplink.password", server_info["router_password"])
+        write_private(robot_secrets / "wrong.password", "not-the-router-password")
         client = robot_credentials.passwords["client"]
         configs = {"camera": client_config(f"tcp/127.0.0.1:{ROUTER_PORT}", "client", client),
                    "third": client_config(f"tcp/{ROBOT_LAN}:{ROUTER_PORT}", "client", client),
@@ -189,7 +184,7 @@ def hosts(tmp_path_factory, dev_sequence, network):
                    "third-anonymous": client_config(f"tcp/{ROBOT_LAN}:{ROUTER_PORT}", "client", "x")}
         del configs["third-anonymous"]["transport"]  # no credentials at all
         for name, conf in configs.items():
-            _write_private(tmp / f"{name}.json5", json.dumps(conf))
+            write_private(tmp / f"{name}.json5", json.dumps(conf))
 
         router_args = ["--users", str(robot_secrets / "users.txt"), "--uplink", f"tcp/{SERVER}:{ROUTER_PORT}",
                        "--uplink-zid", server_info["zid"]]

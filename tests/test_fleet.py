@@ -19,7 +19,7 @@ from pydantic import SecretStr
 from twohr.bus import BusConfig, free_port, open_session
 from twohr.errors import TwohrError
 from twohr.identity import Bundle, IdentityError, load_identity
-from twohr_app.fleet import Fleet, FleetError, _dump, _pem
+from twohr_app.fleet import Fleet, FleetError, pem, reveal
 from twohr_app.fleet_router import ACL_TARGET, DenialFilter, FleetRouter, parse_denial
 
 
@@ -63,7 +63,7 @@ def test_keys_are_private_and_listed(keys):
 
 
 def _write(bundle: Bundle, path: Path) -> Path:
-    path.write_text(json.dumps(_dump(bundle)))
+    path.write_text(json.dumps(reveal(bundle)))
     return path
 
 
@@ -72,7 +72,7 @@ def test_every_unusable_key_is_one_clear_line(keys, tmp_path, dev_sequence):
     a = load_identity(bundles["a"])
     cert, key = fleet.issue("old", days=1, not_before=datetime.datetime.now(datetime.timezone.utc)
                             - datetime.timedelta(days=3))
-    expired = _write(a.model_copy(update={"name": "old", "cert_pem": _pem(cert), "key_pem": SecretStr(_pem(key))}),
+    expired = _write(a.model_copy(update={"name": "old", "cert_pem": pem(cert), "key_pem": SecretStr(pem(key))}),
                      tmp_path / "expired.bundle")
     other = Fleet(tmp_path / "other")
     other.init()

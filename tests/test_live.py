@@ -20,7 +20,7 @@ from twohr.dataset import RGBDSequence
 from twohr.evaluation import evaluate
 from twohr.service import PER_FRAME_NICE
 from twohr.trajectory import read_tum
-from twohr_app.access import write_client_config
+from twohr_app.fleet import write_client_config
 from twohr_app.supervisor import start_system
 
 FRAMES = 150

@@ -105,12 +105,10 @@ def _run_until_stopped(system) -> int:
 
 
 def _up(args: argparse.Namespace) -> int:
-    import secrets
-
     from twohr.errors import TwohrError
     from twohr_services.gateway.admission import parse_max_robots
 
-    from ..access import write_client_config
+    from ..fleet import new_secret, write_client_config
     from ..supervisor import check_replicas, gateway_url
 
     if args.join:
@@ -123,7 +121,7 @@ def _up(args: argparse.Namespace) -> int:
     max_robots = parse_max_robots(args.max_robots)
     check_exposure(args)
     # the gateway on loopback serves only this host's users; anywhere else it needs a token
-    token = args.api_token or (None if args.insecure or is_loopback(args.host) else secrets.token_urlsafe(18))
+    token = args.api_token or (None if args.insecure or is_loopback(args.host) else new_secret(18))
     t0 = time.monotonic()
     print(f"starting router on {args.router} and services {', '.join(PIPELINE_SERVICES)} + gateway …", flush=True)
     if args.keys:
