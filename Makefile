@@ -1,4 +1,4 @@
-# twohr: `make demo` runs the main job end to end; `make test` runs the suite.
+# twohr: `make demo` runs the main job end to end; `make test` runs the suite (and builds the docs first).
 # Both create .venv and install everything on first use.
 SHELL := /bin/bash
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | sha256sum | cut -c1-12)
 DEMO_SEQUENCE ?= ../shared/data/rgbd_bonn_crowd_dev
 DEMO_OUT ?= runs/demo
 
-.PHONY: demo test compose-test venv models lint clean test-prerequisites
+.PHONY: demo test compose-test venv models lint clean test-prerequisites docs
 
 venv: $(STAMP)
 
@@ -29,7 +29,12 @@ lint: venv
 test-prerequisites:
 	scripts/test-prerequisites.sh
 
-test: venv models lint test-prerequisites
+# The documentation site (mkdocs.yml, docs/) into runs/site; strict: a warning (a broken link, a page left out of
+# the nav) fails it. docs/hooks.py makes the HTTP API and bus key pages from the code as it builds.
+docs: venv
+	PYTHONDONTWRITEBYTECODE=1 $(BIN)/mkdocs build --strict --quiet
+
+test: venv docs models lint test-prerequisites
 	$(BIN)/python -m pytest -q
 
 # The whole system in containers (docker compose), with an engine started here if none answers;

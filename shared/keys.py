@@ -27,6 +27,30 @@ ALIVE_PREFIX = f"{PREFIX}/_alive"
 #: the map store answers ``twohr/maps/<name>`` with a map file's bytes, and keeps the bytes a query on
 #: ``twohr/maps/<name>/save`` carries as the map's next version
 MAPS_PREFIX = f"{PREFIX}/maps"
+#: what each key carries, by the name above that makes it (a robot's stream or query, or a prefix); the key table of
+#: the documentation (docs/hooks.py) is made from these names, this text and the roles' grants
+CARRIES = {
+    CONTROL: "`ControlMsg`: start or stop a session, with its full config",
+    RAW_CAMERA: "`FrameMsg`: raw frames from any camera driver, relayed by the source in a live session",
+    "frames": "`FrameMsg`: RGB (JPEG/PNG bytes as on disk) + 16-bit depth + intrinsics",
+    "keypoints": "`KeypointsMsg`: xy, descriptors, scores",
+    "dynamics": "`DynamicsMsg`: boxes, classes, the dynamic mask (PNG)",
+    "matches": "`MatchesMsg`: every match result",
+    "pose": "`PoseMsg`: camera-to-world pose, tracking status, inliers",
+    "landmarks": "`LandmarksMsg`: the map points (world xyz), whenever a keyframe changed the map",
+    "path": "`PathMsg`: live corrections, the keyframes that are new or moved (the whole path every 10th message; "
+            "`PathAssembler` rebuilds it); at the end the refined trajectory",
+    "status": "`StatusMsg`: session lifecycle (frames relayed, for a camera session); the tracker's health and, at "
+              "a session's end, its keyframe jobs' latency; `error` from any service that cannot run the session",
+    MATCH_QUERY: "query to one replica: descriptors A, B (`MatchRequestMsg`; B may hold several sets, a "
+                 "relocalisation's candidates) → matches (`MatchesMsg`, per set)",
+    DETECT_QUERY: "query to one replica: a frame message → its 2HR keypoints (also published on `keypoints`)",
+    DYNAMICS_QUERY: "query to one replica: a frame message → its fresh dynamic mask (also published on `dynamics`)",
+    HEALTH_PREFIX: "query: a service process's counters, its replica name and host",
+    ALIVE_PREFIX: "liveliness token, held while the process is connected",
+    MAPS_PREFIX: "query: a map file's bytes from the gateway's map store",
+    f"{MAPS_PREFIX}/save": "query carrying a map file: the map store keeps it as the map's next version",
+}
 
 ROBOT_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
 #: robot ids that name something else under ``twohr/``

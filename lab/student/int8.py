@@ -317,8 +317,8 @@ def markdown(r: dict, latency_extra: dict | None = None) -> str:
         "onnxruntime's QuantizeLinear on the graph output turns those NaN into 0 (a binary map: 0 or 0.999, "
         "~18 k 'keypoints' per image); with the output Quantize/DequantizeLinear removed (as a tool that quantises "
         "op inputs only leaves the outputs) the NaN reaches the output (row 'NNCF-like' below). The earlier NNCF "
-        "try on faster2d2 (noted in the README) is consistent with this but was not rerun here (NNCF is not "
-        "installed). The same trap sits in the L2 normalisation: a quantised "
+        "try on faster2d2 (noted in results/accuracy/README.md) is consistent with this but was not rerun here "
+        "(NNCF is not installed). The same trap sits in the L2 normalisation: a quantised "
         "`Clip(ReduceL2(x), 1e-12)` loses its epsilon (scale "
         f"{r['naive_head_qparams']['/Clip_output_0'][0]:.3f}), so a weak descriptor gives x/0.",
         "",

@@ -18,7 +18,7 @@ from .sessions import SessionRequest, SessionTable
 #: the camera rate one robot's share of the stack is sized for (Hz)
 NOMINAL_HZ = 30.0
 #: robots one core carries at NOMINAL_HZ with the default config: `twohr bench --live --robots N` on a 2-core
-#: Xeon (AMX) posed 97 % of one robot's frames (1.0 core) and 41 % of each of two robots' (README, "Capacity")
+#: Xeon (AMX) posed 97 % of one robot's frames (1.0 core) and 41 % of each of two robots' (docs/fleet.md, "Capacity")
 ROBOTS_PER_CORE = 0.5
 #: what a refused client is told to wait before it asks again (s): a camera session has no end it could name
 RETRY_AFTER_S = 30

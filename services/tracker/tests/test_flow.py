@@ -186,8 +186,8 @@ def test_frames_are_measured_again_against_the_refined_landmarks():
 
 def test_measuring_frames_again_keeps_real_frames_accurate(dev_sequence):
     """150 real frames, synchronous: most frames tracked by flow are measured again, and the refined trajectory's
-    ATE is no worse for it (over 8 paired runs of the whole dev sequence it fell by 3 % in the median, see the
-    README)."""
+    ATE is no worse for it (over 8 paired runs of the whole dev sequence it fell by 3 % in the median, see
+    docs/cli.md, "What twohr run writes")."""
     sequence = RGBDSequence(dev_sequence)
     config = load_config(None, {"pipeline.synchronous": True})
     schedule = KeyframePipeline(config, sequence.camera, local_stages(config, sequence.camera))
