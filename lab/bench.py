@@ -510,7 +510,7 @@ def bus_latency(sequence_root, config_overrides: dict, frames: int = 60, rate: f
 def keyframe_job_medians(bus_runs: list[dict]) -> dict[str, float | None]:
     """The median over bus runs (and their robots) of the tracker's keyframe job latency, p50 and p90 (ms)."""
     reports = [robot.get("keyframe_jobs", {}) for run in bus_runs for robot in run.get("per_robot", [run])]
-    return {f"{key}_median": float(np.median(found)) if (found := [r[key] for r in reports if key in r]) else None
+    return {key: float(np.median(found)) if (found := [r[key] for r in reports if key in r]) else None
             for key in ("ms_job_median", "ms_job_p90")}
 
 
