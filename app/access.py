@@ -20,6 +20,9 @@ from pydantic import BaseModel, Field
 
 from twohr.keys import ALIVE_PREFIX, HEALTH_PREFIX, MAPS_PREFIX, PREFIX, RAW_CAMERA, key
 
+#: rmw_zenoh's liveliness space (``twohr_services.ros2.rmw.ADMIN_SPACE``)
+ADMIN_SPACE_ROS2 = "@ros2_lv"
+
 
 def _robots(*streams: str) -> list[str]:
     return [f"{PREFIX}/*/{stream}" for stream in streams]
@@ -36,11 +39,48 @@ class Grants(BaseModel):
     matching: list[str] | None = Field(None, description="subscriber declarations it may learn of, so that it sends "
                                        "what it publishes at all (default: its publish keys); a robot learns of "
                                        "every camera subscriber, since they subscribe to all cameras at once")
+    tokens: list[str] = Field(default_factory=list, description="rmw_zenoh liveliness tokens it may hold (its ROS 2 "
+                              "nodes and endpoints), besides those its publish keys name")
 
 
 def ros2_keys(domain: int) -> list[str]:
     """rmw_zenoh's keys of one ROS 2 domain: ``<domain>/<topic>/<type>/<hash>`` data and its liveliness tokens."""
     return [f"{domain}/**", f"@ros2_lv/{domain}/**"]
+
+
+#: what the ros2 service publishes in each robot's namespace (``/<robot>/pose``...: ``twohr_services.ros2``'s
+#: default topics), which every robot may read of the others
+ROS2_SHARED_TOPICS = ("pose", "odom", "path", "path_corrected", "tf")
+#: global topics every robot may read (the transforms), and those every stock ROS 2 node publishes to
+ROS2_READ_GLOBAL, ROS2_WRITE_GLOBAL = ("tf", "tf_static"), ("rosout", "parameter_events")
+
+
+def _topic(domain: int, topic: str) -> str:
+    # one topic exactly: rmw_zenoh's data key is <domain>/<topic>/<type>/<hash>
+    return f"{domain}/{topic}/*/*"
+
+
+def robot_ros2_grants(robot: str, domain: int = 0) -> Grants:
+    """Robot ``robot``'s ROS 2 keys: it reads and writes its own namespace (``/<robot>/...``, services included),
+    publishes ``/rosout`` and ``/parameter_events`` (stock nodes do), and reads the other robots' poses, odometry,
+    paths and transforms and the global ``/tf`` and ``/tf_static``, nothing else of theirs; the stack's global
+    topics (``/tf``, ``/clock``, ``/diagnostics``...) it may not publish. Its liveliness tokens (rmw_zenoh's
+    ``@ros2_lv/<domain>/<zid>/<nid>/<eid>/<kind>/<enclave>/<namespace>/<node>/...``, ``/`` in names as ``%``) name
+    nodes of its namespace only, and their endpoints only topics it may use; it watches the whole graph."""
+    own = f"{domain}/{robot}/**"
+    writes = [_topic(domain, topic) for topic in ROS2_WRITE_GLOBAL]
+    reads = [_topic(domain, f"*/{topic}") for topic in ROS2_SHARED_TOPICS] + [
+        _topic(domain, topic) for topic in ROS2_READ_GLOBAL]
+    lv = f"{ADMIN_SPACE_ROS2}/{domain}/*/*/*"
+    mine = f"%{robot}%$*"  # a topic or service under /<robot>/
+    endpoints = {"MP": [mine, *(f"%{t}" for t in ROS2_WRITE_GLOBAL)], "SS": [mine], "SC": [mine],
+                 "MS": [mine, *(f"%$*%{t}" for t in ROS2_SHARED_TOPICS), *(f"%{t}" for t in ROS2_READ_GLOBAL)]}
+    tokens = []
+    for namespace in (f"%{robot}", mine):  # nodes of the robot's namespace, or of one under it
+        tokens.append(f"{lv}/NN/*/{namespace}/*")
+        tokens += [f"{lv}/{kind}/*/{namespace}/*/{topic}/**" for kind, topics in endpoints.items() for topic in topics]
+    return Grants(publish=[own, *writes], subscribe=[own, *reads, f"{ADMIN_SPACE_ROS2}/{domain}/**"], serve=[own],
+                  ask=[own], tokens=tokens)
 
 
 def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
@@ -107,11 +147,11 @@ def role_rules(role: str, grants: Grants) -> list[dict]:
               _rule(f"{role}-alive", ["liveliness_token"], "ingress", [f"{ALIVE_PREFIX}/{role}/*"]),
               _rule(f"{role}-ask", ["query"], "ingress", ask),
               _rule(f"{role}-ask-reply", ["reply", "declare_queryable"], "egress", ask)]
-    ros2_tokens = [k for k in grants.publish if k.startswith("@ros2_lv/")]
+    ros2_tokens = grants.tokens + [k for k in grants.publish if k.startswith(f"{ADMIN_SPACE_ROS2}/")]
     if ros2_tokens:
         rules.append(_rule(f"{role}-ros2-tokens", ["liveliness_token"], "ingress", ros2_tokens))
     watched = ([f"{ALIVE_PREFIX}/**"] if grants.watch_liveliness else []) + [
-        k for k in grants.subscribe if k.startswith("@ros2_lv/")]
+        k for k in grants.subscribe if k.startswith(f"{ADMIN_SPACE_ROS2}/")]
     if watched:
         rules += [_rule(f"{role}-watch", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", watched),
                   _rule(f"{role}-watch-tokens", ["liveliness_token", "reply"], "egress", watched)]
@@ -119,11 +159,15 @@ def role_rules(role: str, grants: Grants) -> list[dict]:
 
 
 def robot_grants(robot: str, ros2_domain: int = 0) -> Grants:
-    """What robot ``robot`` may do on a fleet's bus: what a ``client`` may, but publish only its own camera and the
-    ROS 2 topics of its own namespace (``/<robot>/...``)."""
+    """What robot ``robot`` may do on a fleet's bus: what a ``client`` may of twohr's keys, but publish only its own
+    camera; of ROS 2, :func:`robot_ros2_grants`."""
     client = role_grants(ros2_domain)["client"]
-    own = [key(robot, RAW_CAMERA), f"{ros2_domain}/{robot}/**", f"@ros2_lv/{ros2_domain}/**"]
-    return client.model_copy(update={"publish": own, "matching": client.publish})
+    ros2 = robot_ros2_grants(robot, ros2_domain)
+    twohr_only = [k for k in client.subscribe if k.startswith(f"{PREFIX}/")]
+    return Grants(publish=[key(robot, RAW_CAMERA), *ros2.publish], subscribe=twohr_only + ros2.subscribe,
+                  serve=ros2.serve, ask=client.ask + ros2.ask, watch_liveliness=client.watch_liveliness,
+                  matching=[k for k in client.publish if k.startswith(f"{PREFIX}/")] + ros2.publish,
+                  tokens=ros2.tokens)
 
 
 def _policy(subject: dict, rules: list[dict]) -> tuple[list[dict], dict, dict]:
@@ -131,15 +175,17 @@ def _policy(subject: dict, rules: list[dict]) -> tuple[list[dict], dict, dict]:
                             "subjects": [subject["id"]]}
 
 
-def access_control(ros2_domain: int = 0, uplinks: list[str] | None = None, robots: list[str] | None = None) -> dict:
+def access_control(ros2_domain: int = 0, uplinks: list[str] | None = None, robots: list[str] | None = None,
+                   replicas: list[str] | None = None) -> dict:
     """The router's ``access_control`` section: deny by default, allow what :func:`role_grants` lists.
 
     Without ``robots``, each role is known by its user name, and every outside client shares the ``client`` role.
     With ``robots`` (a fleet's stack), each service role and each robot is known by its certificate's common name
     and its user name together, and robot ``r`` gets :func:`robot_grants`; there is no shared ``client`` or
-    ``router`` role. A robot's own router that links to the stack's router lists that router's Zenoh ids as
-    ``uplinks`` and grants it :func:`uplink_grants`: the router that dials is the one that authenticates, so the
-    router dialled is known here by its id alone."""
+    ``router`` role; each of ``replicas`` (``ROLE@HOST``, a service replica of another host with a certificate of its
+    own) is known by that name and gets its role's rules. A robot's own router that links to the stack's router
+    lists that router's Zenoh ids as ``uplinks`` and grants it :func:`uplink_grants`: the router that dials is the
+    one that authenticates, so the router dialled is known here by its id alone."""
     parts = []
     for role, grants in role_grants(ros2_domain).items():
         if robots is None:
@@ -147,6 +193,9 @@ def access_control(ros2_domain: int = 0, uplinks: list[str] | None = None, robot
         elif role not in ("client", "router"):
             parts.append(_policy({"id": role, "cert_common_names": [role], "usernames": [role]},
                                  role_rules(role, grants)))
+            for name in (name for name in replicas or [] if name.partition("@")[0] == role):
+                parts.append(([], {"id": name, "cert_common_names": [name], "usernames": [name]},
+                              {"id": f"{name}-policy", "rules": parts[-1][2]["rules"], "subjects": [name]}))
     for robot in robots or []:
         subject = {"id": f"robot-{robot}", "cert_common_names": [robot], "usernames": [robot]}
         parts.append(_policy(subject, role_rules(subject["id"], robot_grants(robot, ros2_domain))))

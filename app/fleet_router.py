@@ -10,38 +10,86 @@ is gone from the access list. Every other client, the services included, reconne
 retry, about 1 s) and declares its subscriptions again; their sessions go on.
 
 Zenoh logs a denial only at TRACE level (``zenoh::net::routing::interceptor::access_control``), one line per
-denied message, on standard output. :class:`DenialLog` turns that on for this target alone and reads this
-process's standard output through a pipe: it prints the first denial of each (identity, action, key) as one line
-and a count of the rest every ``every`` seconds, and passes every other line through.
+denied message, on standard output. :class:`DenialLog` turns that on for this target alone and reads what Zenoh
+writes to this process's standard output through a pipe: it prints the first denial of each (identity, action,
+key) as one line and a count of the rest every ``every`` seconds, and passes every other line through.
+
+The identity in a denial comes from the link, never from text a client chose: only the part of Zenoh's line
+before "is unauthorized" (the link's interface, certificate common name and user name, which the router's TLS
+and password checks established) is read for it, and the key, which the client chose, is read as a key and
+nothing else. A key may hold a line break; the lines after it are not Zenoh's, and a real record is told from
+them by its first bytes (the timestamp in ANSI escapes, which Zenoh writes escaped in any text from a client).
 """
 
 from __future__ import annotations
 
+import contextlib
+import datetime
+import json
 import logging
 import os
 import re
+import shutil
+import socket
 import sys
+import tempfile
 import threading
 import time
 from collections import Counter
 from pathlib import Path
 
+from pydantic import BaseModel, Field, SecretStr
+
 from twohr.bus import RouterSecurity, start_router
+from twohr.errors import TwohrError
 from twohr.identity import load_identity
+from twohr.keys import ROBOT_PATTERN
 
 from .access import access_control
-from .fleet import USERS_FILE, active_robots
+from .fleet import USERS_FILE, Fleet, FleetError, private_folder, write_private
+from .fleet.store import ROBOTS_FILE
 
 log = logging.getLogger("twohr.router")
 
+#: in the router's state folder: its lease (touched while it runs) and its acknowledgement of the last list
+LEASE_FILE, APPLIED_FILE = "router.lease", "applied.json"
+#: a lease older than this (s) is a router's that is gone; how long ``keys revoke`` waits for the acknowledgement
+LEASE_STALE, CONFIRM_TIMEOUT = 5.0, 15.0
+
 ACL_TARGET = "zenoh::net::routing::interceptor::access_control"
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
-_DENIAL = re.compile(r"is unauthorized to (?P<action>\w+) \((?P<flow>\w+)\) on (?P<key>\S+)")
+_UNAUTHORIZED = " is unauthorized to "
+_DENIAL = re.compile(r"(?P<action>\w+) \((?P<flow>\w+)\) on (?P<key>.*)\Z", re.S)
 _NAME = re.compile(r"(CertCommonName|Username)\(([^)]*)\)")
-_CACHING = re.compile(r"ThreadId\((\d+)\).*caching permissions for `([^`]*)`")
+_CACHING = re.compile(r"ACL \(\w+\): caching permissions for `(.*)` \.\.\.\Z", re.S)
 _THREAD = re.compile(r"ThreadId\((\d+)\)")
 _SUBJECT = re.compile(r"([0-9a-f]+) on Interface\(")
-_CACHED = re.compile(r"Using cached result: ([0-9a-f]+) is")
+_CACHED = re.compile(r"Using cached result: ([0-9a-f]+)\Z")
+#: the first bytes of a record Zenoh writes: its timestamp, dimmed with raw escape bytes (a client's text has none)
+_RECORD = re.compile(r"\x1b\[2m\d{4}-\d\d-\d\dT")
+_ACL_RECORD = f"\x1b[2m{ACL_TARGET}\x1b[0m"
+
+
+def _message(line: str) -> tuple[str | None, str] | None:
+    """``(thread, message)`` of a line of Zenoh's ACL target (ANSI codes gone), None for any other line: the first
+    ``<target>: `` ends Zenoh's own header."""
+    head, target, message = _ANSI.sub("", line).rstrip("\r\n").partition(f"{ACL_TARGET}: ")
+    if not target:
+        return None
+    thread = _THREAD.search(head)
+    return (thread[1] if thread else None), message
+
+
+def _identity(subject: str) -> str | None:
+    """The certificate common name (else the user name) in the subject part of a line, the part before "is
+    unauthorized": what the link authenticated."""
+    names = dict(_NAME.findall(subject))
+    return names.get("CertCommonName") or names.get("Username")
+
+
+def printable(text: str) -> str:
+    """``text`` with control characters written as escapes: a key is the client's text, and goes to a terminal."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 class DenialFilter:
@@ -55,40 +103,47 @@ class DenialFilter:
 
     def denial(self, line: str) -> tuple[str, str, str] | None:
         """``(identity, action, key)`` of a denied message in this log line, None for any other line."""
-        line = _ANSI.sub("", line)
-        subject, names = _SUBJECT.search(line), dict(_NAME.findall(line))
-        if subject is not None and names:
-            self._names[subject[1]] = names.get("CertCommonName") or names["Username"]
-        caching = _CACHING.search(line)
-        if caching is not None:
-            self._caching[caching[1]] = caching[2]
+        parsed = _message(line)
+        if parsed is None:
             return None
-        thread = _THREAD.search(line)
-        if thread is not None and thread[1] in self._caching:
-            if line.rstrip().endswith(f" on {self._caching[thread[1]]}"):
+        thread, message = parsed
+        subject = message.partition(_UNAUTHORIZED)[0]
+        zid, name = _SUBJECT.match(subject), _identity(subject)
+        if zid is not None and name:
+            self._names[zid[1]] = name
+        caching = _CACHING.match(message)
+        if caching is not None and thread is not None:
+            self._caching[thread] = caching[1]
+            return None
+        if thread is not None and thread in self._caching:
+            if message.endswith(f" on {self._caching[thread]}"):
                 return None  # the block goes on: allowed and refused kinds of message on the same key
-            del self._caching[thread[1]]
+            del self._caching[thread]
         denial = parse_denial(line)
-        cached = _CACHED.search(line)
+        cached = _CACHED.match(subject)
         if denial is not None and denial[0] == "unknown" and cached is not None:
             denial = (self._names.get(cached[1], cached[1]), *denial[1:])
         return denial
 
 
 def parse_denial(line: str) -> tuple[str, str, str] | None:
-    """``(identity, action, key)`` of a Zenoh ACL denial line, None for any other line."""
-    line = _ANSI.sub("", line)
-    match = _DENIAL.search(line)
+    """``(identity, action, key)`` of a Zenoh ACL denial line, None for any other line. The identity is read from
+    the part before "is unauthorized" only: the key after it is the client's choice, and may spell anything."""
+    parsed = _message(line)
+    if parsed is None:
+        return None
+    subject, marker, rest = parsed[1].partition(_UNAUTHORIZED)
+    match = _DENIAL.match(rest) if marker else None
     if match is None or match["flow"] != "ingress":  # an egress denial mirrors an ingress one, or is routine
         return None
-    names = dict(_NAME.findall(line))
-    who = names.get("CertCommonName") or names.get("Username") or "unknown"
-    return who, match["action"].lower(), match["key"]
+    return _identity(subject) or "unknown", match["action"].lower(), match["key"]
 
 
 class DenialLog:
-    """Reads this process's standard output (file descriptor 1, where Zenoh logs) through a pipe: Zenoh's ACL trace
-    lines become one line per denied (identity, action, key), everything else passes through unchanged."""
+    """Reads what Zenoh writes to this process's standard output (file descriptor 1) through a pipe: Zenoh's ACL
+    trace records become one line per denied (identity, action, key), every other record passes through unchanged.
+    Python's own output, and the children's (:mod:`twohr_app.supervisor` hands them this process's ``sys.stdout``),
+    go to the real standard output beside it, so that all that comes through the pipe is Zenoh's."""
 
     def __init__(self, every: float = 10.0, out=None) -> None:
         self.every = every
@@ -107,33 +162,48 @@ class DenialLog:
         os.dup2(write, 1)
         os.close(write)
         self._out = self._out or os.fdopen(original, "w", buffering=1)
-        sys.stdout = os.fdopen(os.dup(1), "w", buffering=1)  # Python's own prints go the same way, in order
+        sys.stdout = os.fdopen(os.dup(original), "w", buffering=1)
+        os.environ.pop("NO_COLOR", None)  # Zenoh's ANSI escapes are what tells its records from a client's text
         zenoh.init_log_from_env_or(f"error,{ACL_TARGET}=trace")
         self._thread = threading.Thread(target=self._pump, args=(read,), name="denial-log", daemon=True)
         self._thread.start()
         return self
 
     def _pump(self, fd: int) -> None:
-        last = time.monotonic()
-        with os.fdopen(fd, "r", errors="replace") as lines:
+        last, acl = time.monotonic(), False
+        # only a line feed ends a line: a key may hold a carriage return
+        with os.fdopen(fd, "r", errors="replace", newline="\n") as lines:
             for line in lines:
-                denial = self._filter.denial(line) if ACL_TARGET in line else None
-                if denial is not None:
-                    self.counts[denial] += 1
-                    if self.counts[denial] == 1:
-                        self._say(f"twohr router: denied {denial[0]!r} {denial[1]} on {denial[2]}")
-                        self._reported[denial] = 1
-                elif ACL_TARGET not in line:
-                    self._out.write(line)
-                    self._out.flush()
+                self.feed(line, acl)
+                acl = _ACL_RECORD in line if _RECORD.match(line) else acl
                 if time.monotonic() - last >= self.every:
                     last = time.monotonic()
                     self._summarise()
 
+    def feed(self, line: str, acl: bool = False) -> None:
+        """Take one line Zenoh wrote; ``acl``: whether the record before it was of the ACL target. A line that does
+        not start a record goes on the record before (a key with a line break): never a denial, and dropped when
+        that record is an ACL one, as the record itself is."""
+        if _RECORD.match(line):
+            if _ACL_RECORD not in line:
+                self._out.write(line)
+                self._out.flush()
+                return
+            denial = self._filter.denial(line)
+            if denial is not None:
+                self.counts[denial] += 1
+                if self.counts[denial] == 1:
+                    self._say(f"twohr router: denied {denial[0]!r} {denial[1]} on {printable(denial[2])}")
+                    self._reported[denial] = 1
+        elif not acl and ACL_TARGET not in line:
+            self._out.write("  " + line)  # indented: it goes on the record before, and starts nothing
+            self._out.flush()
+
     def _summarise(self) -> None:
         for denial, count in self.counts.items():
             if count > self._reported[denial]:
-                self._say(f"twohr router: denied {denial[0]!r} {denial[1]} on {denial[2]} {count} times so far")
+                self._say(f"twohr router: denied {denial[0]!r} {denial[1]} on {printable(denial[2])} {count} times "
+                          "so far")
                 self._reported[denial] = count
 
     def _say(self, text: str) -> None:
@@ -141,50 +211,192 @@ class DenialLog:
         self._out.flush()
 
 
+class Applied(BaseModel):
+    """``applied.json`` in the router's state folder: the last robots' list the router tried to put in force."""
+
+    version: int
+    ok: bool = Field(description="the router runs with this list; False: it could not, and runs with the last one "
+                     "that it could (``in_force``)")
+    error: str | None = None
+    in_force: int = Field(description="the version of the list the router runs with")
+    at: datetime.datetime
+
+
+class RouterList(BaseModel):
+    """The robots' list as the router's key folder holds it: ``robots.json`` and the users file made with it."""
+
+    version: int
+    robots: list[str]
+    replicas: list[str] = Field(default_factory=list)
+    users: SecretStr
+
+
+class ListError(ValueError):
+    """A robots' list the router cannot put in force."""
+
+    def __init__(self, version: int, reason: str) -> None:
+        super().__init__(reason)
+        self.version = version
+
+
+def read_list(folder: Path) -> RouterList:
+    """The list in ``folder`` (``robots.json`` and ``users.txt``); :class:`ListError` (with the version, when it can
+    be read) for one that cannot be put in force, such as a robot id no ``twohr keys add`` makes (a line break)."""
+    data = json.loads((folder / ROBOTS_FILE).read_text())
+    version = int(data["version"])
+    robots, replicas = list(data["robots"]), list(data.get("replicas", []))
+    for name in robots:
+        if not isinstance(name, str) or not ROBOT_PATTERN.fullmatch(name):
+            raise ListError(version, f"{folder / ROBOTS_FILE} lists an invalid robot id {name!r}")
+    for name in replicas:
+        if not isinstance(name, str) or not name.isprintable() or not name or any(c in name for c in " :/"):
+            raise ListError(version, f"{folder / ROBOTS_FILE} lists an invalid replica {name!r}")
+    return RouterList(version=version, robots=robots, replicas=replicas, users=(folder / USERS_FILE).read_text())
+
+
+def router_state(router_folder: Path) -> Path | None:
+    """Where the router of a keys folder's ``services/router`` acknowledges lists (:meth:`Fleet.router_state`);
+    None for a folder that is not inside a keys folder (a container's mount: give ``--state``)."""
+    keys = Fleet(Path(router_folder).resolve().parent.parent)
+    return keys.router_state if keys.exists() else None
+
+
 class FleetRouter:
     """The stack's router of a fleet, run from its key folder (``<keys>/services/router``): listens on ``tls/``
     endpoints only, admits the services and the robots not revoked, each by its certificate and password, and
-    restarts with the new list when ``robots.json`` changes (checked every ``poll`` s)."""
+    restarts with the new list when ``robots.json`` changes (checked every ``poll`` s).
 
-    def __init__(self, folder: str | Path, listen: list[str], ros2_domain: int = 0, poll: float = 0.5) -> None:
+    In its ``state`` folder (default ``<keys>/state/router``) it keeps a lease (:data:`LEASE_FILE`, touched every
+    ``poll`` s while it runs, removed when it closes) and acknowledges every list it tries (:class:`Applied` in
+    :data:`APPLIED_FILE`); a list it cannot open with leaves it running with the one before, which it says there
+    and in its log. ``twohr keys revoke`` waits for both (:func:`confirm`)."""
+
+    def __init__(self, folder: str | Path, listen: list[str], ros2_domain: int = 0, poll: float = 0.5,
+                 state: str | Path | None = None) -> None:
         self.folder = Path(folder)
         self.listen = listen
         self.ros2_domain = ros2_domain
         self.poll = poll
         self.identity = load_identity(self.folder)
-        self.version, self.robots = active_robots(self.folder)
+        self.state = Path(state) if state is not None else router_state(self.folder)
+        self._private = Path(tempfile.mkdtemp(prefix="twohr-router-"))  # the users file in force (0700)
+        try:
+            self.list = read_list(self.folder)
+        except (OSError, ValueError) as exc:
+            shutil.rmtree(self._private, ignore_errors=True)
+            raise TwohrError(f"cannot start the fleet's router: {_one_line(exc)}") from None
+        self.seen = self.list.version
         self.restarts = 0
-        self.session = self._open()
+        try:
+            self.session = self._open(self.list)
+        except BaseException:
+            shutil.rmtree(self._private, ignore_errors=True)
+            raise
+        if self.state is not None:
+            try:
+                private_folder(self.state)
+                self._lease()
+            except OSError as exc:
+                log.warning("cannot keep a lease in %s (%s)", self.state, exc)
+                self.state = None
+        if self.state is None:
+            log.warning("no state folder for the router of %s: twohr keys revoke cannot confirm its lists", folder)
+        self._acknowledge(self.list.version, None)
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._watcher = threading.Thread(target=self._watch, name="fleet-watch", daemon=True)
         self._watcher.start()
 
-    def _open(self):
-        security = RouterSecurity(users_file=self.folder / USERS_FILE, identity=self.identity,
-                                  access_control=access_control(self.ros2_domain, robots=self.robots))
+    @property
+    def version(self) -> int:
+        """The version of the list in force."""
+        return self.list.version
+
+    @property
+    def robots(self) -> list[str]:
+        """The robots of the list in force."""
+        return self.list.robots
+
+    def _open(self, listing: RouterList):
+        users = write_private(self._private / USERS_FILE, listing.users.get_secret_value())
+        security = RouterSecurity(users_file=users, identity=self.identity,
+                                  access_control=access_control(self.ros2_domain, robots=listing.robots,
+                                                                replicas=listing.replicas))
         return start_router(self.listen, security)
 
     def _watch(self) -> None:
         while not self._stop.wait(self.poll):
+            self._heartbeat()
             try:
-                version, robots = active_robots(self.folder)
-            except (OSError, ValueError):  # being rewritten: read it again next time
+                listing = read_list(self.folder)
+            except ListError as exc:
+                if exc.version != self.seen:
+                    self.seen = exc.version
+                    log.error("robots' list version %d not applied: %s; the router goes on with version %d",
+                              exc.version, exc, self.list.version)
+                    self._acknowledge(exc.version, str(exc))
                 continue
-            if version != self.version:
-                self.reload(version, robots)
+            except (OSError, ValueError, KeyError, TypeError):  # being rewritten: read it again next time
+                continue
+            if listing.version != self.seen or self.session is None:
+                self.reload(listing)
 
-    def reload(self, version: int, robots: list[str]) -> None:
-        """Close the router and open it again with the robots' new list."""
+    def reload(self, listing: RouterList) -> None:
+        """Close the router and open it again with the robots' new list; if it cannot open with that list, open it
+        again with the list it had, and say why (in the log and in :data:`APPLIED_FILE`)."""
         with self._lock:
-            gone = sorted(set(self.robots) - set(robots))
+            before = self.list
+            gone = sorted(set(before.robots) - set(listing.robots))
             t0 = time.monotonic()
-            self.session.close()
-            self.version, self.robots = version, robots
-            self.session = self._open()
+            if self.session is not None:
+                self.session.close()
+                self.session = None
+            error = None
+            try:
+                self.session = self._open(listing)
+                self.list = listing
+            except Exception as exc:  # anything Zenoh refuses: the router must come back with the old list
+                error = f"the router could not open with it: {_one_line(exc)}"
+                try:
+                    self.session = self._open(before)
+                except Exception as again:
+                    error += f"; nor with version {before.version} again: {_one_line(again)} (retrying)"
+            self.seen = listing.version
             self.restarts += 1
-        log.warning("robots' list version %d: %s; router restarted in %.2f s", version,
-                    f"revoked {', '.join(gone)}" if gone else f"{len(robots)} robots", time.monotonic() - t0)
+        self._heartbeat()
+        self._acknowledge(listing.version, error)
+        if error is None:
+            log.warning("robots' list version %d: %s; router restarted in %.2f s", listing.version,
+                        f"revoked {', '.join(gone)}" if gone else f"{len(listing.robots)} robots",
+                        time.monotonic() - t0)
+        else:
+            log.error("robots' list version %d not applied: %s; the router goes on with version %d",
+                      listing.version, error, before.version)
+
+    def _acknowledge(self, version: int, error: str | None) -> None:
+        if self.state is None:
+            return
+        applied = Applied(version=version, ok=error is None, error=error, in_force=self.list.version,
+                          at=datetime.datetime.now(datetime.timezone.utc))
+        try:
+            write_private(self.state / APPLIED_FILE, applied.model_dump_json())
+        except OSError as exc:
+            log.warning("cannot acknowledge robots' list version %d in %s: %s", version, self.state, exc)
+
+    def _lease(self) -> None:
+        write_private(self.state / LEASE_FILE, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
+                                                           "listen": self.listen}))
+
+    def _heartbeat(self) -> None:
+        if self.state is None:
+            return
+        try:
+            os.utime(self.state / LEASE_FILE)
+        except FileNotFoundError:
+            with contextlib.suppress(OSError):
+                self._lease()
+        except OSError:
+            pass
 
     @property
     def info(self):
@@ -195,4 +407,44 @@ class FleetRouter:
         self._stop.set()
         self._watcher.join(timeout=5)
         with self._lock:
-            self.session.close()
+            if self.session is not None:
+                self.session.close()
+        if self.state is not None:
+            (self.state / LEASE_FILE).unlink(missing_ok=True)
+        shutil.rmtree(self._private, ignore_errors=True)
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def running(state: Path) -> bool:
+    """Whether a fleet router keeps its lease in ``state`` (touched within :data:`LEASE_STALE` s)."""
+    try:
+        return time.time() - (Path(state) / LEASE_FILE).stat().st_mtime < LEASE_STALE
+    except OSError:
+        return False
+
+
+def confirm(state: Path, version: int, timeout: float = CONFIRM_TIMEOUT) -> Applied:
+    """Wait until the router that keeps its lease in ``state`` has put list ``version`` (or a later one) in force;
+    :class:`FleetError` (one line) when no router runs there, when it could not apply the list, or when it says
+    nothing within ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while True:
+        if not running(state):
+            raise FleetError(f"no stack is running on these keys (no router lease in {state}): the new list is in "
+                             "force when the stack starts")
+        try:
+            applied = Applied.model_validate_json((Path(state) / APPLIED_FILE).read_bytes())
+        except (OSError, ValueError):
+            applied = None
+        if applied is not None and applied.version >= version:
+            if applied.ok:
+                return applied
+            raise FleetError(f"the running stack could not apply the new list (version {applied.version}): "
+                             f"{applied.error}; its router goes on with the list of version {applied.in_force}")
+        if time.monotonic() > deadline:
+            raise FleetError(f"the running stack did not confirm the new list (version {version}) within "
+                             f"{timeout:.0f} s")
+        time.sleep(0.1)

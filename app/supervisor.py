@@ -28,6 +28,7 @@ from pathlib import Path
 from twohr.keys import PIPELINE_SERVICES
 
 from .fleet import USERS_FILE, Credentials, Fleet, password_file
+from .fleet.store import OPERATOR_TOKEN_FILE
 
 
 def _die_with_parent() -> None:
@@ -37,6 +38,16 @@ def _die_with_parent() -> None:
         import ctypes
 
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+def _stdout_fd() -> int | None:
+    """Where this process's ``print`` goes, for a child's standard output (None: inherit file descriptor 1). Under
+    :class:`~twohr_app.fleet_router.DenialLog` descriptor 1 carries Zenoh's log alone, and a child's output there
+    would pass for Zenoh's."""
+    try:
+        return sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # a test's captured stdout: no descriptor of its own
+        return None
 
 
 @dataclass
@@ -52,7 +63,8 @@ class Child:
     due: float | None = None  # when a crashed child is started again
 
     def start(self) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", *self.args], env=self.env, preexec_fn=_die_with_parent)
+        self.proc = subprocess.Popen([sys.executable, "-m", *self.args], env=self.env, preexec_fn=_die_with_parent,
+                                     stdout=_stdout_fd())
         self.started_at = time.monotonic()
         self.due = None
 
@@ -229,31 +241,69 @@ def _endpoint_host(endpoint: str) -> str:
     return endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]")
 
 
+def local_host(host: str) -> str:
+    """``host``, or the loopback address where ``host`` is a wildcard (``0.0.0.0``, ``::``): where a process of
+    this host reaches a server listening on ``host``, by a name its certificate holds."""
+    return {"0.0.0.0": "127.0.0.1", "::": "::1", "": "127.0.0.1"}.get(host.strip("[]"), host)
+
+
+def local_endpoint(endpoint: str) -> str:
+    """A Zenoh endpoint to dial for one that listens on ``endpoint`` (a wildcard address becomes loopback)."""
+    host = _endpoint_host(endpoint)
+    local = local_host(host)
+    if local == host:
+        return endpoint
+    protocol, _, address = endpoint.partition("/")
+    return f"{protocol}/{'[::1]' if local == '::1' else local}:{address.rsplit(':', 1)[1]}"
+
+
+def check_custody(fleet: Fleet, router: str, hosts: list[str], api_token: str | None = None) -> None:
+    """One line (:class:`~twohr_app.fleet.FleetError`) unless the stack can run on ``fleet``'s keys as they are,
+    without the CA's private key: the router's and the gateway's certificates name their hosts (a wildcard serves
+    the names they hold), and the operator's token is in ``operator.token``, not on a command line."""
+    from .fleet import FleetError
+
+    fleet.read()  # one clear line for a folder without keys
+    if api_token is not None:
+        raise FleetError(f"on a fleet's keys the operator's API token is {fleet.operator_token} (twohr keys init "
+                         "wrote it): give no --api-token")
+    if not (fleet.service_folder("gateway") / OPERATOR_TOKEN_FILE).is_file():
+        raise FleetError(f"{fleet.folder} holds no operator.token (keys made before it): run twohr keys init "
+                         f"{fleet.folder} --if-absent, which moves the token there")
+    for role, wanted in (("router", [_endpoint_host(router)]), ("gateway", hosts)):
+        if missing := fleet.unnamed(role, wanted):
+            raise FleetError(f"the {role}'s certificate does not name {', '.join(missing)} (it names "
+                             f"{', '.join(fleet.served(role))}): add it with twohr keys add-host {fleet.folder} "
+                             f"{' '.join(missing)} (needs {fleet.folder / 'ca.key'})")
+
+
 def start_system(router: str, data_roots: list[str], recordings: str, host: str, port: int,
                  api_token: str | None = None, timeout: float = 120.0, log_level: str = "INFO",
                  secure: bool = True, ros2_domain: int | None = None, foxglove_port: int | None = None,
                  record_descriptors: bool = False, maps: str | None = None, keys: str | Path | None = None,
                  hosts: list[str] | None = None, replicas: dict[str, int] | None = None,
-                 max_robots: float | None = None) -> System:
+                 max_robots: float | None = None, map_versions: int | None = None) -> System:
     """Start the router, the services and the gateway; returns the :class:`System` once every part is healthy.
     With ``secure`` (the default) the router admits only generated per-role credentials and enforces the
     access-control list; with ``keys`` (a fleet's keys folder, ``twohr keys init``) every link is mutual TLS
     instead, each process with its own certificate, one identity per robot, the gateway on HTTPS for ``host``
-    and ``hosts``. ``api_token`` (None: no token) guards the HTTP API. ``foxglove_port`` turns on the
-    gateway's Foxglove live view on ``host``; ``ros2_domain`` starts the ros2 service, which speaks ROS 2 over
-    rmw_zenoh in that domain. ``maps``: the map store's folder (the gateway serves it). ``replicas``: how many
-    processes of each network service to run (:func:`check_replicas`; default one each). ``max_robots``: the
-    gateway's admission limit (None: none)."""
+    and ``hosts``, names their certificates must hold (the CA's private key is not read). ``api_token`` (None: no
+    token) guards the HTTP API; on ``keys`` the operator's token is theirs (``operator.token``) and ``api_token``
+    stays None. ``foxglove_port`` turns on the
+    gateway's Foxglove live view on ``host`` (with ``keys`` on TLS, and a viewer needs a token);
+    ``ros2_domain`` starts the ros2 service, which speaks ROS 2 over rmw_zenoh in that domain. ``maps``: the map
+    store's folder (the gateway serves it). ``replicas``: how many processes of each network service to run
+    (:func:`check_replicas`; default one each). ``max_robots``: the gateway's admission limit (None: none).
+    ``map_versions``: versions of each map the store keeps (None: the gateway's default, 10)."""
 
     if keys is not None:
         fleet = Fleet(keys)
-        fleet.read()  # one clear line for a folder without keys
-        fleet.ensure_serving("router", [_endpoint_host(router)])
-        fleet.ensure_serving("gateway", [host, *(hosts or [])])
+        check_custody(fleet, router, [host, *(hosts or [])], api_token)
         access = StackAccess(keys=fleet)
     else:
         access = StackAccess.generated() if secure else StackAccess()
-    system = System(_start_router(router, access, ros2_domain or 0), ProcessGroup(), router, access)
+    listen, router = router, local_endpoint(router)  # the stack's own processes dial it on this host
+    system = System(_start_router(listen, access, ros2_domain or 0), ProcessGroup(), router, access)
     base_env = _child_env(router, log_level)
     try:
         roots = [arg for root in data_roots for arg in ("--data-root", root)]
@@ -266,7 +316,8 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
         gateway_args = ["twohr_services.gateway", "--host", host, "--port", str(port), "--recordings", recordings,
                         *roots, "--foxglove-port", str(foxglove_port or 0), *(["--maps", maps] if maps else []),
                         *(_gateway_tls_args(access.keys) if access.keys else []),
-                        *(["--max-robots", f"{max_robots:g}"] if max_robots else [])]
+                        *(["--max-robots", f"{max_robots:g}"] if max_robots else []),
+                        *(["--map-versions", str(map_versions)] if map_versions else [])]
         gateway_env = base_env | access.env("gateway") | ({"TWOHR_API_TOKEN": api_token} if api_token else {})
         system.group.start("gateway", gateway_args, gateway_env)
         if ros2_domain is not None:
@@ -275,7 +326,7 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
         optional = ["ros2"] if ros2_domain is not None else []
         _wait_ready(system, system.bus("gateway" if access.keys else "client"), [*PIPELINE_SERVICES, *optional],
                     started, timeout)
-        _wait_http(gateway_url(host, port, access.keys), timeout, access.keys)
+        _wait_http(gateway_url(local_host(host), port, access.keys), timeout, access.keys)
         if system.group.dead():
             raise RuntimeError(f"processes exited during start-up: {system.group.dead()}")
     except BaseException:
@@ -286,8 +337,9 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
 
 
 def _child_env(router: str, log_level: str) -> dict[str, str]:
-    """The environment of every child: this process's, without its bus identity, joined to ``router``."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("TWOHR_ZENOH_")}
+    """The environment of every child: this process's, without its bus identity or an API token (the gateway
+    alone is given the token), joined to ``router``."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TWOHR_ZENOH_") and k != "TWOHR_API_TOKEN"}
     return env | {"TWOHR_ZENOH_ROUTER": router, "TWOHR_LOG_LEVEL": log_level}
 
 
@@ -349,7 +401,7 @@ def join_stack(router: str, services: dict[str, int], keys: str | Path | None, t
         missing = [name for name in counts if not access.keys.service_folder(name).is_dir()]
         if missing:
             raise ConfigError(f"{keys} holds no key folder for {', '.join(missing)} (services/<role>/, as "
-                              "`twohr keys init` makes them)")
+                              "`twohr keys add-service KEYS ROLE HOST --out FOLDER` makes them)")
     base_env = _child_env(router, log_level)
     system = System(_NoRouter(), ProcessGroup(), router, access)
     try:
@@ -373,8 +425,9 @@ class _NoRouter:
 
 
 def _gateway_tls_args(fleet: Fleet) -> list[str]:
-    folder = fleet.service_folder("gateway")
-    return ["--tls-keys", str(folder), "--robot-tokens", str(folder / "tokens.json")]
+    folder = fleet.service_folder("gateway")  # its own folder, as every child is given only its own
+    return ["--tls-keys", str(folder), "--robot-tokens", str(folder / "tokens.json"), "--api-token-file",
+            str(folder / OPERATOR_TOKEN_FILE)]
 
 
 def gateway_url(host: str, port: int, fleet: Fleet | None = None) -> str:

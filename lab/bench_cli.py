@@ -93,6 +93,15 @@ def _bench(args: argparse.Namespace) -> int:
                                                                for r in bus_runs]))},
         }
         print(json.dumps(report["bus"], indent=2))
+    elif args.view_tls:
+        result = bench.view_tls_fps(sequence, frames=args.frames or 2000, runs=args.runs)
+        report["view_tls"] = result
+        fps, camera = result["fps_median"], result["camera_rate"]
+        print(f"live view, {result['frames']} frames x {result['runs']} runs ({result['image_kb_mean']} kB JPEG "
+              f"each), one viewer: {fps['ws']} FPS on ws://, {fps['wss']} FPS on wss:// with a token "
+              f"({result['tls_fps_change_percent']} %); at {camera['hz']:g} Hz CPU ms/frame: server "
+              f"{camera['server_cpu_ms_per_frame']}, viewer {camera['viewer_cpu_ms_per_frame']}; "
+              f"{result['machine']['cpu_model']}")
     elif args.view:
         result = bench.view_cost(sequence, config, frames=args.frames or 60, start=args.start, runs=args.runs,
                                  progress=not args.quiet)
@@ -172,6 +181,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "native, bf16, 1 thread, interleaved runs, with the ratio to faster2d2 f32")
     p.add_argument("--view", action="store_true", help="CPU time per frame with the Foxglove live view (twohr run "
                    "--view, one viewer subscribed to every channel) against the same run without it")
+    p.add_argument("--view-tls", action="store_true", help="frames per second one viewer receives from the live "
+                   "view on ws:// and on wss:// with a token (the fleet's TLS), the sequence's JPEG frames sent as "
+                   "fast as the viewer takes them (--frames, default 2000; --runs pairs), and the CPU per frame at "
+                   "30 Hz")
     p.add_argument("--bus", action="store_true", help="frame->pose latency and FPS over Zenoh (twohr up as local "
                    "processes) against in-process, same frames and config (--set overrides go to both); FPS counts "
                    "from the first pose to the last, and first_pose_s is the wait for the first map (a replay at "

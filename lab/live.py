@@ -208,7 +208,7 @@ def fleet_runs(sequence, robots: int, frames: int, busy_counts: list[int], repea
     with tempfile.TemporaryDirectory(prefix="twohr-fleet-") as scratch:
         keys = _fleet_keys(Path(scratch), router, names) if tls else None
         system = start_system(router, [str(sequence.root.parent)], str(Path(scratch) / "recordings"), "127.0.0.1",
-                              port, timeout=300, keys=keys, api_token="bench" if tls else None, replicas=replicas,
+                              port, timeout=300, keys=keys, replicas=replicas,
                               max_robots=float(robots))
         try:
             rows = []
@@ -256,7 +256,7 @@ def live_runs(sequence, frames: int, busy_counts: list[int], repeats: int, progr
     with tempfile.TemporaryDirectory(prefix="twohr-live-") as scratch:
         keys = _fleet_keys(Path(scratch), router, robots) if tls else None
         system = start_system(router, [str(sequence.root.parent)], str(Path(scratch) / "recordings"), "127.0.0.1",
-                              port, timeout=300, ros2_domain=0, keys=keys, api_token="bench" if tls else None)
+                              port, timeout=300, ros2_domain=0, keys=keys)
         try:
             rows = []
             for robot in robots:
@@ -274,11 +274,12 @@ def live_runs(sequence, frames: int, busy_counts: list[int], repeats: int, progr
 
 
 def _fleet_keys(scratch: Path, router: str, robots: list[str]) -> Path:
-    """A fleet's keys for one bench run, with a bundle per robot (``<scratch>/<robot>.bundle``)."""
+    """A fleet's keys for one bench run, with a bundle per robot (``<scratch>/<robot>.bundle``); the operator's token
+    is ``bench``."""
     from twohr_app.fleet import Fleet
 
     fleet = Fleet(scratch / "keys")
-    fleet.init()
+    fleet.init(api_token="bench")
     for robot in robots:
         fleet.add(robot, scratch / f"{robot}.bundle", endpoint=router)
     return fleet.folder

@@ -103,6 +103,8 @@ class BusConfig(BaseModel):
         if user and password is not None:
             transport["auth"] = {"usrpwd": {"user": user, "password": password.get_secret_value()}}
         if self.identity is not None:  # its certificate when it dials (a client, or a robot's router)
+            for endpoint in self.connect:
+                _check_keyed_link(endpoint, self.identity.name)
             transport["link"] = {"tls": self.identity.zenoh_tls()}
         if self.security is not None:
             auth = transport.setdefault("auth", {}).setdefault("usrpwd", {})
@@ -110,12 +112,25 @@ class BusConfig(BaseModel):
             if self.security.access_control is not None:
                 conf["access_control"] = self.security.access_control
             if self.security.identity is not None:
-                transport["link"] = {"protocols": ["tls"], "tls": self.security.identity.zenoh_tls(listen=True)}
+                # a link whose peer's certificate expires is closed then, not only at the next handshake
+                tls = self.security.identity.zenoh_tls(listen=True) | {"close_link_on_expiration": True}
+                transport["link"] = {"protocols": ["tls"], "tls": tls}
         if not self.shared_memory:
             transport["shared_memory"] = {"enabled": False}
         if transport:
             conf["transport"] = transport
         return zenoh.Config.from_json5(json.dumps(conf))
+
+
+def _check_keyed_link(endpoint: str, name: str) -> None:
+    """A process with keys sends its password inside TLS only: a plain link (``tcp/``...) to another host is
+    refused; on loopback it is a robot's own router (``twohr router --keys``), which its processes join so."""
+    scheme, _, address = endpoint.partition("/")
+    host = address.rsplit(":", 1)[0].strip("[]").split("#", 1)[0]
+    if scheme not in ("tls", "quic", "unixsock-stream") and not (host in ("localhost", "::1") or
+                                                                 host.startswith("127.")):
+        raise TwohrError(f"{endpoint}: {name}'s keys join over tls/HOST:PORT only (a {scheme}/ link would carry its "
+                         "password in clear); plain tcp/ is for a robot's own router on loopback")
 
 
 def open_session(conf: BusConfig | None = None) -> zenoh.Session:

@@ -1,155 +1,225 @@
-"""A Foxglove WebSocket server (foxglove-sdk's ``start_server``) for the live view of any number of robots.
+"""A Foxglove WebSocket server (the ws-protocol, on ``websockets``) for the live view of any number of robots.
 
 Open it in Foxglove: ``https://app.foxglove.dev/?ds=foxglove-websocket&ds.url=ws://HOST:PORT``. Channels are
 advertised as their first message arrives (or all of a robot's at once, :meth:`LiveView.advertise`); the
-messages come from :class:`~.foxglove_convert.FoxgloveConverter` (the same as in recordings). The gateway feeds
-it from the bus, ``twohr run --view`` from the pipeline.
+messages come from :class:`~.foxglove_convert.FoxgloveConverter` (the same as in recordings), sent as the
+protobuf bytes of foxglove-sdk's schemas. The gateway feeds it from the bus, ``twohr run --view`` from the pipeline.
 
-foxglove-sdk 0.30 names the WebSocket subprotocol ``foxglove.sdk.v1`` and turns away clients that offer only
-its former, otherwise identical name ``foxglove.websocket.v1`` (Lichtblick, older Foxglove Studio, the ws-protocol
-clients). :class:`SubprotocolBridge` in front of the SDK's server accepts both names.
+On a fleet's keys the server speaks TLS and asks each viewer for a token in its URL (``?token=``: browsers cannot
+set headers on a WebSocket), checked before the upgrade: a request without a valid one gets HTTP 401 and sees no
+channel. What a viewer sees is decided per connection (:class:`Viewer`): the operator everything, a robot its own
+channels and the others' poses, paths and transforms (:func:`robot_viewer`). This process is the only listener:
+no other port serves the channels. A token that stops being valid (a robot revoked) closes its connections.
+
+Each viewer has its own bounded queue of messages to send: a slow viewer loses its oldest messages, it never holds
+up the caller of :meth:`LiveView.log` or the other viewers. Both names of the subprotocol are accepted: the
+spec's ``foxglove.websocket.v1`` (Lichtblick, older Foxglove Studio, the ws-protocol clients) and foxglove-sdk's
+``foxglove.sdk.v1``.
 """
 
 from __future__ import annotations
 
 import asyncio
 import base64
+import collections
 import contextlib
 import json
 import logging
-import re
+import ssl
 import struct
 import threading
 import time
+import weakref
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from http import HTTPStatus
+from pathlib import Path
+from urllib.parse import parse_qs, quote, urlencode, urlsplit
 
-import foxglove
-import foxglove.channels
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from websockets.asyncio.server import ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from .errors import TwohrError
-from .foxglove_convert import TOPIC_TYPES, FoxgloveConverter, topics
+from .foxglove_convert import TF_TOPIC, TOPIC_TYPES, FoxgloveConverter, topics
 
-SDK_PROTOCOL = b"foxglove.sdk.v1"
-LEGACY_PROTOCOL = b"foxglove.websocket.v1"
-# foxglove-sdk 0.30 sends a new channel's "advertise" before it records the channel as advertised to that client
-# (ConnectedClient::advertise_channels), so a client that subscribes at once can be told "Unknown channel ID"
-# and never get that channel. Holding what clients send for a moment closes that window; clients only send
-# subscribe/unsubscribe here, so nothing else waits on it.
-CLIENT_HOLD_S = 0.02
-UNKNOWN_CHANNEL = re.compile(r"Unknown channel ID: (\d+)")
+log = logging.getLogger("twohr.live")
+#: the server's own lines (websockets'): never below INFO, as its debug lines carry the request line, token included
+_ws_log = logging.getLogger("twohr.live.websockets")
+_ws_log.setLevel(logging.INFO)
 
-
-class SubprotocolBridge:
-    """A TCP relay on ``host:port`` to the SDK's server on ``127.0.0.1:target_port`` that renames the legacy
-    subprotocol in the opening handshake (both ways) and then passes the bytes through untouched."""
-
-    def __init__(self, host: str, port: int, target_port: int) -> None:
-        self.target_port = target_port
-        self.loop = asyncio.new_event_loop()
-        self.thread = threading.Thread(target=self.loop.run_forever, name="foxglove-bridge", daemon=True)
-        self.thread.start()
-        try:
-            self.server = asyncio.run_coroutine_threadsafe(
-                asyncio.start_server(self._relay, host, port), self.loop).result(10)
-        except OSError as exc:
-            self.loop.call_soon_threadsafe(self.loop.stop)
-            raise TwohrError(f"live view: cannot listen on {host}:{port}: {exc.strerror or exc}") from None
-        self.port = self.server.sockets[0].getsockname()[1]
-
-    async def _relay(self, client_in: asyncio.StreamReader, client_out: asyncio.StreamWriter) -> None:
-        server_out = None
-        try:
-            request = await client_in.readuntil(b"\r\n\r\n")
-            legacy = LEGACY_PROTOCOL in request and SDK_PROTOCOL not in request
-            if legacy:
-                request = request.replace(LEGACY_PROTOCOL, SDK_PROTOCOL)
-            server_in, server_out = await asyncio.open_connection("127.0.0.1", self.target_port)
-            server_out.write(request)
-            response = await server_in.readuntil(b"\r\n\r\n")
-            client_out.write(response.replace(SDK_PROTOCOL, LEGACY_PROTOCOL) if legacy else response)
-            await asyncio.gather(self._pipe(client_in, server_out, CLIENT_HOLD_S), self._pipe(server_in, client_out))
-        except (OSError, asyncio.IncompleteReadError, asyncio.LimitOverrunError):
-            pass  # a client that went away or never spoke HTTP
-        finally:
-            for writer in (client_out, server_out):
-                if writer is not None:
-                    writer.close()
-
-    @staticmethod
-    async def _pipe(source: asyncio.StreamReader, sink: asyncio.StreamWriter, hold_s: float = 0.0) -> None:
-        with contextlib.suppress(OSError):
-            while data := await source.read(1 << 16):
-                if hold_s:
-                    await asyncio.sleep(hold_s)
-                sink.write(data)
-                await sink.drain()
-        with contextlib.suppress(OSError):
-            sink.close()
-
-    async def _shutdown(self) -> None:
-        self.server.close()
-        tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
-
-    def close(self) -> None:
-        with contextlib.suppress(Exception):
-            asyncio.run_coroutine_threadsafe(self._shutdown(), self.loop).result(5)
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join(timeout=2)
-        self.loop.close()
+#: the protocol's name in its spec first: a client that offers both gets it
+SUBPROTOCOLS = ("foxglove.websocket.v1", "foxglove.sdk.v1")
+#: what a robot sees of the other robots: what the bus already lets it read (poses, paths, transforms); never
+#: their camera, keypoints, masks, calibration or map points
+SHARED_KINDS = ("pose", "path", "keyframes", "path_refined", "tf")
+MESSAGE_DATA = struct.Struct("<BIQ")  # opcode 0x01, subscription id, log time (ns); the payload follows
+#: what one viewer may have waiting: past either bound its oldest messages are dropped
+VIEWER_BACKLOG, VIEWER_BACKLOG_BYTES = 512, 16 << 20
+MAX_VIEWERS = 32
+#: batches of messages logged and not yet handed to the viewers' queues: past it the oldest go (the server's loop is
+#: behind the producer)
+OUTBOX = 64
+#: how often the tokens of open connections are checked again (a revoked robot's viewer is closed)
+RECHECK_S = 1.0
+CLIENT_MESSAGE_BYTES = 1 << 16  # viewers send only subscribe and unsubscribe
 
 
-def view_url(host: str, port: int) -> str:
-    """The Foxglove app's address that opens this live view."""
-    return f"https://app.foxglove.dev/?ds=foxglove-websocket&ds.url=ws://{host}:{port}"
+@dataclass(frozen=True)
+class Viewer:
+    """Who is watching (a name for the log) and which topics it may see."""
+
+    name: str
+    sees: Callable[[str], bool] = field(repr=False)
+
+
+def sees_as_robot(robot_id: str, topic: str) -> bool:
+    """Whether robot ``robot_id`` may see ``topic``: its own channels, and the others' :data:`SHARED_KINDS`."""
+    if topic == TF_TOPIC or topic.startswith(f"/{robot_id}/"):
+        return True
+    other = topic.split("/")[1] if topic.count("/") >= 2 else ""
+    return bool(other) and topic in {topics(other)[kind] for kind in SHARED_KINDS}
+
+
+def robot_viewer(robot_id: str) -> Viewer:
+    """A robot's view: its own channels and the others' poses, paths and transforms."""
+    return Viewer(f"robot {robot_id}", lambda topic: sees_as_robot(robot_id, topic))
+
+
+#: the operator, or anyone where the live view needs no token
+EVERYTHING = Viewer("operator", lambda topic: True)
+
+#: token -> the viewer it admits, or None (refused); None as the view's ``authorize``: everyone sees everything
+Authorize = Callable[[str], "Viewer | None"]
+
+
+def server_tls(cert: Path, key: Path) -> ssl.SSLContext:
+    """A TLS 1.3 server context with a certificate and its key (PEM); one line if they cannot be used."""
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.minimum_version = ssl.TLSVersion.TLSv1_3
+    try:
+        context.load_cert_chain(cert, key)
+    except (OSError, ssl.SSLError) as exc:
+        raise TwohrError(f"live view: cannot use the certificate {cert} and key {key}: "
+                         f"{getattr(exc, 'strerror', None) or exc}") from None
+    return context
+
+
+def view_url(host: str, port: int, tls: bool = False, token: str = "TOKEN") -> str:
+    """The Foxglove app's address that opens this live view (on TLS, with ``token`` in the WebSocket's URL)."""
+    if not tls:
+        return f"https://app.foxglove.dev/?ds=foxglove-websocket&ds.url=ws://{host}:{port}"
+    return f"https://app.foxglove.dev/?ds=foxglove-websocket&ds.url={quote(ws_url(host, port, token), safe='')}"
+
+
+def ws_url(host: str, port: int, token: str = "TOKEN") -> str:
+    """The WebSocket URL of a live view on TLS, with a token."""
+    return f"wss://{host}:{port}/?{urlencode({'token': token})}"
+
+
+@dataclass
+class _Channel:
+    id: int
+    topic: str
+    advert: dict  # as the advertise op names it
+
+
+@dataclass(eq=False)
+class _Client:
+    """One viewer's connection: what it sees, its subscriptions and what waits to be sent to it."""
+
+    connection: ServerConnection
+    viewer: Viewer
+    token: str | None
+    subscriptions: dict[int, int] = field(default_factory=dict)  # channel id -> subscription id
+    control: collections.deque = field(default_factory=collections.deque)  # JSON texts, sent before any data
+    data: collections.deque = field(default_factory=collections.deque)  # (subscription, log time, payload)
+    data_bytes: int = 0
+    dropped: int = 0
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
 
 
 class LiveView:
-    """A Foxglove WebSocket server on ``host:port`` (port 0 picks a free one, see :attr:`port`)."""
+    """A Foxglove WebSocket server on ``host:port`` (port 0 picks a free one, see :attr:`port`).
+
+    ``tls`` (:func:`server_tls`) serves ``wss://`` only; ``authorize`` (token -> :class:`Viewer` or None) makes the
+    server ask every viewer for ``?token=`` before the upgrade. Without it anyone who reaches the port sees all."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8765, jpeg_quality: int | None = None,
-                 path_every: int = 5) -> None:
-        logging.getLogger("foxglove").setLevel(logging.WARNING)  # not a line per client and start
-        self.context = foxglove.Context()  # its own channels and sinks: no other logging reaches this server
-        self.server = foxglove.start_server(name="twohr", host="127.0.0.1", port=0, context=self.context)
-        try:
-            self.bridge = SubprotocolBridge(host, port, self.server.port)
-        except TwohrError:
-            self.server.stop()
-            raise
-        self.host, self.port = host, self.bridge.port
+                 path_every: int = 5, tls: ssl.SSLContext | None = None, authorize: Authorize | None = None) -> None:
+        self.host, self.tls, self.authorize = host, tls, authorize
         self.converter = FoxgloveConverter(jpeg_quality, path_every)
-        self.channels: dict[str, object] = {}
+        self.channels: dict[str, _Channel] = {}
         self.lock = threading.Lock()
         self.sent = 0
+        self.clients: set[_Client] = set()
+        self._subscribed: set[int] = set()  # channels someone subscribed to: only those are encoded
+        self._outbox: collections.deque = collections.deque(maxlen=OUTBOX)  # batches for the loop to deliver
+        self._delivering = False  # a delivery is scheduled on the loop
+        self._outbox_lock = threading.Lock()  # not self.lock: the loop never waits on a conversion
+        self._admitted: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # connection -> (viewer, token)
+        self._session = str(time.time_ns())
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, name="foxglove-live", daemon=True)
+        self.thread.start()
+        try:
+            self.server = asyncio.run_coroutine_threadsafe(self._start(host, port), self.loop).result(10)
+        except OSError as exc:
+            self._stop_loop()
+            raise TwohrError(f"live view: cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+        self.port = self.server.sockets[0].getsockname()[1]
+        self._recheck = asyncio.run_coroutine_threadsafe(self._recheck_tokens(), self.loop) if authorize else None
+
+    async def _start(self, host: str, port: int):
+        return await serve(self._serve, host, port, ssl=self.tls, subprotocols=list(SUBPROTOCOLS),
+                           process_request=self._admit, compression=None, max_size=CLIENT_MESSAGE_BYTES,
+                           logger=_ws_log)
 
     @property
     def url(self) -> str:
-        return view_url(self.host, self.port)
+        return view_url(self.host, self.port, self.tls is not None)
 
-    def _channel(self, topic: str, message_type: type):
+    # --- the producer's side (any thread) ---
+
+    def _channel(self, topic: str, message_type: type, new: list[_Channel]) -> _Channel:
         channel = self.channels.get(topic)
         if channel is None:
-            channel_class = getattr(foxglove.channels, message_type.__name__ + "Channel")
-            channel = self.channels[topic] = channel_class(topic, context=self.context)
+            schema = message_type.get_schema()
+            channel = self.channels[topic] = _Channel(len(self.channels) + 1, topic, {
+                "id": len(self.channels) + 1, "topic": topic, "encoding": "protobuf", "schemaName": schema.name,
+                "schema": base64.b64encode(schema.data).decode(), "schemaEncoding": schema.encoding})
+            new.append(channel)
         return channel
 
     def advertise(self, robot_id: str) -> None:
-        """Advertise a robot's channels now, so that a client can subscribe before its first frame."""
+        """Advertise a robot's channels now, so that a viewer can subscribe before its first frame."""
+        new: list[_Channel] = []
         with self.lock:
             for kind, topic in topics(robot_id).items():
-                self._channel(topic, TOPIC_TYPES[kind])
+                self._channel(topic, TOPIC_TYPES[kind], new)
+            if new:
+                self.loop.call_soon_threadsafe(self._advertise, new)
 
     def log(self, messages: list[tuple[str, object]]) -> None:
         """Send ``(topic, Foxglove message)`` pairs, advertising each topic's channel on first use."""
+        new: list[_Channel] = []
+        batch = []
         with self.lock:
+            now = time.time_ns()
             for topic, message in messages:
-                self._channel(topic, type(message)).log(message)
+                channel = self._channel(topic, type(message), new)
+                if channel.id in self._subscribed:  # a set read across threads: at worst one message is missed
+                    batch.append((channel.id, now, message.encode()))
                 self.sent += 1
+            if new:
+                self.loop.call_soon_threadsafe(self._advertise, new)
+            if batch:  # no viewer gets a channel's message before its advertisement: it subscribes after that
+                with self._outbox_lock:
+                    self._outbox.append(batch)
+                    scheduled, self._delivering = self._delivering, True
+                if not scheduled:
+                    self.loop.call_soon_threadsafe(self._deliver)
 
     def reset(self, robot_id: str) -> None:
         """A robot starts a new session: its path starts again."""
@@ -162,32 +232,188 @@ class LiveView:
             messages = self.converter.convert(payload)
         self.log(messages)
 
-    def close(self, drain_s: float = 0.5) -> None:
-        """Stop serving, after ``drain_s`` for the relay to hand viewers the last messages it holds."""
-        if self.sent:
-            time.sleep(drain_s)
-        self.bridge.close()
-        self.server.stop()
+    # --- the server's side (its event loop) ---
+
+    def _admit(self, connection: ServerConnection, request):
+        """Before the upgrade: the token in the URL decides who this is, or the request gets 401 (503 when full)."""
+        if len(self.clients) >= MAX_VIEWERS:
+            return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, f"at most {MAX_VIEWERS} viewers\n")
+        if self.authorize is None:
+            self._admitted[connection] = (EVERYTHING, None)
+            return None
+        token = (parse_qs(urlsplit(request.path).query).get("token") or [""])[0]
+        viewer = self.authorize(token) if token else None
+        if viewer is None:
+            log.warning("live view: refused a viewer from %s: %s token", connection.remote_address[0],
+                        "a wrong" if token else "no")
+            return connection.respond(HTTPStatus.UNAUTHORIZED, "missing or wrong token: open the live view's URL "
+                                      "with ?token=<the operator's or a robot's API token>\n")
+        self._admitted[connection] = (viewer, token)
+        return None
+
+    async def _serve(self, connection: ServerConnection) -> None:
+        viewer, token = self._admitted.pop(connection, (None, None))
+        if viewer is None:
+            return
+        client = _Client(connection, viewer, token)
+        self.clients.add(client)
+        log.info("live view: %s watching from %s", viewer.name, connection.remote_address[0])
+        client.control.append(json.dumps({"op": "serverInfo", "name": "twohr", "capabilities": [],
+                                          "supportedEncodings": [], "metadata": {}, "sessionId": self._session}))
+        visible = [c.advert for c in list(self.channels.values()) if viewer.sees(c.topic)]
+        if visible:
+            client.control.append(json.dumps({"op": "advertise", "channels": visible}))
+        client.wake.set()
+        writer = asyncio.create_task(self._write(client))
+        try:
+            async for message in connection:
+                if isinstance(message, str):
+                    self._on_request(client, message)
+        except ConnectionClosed:
+            pass
+        finally:
+            self.clients.discard(client)
+            self._update_subscribed()
+            writer.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await writer
+
+    def _on_request(self, client: _Client, text: str) -> None:
+        """A viewer's subscribe or unsubscribe; a channel it may not see is as unknown as one that does not exist."""
+        try:
+            request = json.loads(text)
+            op = request["op"]
+            if op == "subscribe":
+                by_id = {c.id: c for c in list(self.channels.values())}
+                for subscription in request["subscriptions"]:
+                    channel = by_id.get(subscription["channelId"])
+                    if channel is None or not client.viewer.sees(channel.topic):
+                        self._status(client, f"Unknown channel ID: {subscription['channelId']}")
+                    else:
+                        client.subscriptions[channel.id] = int(subscription["id"])
+            elif op == "unsubscribe":
+                ended = {int(i) for i in request["subscriptionIds"]}
+                client.subscriptions = {c: s for c, s in client.subscriptions.items() if s not in ended}
+        except (ValueError, KeyError, TypeError):
+            self._status(client, "malformed request")
+        self._update_subscribed()
+
+    def _status(self, client: _Client, message: str) -> None:
+        client.control.append(json.dumps({"op": "status", "level": 2, "message": message}))
+        client.wake.set()
+
+    def _update_subscribed(self) -> None:
+        self._subscribed = {channel for client in self.clients for channel in client.subscriptions}
+
+    def _advertise(self, channels: list[_Channel]) -> None:
+        for client in self.clients:
+            visible = [c.advert for c in channels if client.viewer.sees(c.topic)]
+            if visible:
+                client.control.append(json.dumps({"op": "advertise", "channels": visible}))
+                client.wake.set()
+
+    def backlog(self) -> int:
+        """Messages logged that wait for a viewer: those not yet handed to the viewers' queues, and the longest
+        queue."""
+        return sum(len(batch) for batch in list(self._outbox)) + max(
+            (len(client.data) for client in list(self.clients)), default=0)
+
+    def _deliver(self) -> None:
+        with self._outbox_lock:
+            batches, self._delivering = list(self._outbox), False
+            self._outbox.clear()
+        for client in self.clients:
+            queued = False
+            for channel, log_time, payload in (message for batch in batches for message in batch):
+                subscription = client.subscriptions.get(channel)
+                if subscription is None:
+                    continue
+                client.data.append((subscription, log_time, payload))
+                client.data_bytes += len(payload)
+                queued = True
+            while len(client.data) > VIEWER_BACKLOG or client.data_bytes > VIEWER_BACKLOG_BYTES:
+                client.data_bytes -= len(client.data.popleft()[2])
+                client.dropped += 1
+            if queued:
+                client.wake.set()
+
+    async def _write(self, client: _Client) -> None:
+        """Send a viewer what waits for it, control messages first; a slow viewer waits here, alone."""
+        with contextlib.suppress(ConnectionClosed):
+            while True:
+                await client.wake.wait()
+                client.wake.clear()
+                while client.control or client.data:
+                    if client.control:
+                        await client.connection.send(client.control.popleft())
+                        continue
+                    subscription, log_time, payload = client.data.popleft()
+                    client.data_bytes -= len(payload)
+                    await client.connection.send(MESSAGE_DATA.pack(1, subscription, log_time) + payload)
+
+    async def _recheck_tokens(self) -> None:
+        """Close the connections whose token is no longer valid (a robot revoked since it connected)."""
+        while True:
+            await asyncio.sleep(RECHECK_S)
+            for client in list(self.clients):
+                if self.authorize(client.token) is None:
+                    log.warning("live view: %s's token is no longer valid: closing its connection", client.viewer.name)
+                    self.clients.discard(client)
+                    asyncio.create_task(client.connection.close(1008, "token no longer valid"))
+
+    def _idle(self) -> bool:
+        return not self._outbox and all(not client.control and not client.data for client in self.clients)
+
+    async def _shutdown(self, drain_s: float) -> None:
+        deadline = time.monotonic() + drain_s
+        while not self._idle() and time.monotonic() < deadline:
+            await asyncio.sleep(0.01)
+        if self._recheck is not None:
+            self._recheck.cancel()
+        self.server.close()  # closes every connection: what was sent is delivered before the close frame
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(self.server.wait_closed(), 5)
+        tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+    def _stop_loop(self) -> None:
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(timeout=2)
+        self.loop.close()
+
+    def close(self, drain_s: float = 2.0) -> None:
+        """Stop serving, once every viewer got what was logged (waiting at most ``drain_s`` for slow ones)."""
+        with contextlib.suppress(Exception):
+            asyncio.run_coroutine_threadsafe(self._shutdown(drain_s), self.loop).result(drain_s + 10)
+        self._stop_loop()
 
 
 class FoxgloveClient:
     """A Foxglove WebSocket client on its own thread: it subscribes to every channel the server advertises and
     counts the messages of each topic (and keeps the latest one). For tests, the bench and quick checks.
 
-    A subscription the server refuses with "Unknown channel ID" (see :data:`CLIENT_HOLD_S`) is sent again after a
-    moment, and counted in :attr:`resubscribed`."""
+    ``token`` goes into the URL as ``?token=``; a ``wss://`` URL is verified with ``cafile`` (the fleet's
+    ``ca.crt``), else with the system's roots. A refused upgrade raises ``websockets.exceptions.InvalidStatus``."""
 
-    def __init__(self, url: str, subprotocol: str = "foxglove.websocket.v1", timeout: float = 10.0) -> None:
-        # the protocol's name in its spec is "foxglove.websocket.v1"; foxglove-sdk 0.30 calls it "foxglove.sdk.v1"
-        self.ws = connect(url, subprotocols=[subprotocol], max_size=None, open_timeout=timeout).__enter__()
+    def __init__(self, url: str, subprotocol: str = "foxglove.websocket.v1", timeout: float = 10.0,
+                 token: str | None = None, cafile: str | Path | None = None) -> None:
+        if token is not None:
+            url += ("&" if urlsplit(url).query else ("?" if urlsplit(url).path else "/?")) + urlencode({"token": token})
+        tls = ssl.create_default_context(cafile=str(cafile) if cafile else None) if url.startswith("wss:") else None
+        # the protocol's name in its spec is "foxglove.websocket.v1"; foxglove-sdk calls it "foxglove.sdk.v1"
+        self.ws = connect(url, subprotocols=[subprotocol], max_size=None, open_timeout=timeout, ssl=tls,
+                          compression=None).__enter__()
         if self.ws.subprotocol != subprotocol:
-            raise ConnectionError(f"{url} answered with subprotocol {self.ws.subprotocol!r}, not {subprotocol!r}")
+            raise ConnectionError(f"the live view answered with subprotocol {self.ws.subprotocol!r}, not "
+                                  f"{subprotocol!r}")
         self.channels: dict[int, dict] = {}
         self.subscriptions: dict[int, int] = {}
         self.counts: dict[str, int] = {}
         self.latest: dict[str, bytes] = {}
         self.server_info: dict | None = None
-        self.resubscribed = 0
+        self.statuses: list[str] = []
         self.thread = threading.Thread(target=self._run, name="foxglove-client", daemon=True)
         self.thread.start()
 
@@ -202,12 +428,8 @@ class FoxgloveClient:
                         for channel in body["channels"]:
                             self.channels[channel["id"]] = channel
                         self._subscribe([channel["id"] for channel in body["channels"]])
-                    elif body["op"] == "status" and (refused := UNKNOWN_CHANNEL.fullmatch(body.get("message", ""))):
-                        channel_id = int(refused.group(1))
-                        if channel_id in self.channels and self.resubscribed < len(self.channels):
-                            time.sleep(0.05)
-                            self.resubscribed += 1
-                            self._subscribe([channel_id])
+                    elif body["op"] == "status":
+                        self.statuses.append(body.get("message", ""))
                 elif message[0] == 1:  # message data: opcode, subscription id (u32), log time (u64), payload
                     subscription = struct.unpack_from("<I", message, 1)[0]
                     topic = self.channels[self.subscriptions[subscription]]["topic"]
@@ -224,9 +446,19 @@ class FoxgloveClient:
             new.append({"id": subscription, "channelId": channel_id})
         self.ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
 
+    def subscribe(self, channel_id: int) -> None:
+        """Ask for a channel by id (whether or not it was advertised to this client)."""
+        self.channels.setdefault(channel_id, {"id": channel_id, "topic": f"?{channel_id}", "schemaName": "?"})
+        self._subscribe([channel_id])
+
+    @property
+    def closed(self) -> bool:
+        """Whether the server closed this connection."""
+        return not self.thread.is_alive()
+
     def topics(self) -> dict[str, str]:
         """Advertised topic -> schema name."""
-        return {c["topic"]: c["schemaName"] for c in list(self.channels.values())}
+        return {c["topic"]: c["schemaName"] for c in list(self.channels.values()) if "schema" in c}
 
     def decode(self, topic: str):
         """The latest message on ``topic``, decoded with the protobuf schema the server advertised."""

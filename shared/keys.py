@@ -52,9 +52,13 @@ CARRIES = {
     f"{MAPS_PREFIX}/save": "query carrying a map file: the map store keeps it as the map's next version",
 }
 
-ROBOT_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
+#: a robot id, matched whole (``fullmatch``: no newline, no path separator)
+ROBOT_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")
 #: robot ids that name something else under ``twohr/``
 RESERVED_ROBOT_IDS = ("maps",)
+#: ROS 2 names a fleet's robot may not take (its ROS 2 namespace ``/<robot>`` would be the topic): ROS 2's global
+#: topics, which the stack's nodes publish, and the root of the ros2 bridge's default camera input (``/camera/...``)
+ROS2_RESERVED_NAMES = ("tf", "tf_static", "clock", "rosout", "parameter_events", "diagnostics", "camera")
 
 
 def map_key(name: str, save: bool = False) -> str:
@@ -97,7 +101,7 @@ def replica_query(robot_id: str, query: str, replica: str) -> str:
 
 def key(robot_id: str, stream: str) -> str:
     """The key of one robot's stream, e.g. ``twohr/robot1/pose``."""
-    if not ROBOT_PATTERN.match(robot_id) or robot_id in RESERVED_ROBOT_IDS:
+    if not ROBOT_PATTERN.fullmatch(robot_id) or robot_id in RESERVED_ROBOT_IDS:
         raise ValueError(f"invalid robot id {robot_id!r}: use letters, digits, '_' or '-' (at most 64), "
                          "starting with a letter or digit; 'maps' is the map store's")
     return f"{PREFIX}/{robot_id}/{stream}"

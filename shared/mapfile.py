@@ -9,10 +9,17 @@ descriptor, the only descriptors a map keeps (those of unmatched keypoints are d
 Written atomically (a temporary file beside the target, fsync, rename). :func:`read_map` checks everything and
 answers a wrong, corrupt or inconsistent file, or one built with another detector model, with one
 :class:`MapFileError` line. Plain arrays and pydantic only: the tracker, the gateway and the CLI all use it.
+
+Format version 2 adds the map's owners (:attr:`MapHeader.owners`: the identities that built it); a version-1 file
+still loads, owned by the operator. :class:`MapStore` keeps a folder of maps, numbered versions of each (at most
+``keep``), with rollback; :class:`MapGrants` lists the robots the operator lets build or extend a map they do not own.
 """
 
 from __future__ import annotations
 
+import contextlib
+import datetime
+import fcntl
 import io
 import json
 import os
@@ -21,26 +28,51 @@ import tempfile
 import threading
 import time
 import zipfile
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from .config import DetectorConfig
 from .dataset import CameraIntrinsics
 from .errors import TwohrError, validation_problems
+from .keys import ROBOT_PATTERN
 from .models import descriptor_space
 
 FORMAT = "twohr-map"
-VERSION = 1
+VERSION = 2
+#: the format versions this twohr reads (version 1 has no owners: the operator's)
+READS = (1, 2)
 SUFFIX = ".map"
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+#: the operator's identity among a map's owners (a robot id cannot start with '@')
+OPERATOR = "@operator"
+#: how many versions of each map a store keeps unless told otherwise
+DEFAULT_KEEP = 10
+#: the operator's map grants (:class:`MapGrants`), in the gateway's key folder
+GRANTS_FILE = "grants.json"
 
 
 class MapFileError(TwohrError):
     """A map file that cannot be used: missing, corrupt, of another format or version, inconsistent, or built with
     another detector model than the one asked for."""
+
+
+class MapMissingError(MapFileError):
+    """No map, or no kept version, by the name or number asked for."""
+
+
+class MapAccessError(MapFileError):
+    """An identity that may not replace a map: neither one of its owners nor granted it by the operator."""
+
+
+def check_owner(identity: str) -> str:
+    """``identity`` if it can own a map (a robot id, or :data:`OPERATOR`); ValueError otherwise."""
+    if identity != OPERATOR and not re.fullmatch(ROBOT_PATTERN.pattern, identity):
+        raise ValueError(f"{identity!r} is neither a robot id nor {OPERATOR}")
+    return identity
 
 
 class MapHeader(BaseModel):
@@ -53,6 +85,9 @@ class MapHeader(BaseModel):
     name: str = Field(pattern=NAME_PATTERN, description="the map's name, also the frame id of poses in it")
     created: float = Field(default_factory=time.time, description="Unix time it was written")
     built_by: str = Field("", description="the run or session that built it")
+    owners: list[str] = Field(default_factory=lambda: [OPERATOR], min_length=1, description="the identities that "
+                              f"built it (robot ids; {OPERATOR} for the operator's uploads and runs): a robot may "
+                              "build or extend the map only when it is one of them or holds the operator's grant")
     parent: str | None = Field(None, description="the map it extends (name@created), if any")
     camera: CameraIntrinsics
     detector_model: str = Field(description="the 2HR detector model its descriptors come from")
@@ -62,6 +97,11 @@ class MapHeader(BaseModel):
     descriptor_dtype: str
     keyframes: int = Field(ge=0)
     landmarks: int = Field(ge=0)
+
+    @field_validator("owners")
+    @classmethod
+    def _known_owners(cls, owners: list[str]) -> list[str]:
+        return list(dict.fromkeys(check_owner(owner) for owner in owners))  # once each, in the order they came
 
     @property
     def frame_id(self) -> str:
@@ -148,7 +188,9 @@ def encode_map(map_file: MapFile) -> bytes:
     map_file.arrays.check(map_file.header)
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", zipfile.ZIP_STORED) as archive:
-        archive.writestr("header.json", map_file.header.model_dump_json(indent=1))
+        # written in this twohr's format, whatever the version it was read in (a version-1 map gets its owners)
+        archive.writestr("header.json", map_file.header.model_copy(update={"version": VERSION}).model_dump_json(
+            indent=1))
         for field in fields(MapArrays):
             array = io.BytesIO()
             np.save(array, np.ascontiguousarray(getattr(map_file.arrays, field.name)), allow_pickle=False)
@@ -158,19 +200,17 @@ def encode_map(map_file: MapFile) -> bytes:
 
 def write_bytes_atomically(path: str | Path, data: bytes) -> None:
     """Write ``data`` to ``path`` so that a reader finds the old file or the whole new one, never a part (temporary
-    file beside it, fsync, rename, fsync of the folder)."""
+    file beside it, fsync, rename, fsync of the folder). The file is private (0600: a map is the robots' surroundings),
+    and a folder made for it too (0700)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
     handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(handle, "wb") as out:
             out.write(data)
             out.flush()
             os.fsync(out.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(temporary, 0o666 & ~umask)  # as any file written here (mkstemp makes it private)
-        os.replace(temporary, path)
+        os.replace(temporary, path)  # mkstemp made it 0600
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise
@@ -229,11 +269,43 @@ def verify_bytes(data: bytes) -> MapHeader:
     return read_map(data).header
 
 
+def with_owners(data: bytes, owners: list[str]) -> bytes:
+    """A map file's bytes with ``owners`` in its header (and this twohr's format version); the arrays are copied
+    as they are."""
+    with _archive(data) as archive:
+        header = _header(archive, "map")
+        header = MapHeader.model_validate({**header.model_dump(), "owners": owners, "version": VERSION})
+        buffer = io.BytesIO()
+        with zipfile.ZipFile(buffer, "w", zipfile.ZIP_STORED) as out:
+            out.writestr("header.json", header.model_dump_json(indent=1))
+            for member in archive.infolist():
+                if member.filename != "header.json":
+                    out.writestr(member.filename, archive.read(member))
+    return buffer.getvalue()
+
+
+class MapGrants(BaseModel):
+    """The operator's grants (``grants.json`` in the gateway's key folder, written by ``twohr keys grant``): the
+    robots that may build or extend a map they do not own, by map name, with when each was granted."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    maps: dict[str, dict[str, datetime.datetime]] = Field(default_factory=dict)
+
+    def allows(self, robot: str, name: str) -> bool:
+        """Whether ``robot`` holds the operator's grant on map ``name``."""
+        return robot in self.maps.get(name, {})
+
+
 class MapEntry(BaseModel):
     """One map of a :class:`MapStore`, as ``GET /maps`` and ``twohr maps list`` show it."""
 
     name: str
-    version: int = Field(description="1 for the first map saved under this name, then one more per save")
+    version: int = Field(description="the latest version's number: 1 for the first map saved under this name, then "
+                         "one more per save or rollback (numbers are never reused)")
+    versions: list[int] = Field(default_factory=list, description="the versions the store keeps, oldest first (the "
+                                "oldest go past the store's limit; the others keep their numbers)")
+    owners: list[str] = Field(default_factory=list, description="the identities that built the latest version")
     keyframes: int
     landmarks: int
     size_bytes: int
@@ -243,11 +315,17 @@ class MapEntry(BaseModel):
 
 
 class MapStore:
-    """A folder of maps: ``<name>.map`` is a map's latest version; saving a map under a name that exists keeps the
-    previous file as ``<name>.v<N>.map`` (never overwritten in place)."""
+    """A folder of maps. Every version of map ``name`` is ``<name>.v<N>.map`` (N = 1, 2, … never reused) and
+    ``<name>.map`` is the latest (a hard link to its numbered file), the one readers load; a file is never
+    overwritten in place. At most ``keep`` versions are kept: past it the oldest go. A folder written before
+    versions were numbered this way (no numbered file for the latest) is read as it is and converted at its next
+    save. Changes hold a lock that other processes on the folder (``twohr maps rollback``) respect too."""
 
-    def __init__(self, root: str | Path) -> None:
+    def __init__(self, root: str | Path, keep: int = DEFAULT_KEEP) -> None:
+        if keep < 1:
+            raise MapFileError(f"a map store keeps at least one version of each map, not {keep}")
         self.root = Path(root)
+        self.keep = keep
 
     def path(self, name: str) -> Path:
         """The latest version's file of map ``name`` (:class:`MapFileError` for a name that is not one)."""
@@ -260,19 +338,70 @@ class MapStore:
         stems = (p.name.removesuffix(SUFFIX) for p in self.root.glob(f"*{SUFFIX}"))
         return sorted(stem for stem in stems if re.fullmatch(NAME_PATTERN, stem) and not _is_version(stem))
 
+    def _numbered(self, name: str) -> dict[int, Path]:
+        """Every numbered version file of map ``name``, by number."""
+        found = {}
+        for p in self.root.glob(f"{name}.v*{SUFFIX}"):  # a map name has no glob characters
+            number = p.name[len(name) + 2:-len(SUFFIX)]
+            if number.isdigit() and p.name == f"{name}.v{int(number)}{SUFFIX}":
+                found[int(number)] = p
+        return found
+
+    def _latest(self, name: str, numbered: dict[int, Path]) -> int | None:
+        """The latest version's number (None: no map ``name``): the highest numbered file when ``<name>.map`` is it,
+        else one more (a store of the earlier layout, whose latest had no numbered file)."""
+        path = self.path(name)
+        if not path.is_file():
+            return None
+        if not numbered:
+            return 1
+        top = max(numbered)
+        return top if _same_file(path, numbered[top]) else top + 1
+
+    def numbers(self, name: str) -> list[int]:
+        """The numbers of the kept versions of map ``name``, oldest first, the latest last ([] for no map)."""
+        numbered = self._numbered(name)
+        latest = self._latest(name, numbered)
+        return sorted({*numbered, latest}) if latest is not None else []
+
     def versions(self, name: str) -> list[Path]:
-        """The kept earlier versions of map ``name``, oldest first."""
-        found = [(int(p.name[len(name) + 2:-len(SUFFIX)]), p) for p in self.root.glob(f"{name}.v*{SUFFIX}")
-                 if p.name[len(name) + 2:-len(SUFFIX)].isdigit()]
-        return [p for _, p in sorted(found)]
+        """The kept earlier versions of map ``name`` (the latest left out), oldest first."""
+        numbered = self._numbered(name)
+        latest = self._latest(name, numbered)
+        return [p for number, p in sorted(numbered.items()) if number != latest]
+
+    def version_path(self, name: str, version: int) -> Path:
+        """The file of version ``version`` of map ``name``; :class:`MapMissingError` when it is not kept."""
+        numbered = self._numbered(name)
+        latest = self._latest(name, numbered)
+        if version == latest:
+            return numbered.get(version, self.path(name))
+        if version not in numbered:
+            kept = sorted({*numbered, *([latest] if latest else [])})
+            raise MapMissingError(f"map {name!r} has no version {version}" + (
+                f" (kept: {', '.join(map(str, kept))})" if kept else ""))
+        return numbered[version]
+
+    def owners(self, name: str) -> list[str] | None:
+        """The owners of map ``name``'s latest version; None when there is no such map. An unreadable file is the
+        operator's alone."""
+        path = self.path(name)
+        if not path.is_file():
+            return None
+        try:
+            return read_header(path).owners
+        except MapFileError:
+            return [OPERATOR]
 
     def entry(self, name: str) -> MapEntry:
         """What the latest version of map ``name`` is; :class:`MapFileError` when it is missing or unreadable."""
         path = self.path(name)
         header = read_header(path)
-        return MapEntry(name=name, version=len(self.versions(name)) + 1, keyframes=header.keyframes,
-                        landmarks=header.landmarks, size_bytes=path.stat().st_size, built_by=header.built_by,
-                        created=header.created, detector_model=header.detector_model)
+        numbers = self.numbers(name)
+        return MapEntry(name=name, version=numbers[-1], versions=numbers,
+                        owners=header.owners, keyframes=header.keyframes, landmarks=header.landmarks,
+                        size_bytes=path.stat().st_size, built_by=header.built_by, created=header.created,
+                        detector_model=header.detector_model)
 
     def entries(self) -> tuple[list[MapEntry], dict[str, str]]:
         """Every readable map, and why each unreadable one is not (by name)."""
@@ -284,37 +413,108 @@ class MapStore:
                 bad[name] = str(exc)
         return good, bad
 
-    def save(self, data: bytes, name: str | None = None) -> MapEntry:
-        """Keep a map file's bytes (checked through first) as the latest version of ``name`` (default, and it must
-        be: the name in its header, the frame its poses are in); the version it replaces is kept. The latest file is
-        replaced atomically: a reader always finds the old or the new one."""
+    def save(self, data: bytes, name: str | None = None, builder: str | None = None,
+             may_replace: Callable[[list[str]], bool] | None = None) -> MapEntry:
+        """Keep a map file's bytes (checked through first) as the next version of ``name`` (default, and it must
+        be: the name in its header, the frame its poses are in). With ``builder`` (a robot id or
+        :data:`OPERATOR`), the new version's owners are the replaced version's and ``builder`` (a new map:
+        ``builder`` alone); without, they are the file's own. ``may_replace(owners)``, asked under the store's lock
+        when the map exists, False: :class:`MapAccessError` and nothing changes. The latest file is replaced
+        atomically: a reader always finds the old or the new one."""
         header = verify_bytes(data)
         name = name or header.name
         if name != header.name:
             raise MapFileError(f"the file holds map {header.name!r}, not {name!r} (a map's name is its frame)")
         path = self.path(name)
-        self.root.mkdir(parents=True, exist_ok=True)
-        with _STORE_LOCK:  # an upload and a tracker's save may come at once
-            if path.exists():
-                kept = self.versions(name)
-                number = 1 + (int(kept[-1].name[len(name) + 2:-len(SUFFIX)]) if kept else 0)
-                os.link(path, self.root / f"{name}.v{number}{SUFFIX}")
-            write_bytes_atomically(path, data)
-            return self.entry(name)
+        with self._locked():  # an upload and a tracker's save may come at once, from two processes too
+            owners = self.owners(name)
+            if owners is not None and may_replace is not None and not may_replace(owners):
+                raise MapAccessError(f"map {name!r} is owned by {', '.join(owners)}: building or extending it needs "
+                                     f"ownership or the operator's grant (twohr keys grant DIR ROBOT --map {name})")
+            if builder is not None:
+                data = with_owners(data, [*(owners or []), check_owner(builder)])
+            return self._add_version(name, path, data)
+
+    def rollback(self, name: str, version: int) -> MapEntry:
+        """Make kept version ``version`` of map ``name`` the latest again, byte for byte, as a new version (the
+        versions after it stay, until the store's limit prunes them); :class:`MapMissingError` when the map or that
+        version is not kept, :class:`MapFileError` when it is already the latest or no longer readable."""
+        path = self.path(name)
+        with self._locked():
+            numbered = self._numbered(name)
+            latest = self._latest(name, numbered)
+            if latest is None:
+                raise MapMissingError(f"no map named {name!r}")
+            if version == latest:
+                raise MapFileError(f"version {version} is already the latest of map {name!r}")
+            data = self.version_path(name, version).read_bytes()
+            verify_bytes(data)  # a damaged file is not made the latest
+            return self._add_version(name, path, data)
+
+    def _add_version(self, name: str, path: Path, data: bytes) -> MapEntry:
+        """Write ``data`` as the next version of map ``name`` and make it the latest (the store's lock held)."""
+        numbered = self._numbered(name)
+        latest = self._latest(name, numbered)
+        if latest is not None and latest not in numbered:  # the earlier layout: the latest gets its number first
+            os.link(path, self.root / f"{name}.v{latest}{SUFFIX}")
+        number = (latest or 0) + 1
+        numbered_path = self.root / f"{name}.v{number}{SUFFIX}"
+        write_bytes_atomically(numbered_path, data)
+        _link_atomically(numbered_path, path)
+        for old in sorted({*self._numbered(name)})[:-self.keep]:
+            (self.root / f"{name}.v{old}{SUFFIX}").unlink(missing_ok=True)
+        return self.entry(name)
 
     def delete(self, name: str) -> bool:
         """Remove map ``name`` and its kept versions; False when there was none."""
         path = self.path(name)
-        with _STORE_LOCK:
+        with self._locked():
             if not path.exists():
                 return False
-            for old in self.versions(name):
+            for old in self._numbered(name).values():
                 old.unlink(missing_ok=True)
             path.unlink()
             return True
 
+    @contextlib.contextmanager
+    def _locked(self) -> Iterator[None]:
+        """The store's lock: this process's threads, and (a lock file in the folder) other processes."""
+        self.root.mkdir(parents=True, exist_ok=True, mode=0o700)
+        with _STORE_LOCK:
+            handle = os.open(self.root / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o600)
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX)
+                yield
+            finally:
+                os.close(handle)  # releases the lock
+
 
 _STORE_LOCK = threading.Lock()
+LOCK_FILE = ".store.lock"
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether two paths hold the same version: the same file (a hard link), or the same bytes (a copied store)."""
+    if os.path.samefile(a, b):
+        return True
+    return a.stat().st_size == b.stat().st_size and a.read_bytes() == b.read_bytes()
+
+
+def _link_atomically(source: Path, target: Path) -> None:
+    """Make ``target`` a hard link to ``source``, replacing whatever ``target`` was at once."""
+    temporary = target.with_name(f".{target.name}.{os.getpid()}.{threading.get_ident()}.link")
+    temporary.unlink(missing_ok=True)
+    os.link(source, temporary)
+    try:
+        os.replace(temporary, target)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+    directory = os.open(target.parent, os.O_RDONLY)
+    try:
+        os.fsync(directory)
+    finally:
+        os.close(directory)
 
 
 def _is_version(stem: str) -> bool:
@@ -355,8 +555,13 @@ def _header(archive: zipfile.ZipFile, path) -> MapHeader:
     if not isinstance(raw, dict) or raw.get("format") != FORMAT:
         found = raw.get("format") if isinstance(raw, dict) else raw
         raise MapFileError(f"{path}: not a twohr map file (format {found!r})")
-    if raw.get("version") != VERSION:
-        raise MapFileError(f"{path}: map format version {raw.get('version')}, this twohr reads version {VERSION}")
+    if raw.get("version") not in READS:
+        raise MapFileError(f"{path}: map format version {raw.get('version')}, this twohr reads versions "
+                           f"{', '.join(map(str, READS))}")
+    if raw["version"] == 1:  # before maps had owners: the operator's
+        if "owners" in raw:
+            raise MapFileError(f"{path}: header.json: a version-1 map has no owners")
+        raw = {**raw, "owners": [OPERATOR]}
     try:
         return MapHeader.model_validate(raw)
     except ValidationError as exc:

@@ -15,6 +15,8 @@ from pathlib import Path
 from mcap.reader import NonSeekingReader
 from mcap.writer import CompressionType, Writer
 
+from .paths import open_private
+
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
@@ -41,7 +43,7 @@ def recover(path: str | Path) -> int | None:
         return None
     tmp = path.with_name(path.name + ".recovering")
     kept = 0
-    with open(path, "rb") as src, open(tmp, "wb") as dst:
+    with open(path, "rb") as src, open_private(tmp) as dst:
         writer = Writer(dst, compression=CompressionType.ZSTD)
         writer.start(profile="", library="twohr (recovered)")
         schemas: dict[int, int] = {}
@@ -61,5 +63,6 @@ def recover(path: str | Path) -> int | None:
             pass
         writer.finish()
     os.replace(tmp, path)
-    partial_marker(path).write_text(json.dumps({"messages": kept, "recovered_at": time.time()}))
+    with open_private(partial_marker(path), "w") as marker:
+        marker.write(json.dumps({"messages": kept, "recovered_at": time.time()}))
     return kept

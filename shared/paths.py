@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from .errors import TwohrError
@@ -29,3 +30,15 @@ def resolve_under_roots(path: str, roots: list[Path]) -> Path:
                     raise TwohrError(f"sequence folder not found: {path}")
                 return real
     raise TwohrError(f"{path} is not under the data roots {[str(r) for r in roots]}")
+
+
+def open_private(path: str | Path, mode: str = "wb"):
+    """``open(path, mode)`` for writing a new (or emptied) file that only its owner may read: 0600 from its creation,
+    whatever the umask, and a file already there is narrowed to it (recordings show the robots' surroundings)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o600)
+    try:
+        os.fchmod(fd, 0o600)
+        return os.fdopen(fd, mode)
+    except BaseException:
+        os.close(fd)
+        raise

@@ -58,10 +58,12 @@ def test_every_container_mounts_only_its_own_key():
         assert svc["depends_on"][waits_for[0]]["condition"] == waits_for[1], name
     assert services["router"]["command"][-2:] == ["--listen", "tls/0.0.0.0:7447"]
     command = services["gateway"]["command"]
-    for flag, value in (("--api-token-file", "/run/twohr/keys/api-token"), ("--tls-keys", "/run/twohr/keys"),
+    for flag, value in (("--api-token-file", "/run/twohr/keys/operator.token"), ("--tls-keys", "/run/twohr/keys"),
                         ("--robot-tokens", "/run/twohr/keys/tokens.json"), ("--maps", "/maps")):
         assert command[command.index(flag) + 1] == value, flag
     assert "https://" in services["gateway"]["healthcheck"]["test"][-1]
+    # the live view runs beside the HTTPS gateway with its keys: on TLS, with a token (tests/test_live_view_security.py)
+    assert command[command.index("--foxglove-port") + 1] == "8765" and "--tls-keys" in command
     assert any(v.endswith(":/maps") for v in services["gateway"]["volumes"])
 
 
@@ -102,7 +104,8 @@ def test_override_files_publish_ports_or_use_the_host_network():
     ports = yaml.safe_load((REPO / "docker-compose.override.yml").read_text())["services"]
     # published on loopback unless TWOHR_*_BIND says otherwise
     assert ports == {"router": {"ports": ["${TWOHR_ROUTER_BIND:-127.0.0.1}:${TWOHR_ROUTER_PORT:-7447}:7447"]},
-                     "gateway": {"ports": ["${TWOHR_GATEWAY_BIND:-127.0.0.1}:${TWOHR_GATEWAY_PORT:-8080}:8080"]}}
+                     "gateway": {"ports": ["${TWOHR_GATEWAY_BIND:-127.0.0.1}:${TWOHR_GATEWAY_PORT:-8080}:8080",
+                                           "${TWOHR_GATEWAY_BIND:-127.0.0.1}:${TWOHR_LIVE_PORT:-8765}:8765"]}}
     assert all("ports" not in svc and "networks" not in svc for svc in COMPOSE["services"].values())
 
     host = yaml.safe_load((REPO / "docker-compose.host.yml").read_text())["services"]

@@ -17,10 +17,12 @@ from pathlib import Path
 
 import httpx
 import pytest
+from websockets.exceptions import InvalidStatus
 
 from conftest import REPO
 from twohr.bus import BusConfig, free_port, open_session
 from twohr.errors import TwohrError
+from twohr.foxglove_live import FoxgloveClient
 from twohr.identity import load_identity
 from twohr.keys import PIPELINE_SERVICES
 from twohr_lab.bench import latency_summary, session_latency
@@ -121,10 +123,11 @@ def stack(tmp_path_factory, dev_sequence, model_mirror):
             os.chown(folder, 10001, 10001)  # the image's non-root user writes the recordings and maps
         else:
             folder.chmod(0o777)
-    router_port, gateway_port = free_port(), free_port()
+    router_port, gateway_port, live_port = free_port(), free_port(), free_port()
     env = {**os.environ, "TWOHR_DATA": str(dev_sequence.parent), "TWOHR_MODELS": str(model_mirror),
            "TWOHR_RECORDINGS": str(recordings), "TWOHR_MAPS": str(maps), "TWOHR_ROUTER_PORT": str(router_port),
-           "TWOHR_GATEWAY_PORT": str(gateway_port), "TWOHR_API_TOKEN": TOKEN, "TWOHR_KEYS": str(KEYS["dir"]),
+           "TWOHR_GATEWAY_PORT": str(gateway_port), "TWOHR_LIVE_PORT": str(live_port), "TWOHR_API_TOKEN": TOKEN,
+           "TWOHR_KEYS": str(KEYS["dir"]),
            # docker-compose's 60 s default is short where creating a container copies the image (vfs)
            "COMPOSE_HTTP_TIMEOUT": os.environ.get("COMPOSE_HTTP_TIMEOUT", "600")}
     t0 = time.time()
@@ -139,7 +142,8 @@ def stack(tmp_path_factory, dev_sequence, model_mirror):
         assert added.returncode == 0, added.stderr
         wait_for_every_service(f"https://127.0.0.1:{gateway_port}", env)  # the router restarted with the new robot
         yield {"router": f"tls/127.0.0.1:{router_port}", "gateway": f"https://127.0.0.1:{gateway_port}",
-               "recordings": recordings, "maps": maps, "startup_s": time.time() - t0, "bundle": bundle, "env": env}
+               "recordings": recordings, "maps": maps, "startup_s": time.time() - t0, "bundle": bundle, "env": env,
+               "live": f"wss://127.0.0.1:{live_port}"}
     finally:
         if not healthy:
             print(compose("logs", "--tail", "40", env=env).stdout)
@@ -153,6 +157,11 @@ def test_session_in_containers_streams_every_pose_and_records_mcap(stack, dev_se
         open_session(BusConfig(connect=[stack["router"]], identity=None, user=None, password=None,
                                config_file=None)).close()
     assert httpx.get(f"{stack['gateway']}/sessions", timeout=30, verify=ca()).status_code == 401
+    # the live view too: TLS with the fleet's certificate, and no channel without a token
+    with pytest.raises(InvalidStatus) as refused:
+        FoxgloveClient(stack["live"], cafile=KEYS["dir"] / "ca.crt")
+    assert refused.value.response.status_code == 401
+    viewer = FoxgloveClient(stack["live"], token=TOKEN, cafile=KEYS["dir"] / "ca.crt")
     seen = compose("exec", "-T", "tracker", "ls", "/run/twohr/keys", env=stack["env"]).stdout.split()
     assert sorted(seen) == ["ca.crt", "cert.pem", "key.pem", "password"], seen
     robot = BusConfig(connect=[stack["router"]], identity=load_identity(stack["bundle"]), user=None, password=None,
@@ -164,6 +173,10 @@ def test_session_in_containers_streams_every_pose_and_records_mcap(stack, dev_se
     # the independent subscriber outside the containers saw every frame's pose, once
     assert sorted(result["frame_indices"]) == list(range(FRAMES))
     assert info["ate_rmse"] is not None and info["ate_rmse"] < 0.05, info  # a real trajectory, not a stub
+    # the operator's viewer saw the robot's camera and poses live
+    viewer.close()
+    assert viewer.counts.get("/compose/camera/image", 0) > 0 and viewer.counts.get("/compose/pose", 0) > 0, \
+        viewer.counts
 
     # the gateway serves the file once the recorder has finalised it; the same bytes are in the mounted folder
     with https(stack["gateway"]) as client:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -72,7 +73,7 @@ def fleet(tmp_path_factory, network, dev_sequence):
     try:
         net.make([("stack", STACK[h], h, HOST[h]) for h in HOST])
         made = subprocess.run(twohr("keys", "init", str(keys), *[f"--host={ip}" for ip in STACK.values()]),
-                              capture_output=True, text=True, timeout=60)
+                              capture_output=True, text=True, timeout=60, env=os.environ | {"TWOHR_API_TOKEN": TOKEN})
         assert made.returncode == 0, made.stderr
         for robot in ("a", "b"):
             added = subprocess.run(twohr("keys", "add", str(keys), robot, "--out", str(tmp / f"{robot}.bundle"),
@@ -81,7 +82,7 @@ def fleet(tmp_path_factory, network, dev_sequence):
         capture = net.start("stack", "tcpdump", "-i", net.devices[("stack", "a")], "-U", "-s", "0", "-w",
                             str(tmp / "a-link.pcap"))
         stack = net.start("stack", *twohr("up", "--keys", str(keys), "--router", f"tls/0.0.0.0:{PORT}", "--port",
-                                           str(GATEWAY), "--api-token", TOKEN, "--foxglove-port", "0",
+                                           str(GATEWAY), "--foxglove-port", "0",
                                            "--max-robots", "4", "--data-root", str(dev_sequence.parent), "--recordings",
                                            str(tmp / "recordings")))
         stack.wait_for(lambda text: "all healthy" in text, 240)
@@ -198,8 +199,12 @@ def test_a_revoked_robot_is_shut_out_while_the_others_go_on(fleet, dev_sequence)
 
 
 def test_a_detector_replica_on_another_host_joins_with_its_own_key_and_takes_jobs(fleet, dev_sequence):
+    # the far host is given a certificate of its own (detector@far), not the fleet's keys
+    added = subprocess.run(twohr("keys", "add-service", str(fleet["keys"]), "detector", "far", "--out",
+                                 str(fleet["tmp"] / "far-keys")), capture_output=True, text=True, timeout=60)
+    assert added.returncode == 0, added.stderr
     far = fleet["net"].start("far", *twohr("up", "--join", f"tls/{STACK['far']}:{PORT}", "--only", "detector",
-                                          "--keys", str(fleet["keys"])))
+                                          "--keys", str(fleet["tmp"] / "far-keys")))
     joined = far.wait_for(lambda text: "joined" in text, 120)
     replica = joined.split("replicas ", 1)[1].split(";", 1)[0].strip()
     before = api(fleet, "GET", "/healthz").json()["services"]["tracker"]["jobs"]["detector"]

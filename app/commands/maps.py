@@ -1,4 +1,6 @@
-"""``twohr maps``: the maps in a map store folder (``twohr up --maps DIR``) or in files: list, show, verify."""
+"""``twohr maps``: the maps in a map store folder (``twohr up --maps DIR``) or in files: list, show, verify, and roll
+a map back to an earlier version (on the folder, when no stack serves it; a running stack's operator uses
+``POST /maps/NAME/rollback?version=N``)."""
 
 from __future__ import annotations
 
@@ -15,11 +17,13 @@ def _list(args: argparse.Namespace) -> int:
     if not Path(args.maps).is_dir():
         raise TwohrError(f"no map store folder {args.maps} (twohr up --maps DIR makes one)")
     good, bad = MapStore(args.maps).entries()
-    print(f"{'name':24} {'version':>7} {'keyframes':>9} {'landmarks':>9} {'size':>10}  built")
+    print(f"{'name':24} {'version':>7} {'kept':>8} {'keyframes':>9} {'landmarks':>9} {'size':>10}  built")
     for entry in good:
         built = time.strftime("%Y-%m-%d %H:%M", time.localtime(entry.created))
-        print(f"{entry.name:24} {entry.version:>7} {entry.keyframes:>9} {entry.landmarks:>9} "
-              f"{entry.size_bytes / 1e6:>8.2f} MB  {built} by {entry.built_by or '?'}")
+        kept = f"{entry.versions[0]}-{entry.versions[-1]}" if len(entry.versions) > 1 else str(entry.version)
+        print(f"{entry.name:24} {entry.version:>7} {kept:>8} {entry.keyframes:>9} {entry.landmarks:>9} "
+              f"{entry.size_bytes / 1e6:>8.2f} MB  {built} by {entry.built_by or '?'}; owners "
+              f"{', '.join(entry.owners)}")
     for name, why in bad.items():
         print(f"{name:24} UNREADABLE: {why}")
     return 0 if not bad else 1
@@ -63,6 +67,22 @@ def _verify(args: argparse.Namespace) -> int:
     return 2 if failed else 0
 
 
+def _rollback(args: argparse.Namespace) -> int:
+    from twohr.errors import TwohrError
+    from twohr.mapfile import OPERATOR, MapStore
+    from twohr_services.gateway.audit import AuditLog
+
+    if not Path(args.maps).is_dir():
+        raise TwohrError(f"no map store folder {args.maps}")
+    entry = MapStore(args.maps, args.map_versions).rollback(args.map, args.version)
+    AuditLog(Path(args.audit)).record("map.rollback", OPERATOR, map=args.map, version=entry.version,
+                                      detail=f"version {entry.version} is version {args.version}'s bytes "
+                                      "(twohr maps rollback)")
+    print(f"map {args.map}: version {entry.version} is version {args.version} again (byte for byte); kept "
+          f"versions {', '.join(map(str, entry.versions))}; logged in {args.audit}")
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("maps", help="saved maps: list a map store, show or verify map files",
                        description="Maps saved by `twohr run --save-map FILE` or by sessions with a map "
@@ -74,7 +94,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     verify = actions.add_parser("verify", help="check map files through (exit 2 if any is unusable)")
     verify.add_argument("maps_or_files", nargs="+", metavar="MAP", help=".map files or names in --maps")
     verify.add_argument("--detector-model", default=None, help="also check they were built with this detector model")
-    for action in (listing, show, verify):
+    rollback = actions.add_parser("rollback", help="make an earlier version of a map the latest again (a new "
+                                  "version, the same bytes), on the folder when no stack serves it")
+    rollback.add_argument("map", help="the map's name in --maps")
+    rollback.add_argument("--version", type=int, required=True, help="the kept version to restore (twohr maps list)")
+    rollback.add_argument("--map-versions", type=int, default=10, metavar="N", help="versions of each map to keep, "
+                          "as twohr up --map-versions (default 10)")
+    rollback.add_argument("--audit", default="recordings/audit.jsonl", metavar="FILE", help="the audit trail the "
+                          "rollback is appended to: the stack's (default recordings/audit.jsonl, twohr up's with its "
+                          "default --recordings)")
+    rollback.set_defaults(func=_rollback)
+    for action in (listing, show, verify, rollback):
         action.add_argument("--maps", default="maps", help="the map store folder (default ./maps)")
     listing.set_defaults(func=_list)
     show.set_defaults(func=_show)

@@ -43,7 +43,7 @@ def _fleet_router(args: argparse.Namespace) -> int:
         if any(not endpoint.startswith("tls/") for endpoint in listen):
             raise TwohrError("a fleet's router listens on tls/ endpoints only")
         DenialLog().start()
-        router = FleetRouter(keys, listen, args.ros2_domain)
+        router = FleetRouter(keys, listen, args.ros2_domain, state=args.state)
         return _serve(router, f"listening on {', '.join(listen)} with the fleet keys in {keys} (robots "
                       f"{', '.join(router.robots) or 'none yet'})")
     identity = load_identity(keys)  # a robot's bundle: its own router
@@ -84,5 +84,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--connect", default=None, metavar="tls/HOST:PORT", help="a robot's router: the stack's router "
                    "(default: the bundle's endpoint)")
     p.add_argument("--ros2-domain", type=int, default=0, help="ROS 2 domain whose rmw_zenoh keys clients may use")
+    p.add_argument("--state", default=None, metavar="FOLDER", help="a fleet stack's router: where it keeps its lease "
+                   "and acknowledges each robots' list, which twohr keys revoke waits for (default <keys>/state/router "
+                   "for <keys>/services/router; a container mounts that folder writable, its keys read-only)")
     p.add_argument("--insecure", action="store_true", help="admit anyone, no access control")
     p.set_defaults(func=_router)

@@ -10,13 +10,16 @@ Outside clients (camera drivers, other robots, ROS 2 nodes) join with the client
 A fleet across hosts: ``--keys DIR`` (``twohr keys init DIR``) with ``--router tls/HOST:PORT`` runs every link on
 mutual TLS, each process with its own certificate of the fleet's CA, each robot with its own identity (it may
 publish only its own camera), the gateway on HTTPS; ``twohr keys revoke DIR ROBOT`` shuts a robot out while the
-stack runs. Listening beyond loopback without TLS is refused unless ``--insecure``.
+stack runs. It needs no ``DIR/ca.key`` (keep that offline): the router and the gateway serve the hosts their
+certificates name (``keys init --host``, ``keys add-host``; ``0.0.0.0`` serves them all), and the operator's API
+token is ``DIR/operator.token``. Listening beyond loopback without TLS is refused unless ``--insecure``.
 
 Replicas: ``--replicas detector=2`` runs two detector processes; the tracker sends each keyframe job to one of
 them (the least busy) and, if that one dies, again to another. ``twohr up --join tls/STACK:7447 --only
 detector,yolo --keys DIR`` runs replicas on another host that join a running stack's router, each with its own
-service certificate (DIR holds ``services/<role>/`` for each, copied from the fleet's keys); ``twohr health``
-lists every replica and its host.
+service certificate (DIR holds ``services/<role>/`` for each: ``twohr keys add-service KEYS ROLE HOST --out DIR``
+gives that host certificates of its own, ``ROLE@HOST``, revoked as a robot is); ``twohr health`` lists every
+replica and its host.
 """
 
 from __future__ import annotations
@@ -104,11 +107,27 @@ def _run_until_stopped(system) -> int:
     return 0
 
 
+def _check_keys(args: argparse.Namespace):
+    """The fleet's keys of ``--keys``, checked before anything starts (one line: a host their certificates do not
+    name, an ``--api-token`` beside them); a note when the CA's private key is on this host, where it is not
+    needed."""
+    from ..fleet import Fleet
+    from ..supervisor import check_custody
+
+    fleet = Fleet(args.keys)
+    check_custody(fleet, args.router, [args.host], args.api_token)
+    if (fleet.folder / "ca.key").exists():
+        print(f"note: {fleet.folder / 'ca.key'} is on this host, where the stack does not need it (every process "
+              "of it runs as you): keep it offline, and bring it back only to add a robot, host or replica",
+              file=sys.stderr, flush=True)
+    return fleet
+
+
 def _up(args: argparse.Namespace) -> int:
     from twohr.errors import TwohrError
     from twohr_services.gateway.admission import parse_max_robots
 
-    from ..fleet import new_secret, write_client_config
+    from ..fleet import WILDCARDS, new_secret, write_client_config
     from ..supervisor import check_replicas, gateway_url
 
     if args.join:
@@ -119,9 +138,15 @@ def _up(args: argparse.Namespace) -> int:
         raise ConfigError("--only names the services a --join host runs; a stack runs every service")
     replicas = check_replicas(parse_replicas(args.replicas))
     max_robots = parse_max_robots(args.max_robots)
+    if not 1 <= args.map_versions <= 10_000:
+        from twohr.errors import ConfigError
+
+        raise ConfigError(f"--map-versions {args.map_versions}: give the versions of each map to keep, 1 to 10000")
     check_exposure(args)
-    # the gateway on loopback serves only this host's users; anywhere else it needs a token
-    token = args.api_token or (None if args.insecure or is_loopback(args.host) else new_secret(18))
+    fleet = _check_keys(args) if args.keys else None
+    # the gateway on loopback serves only this host's users; anywhere else it needs a token (on a fleet's keys,
+    # the operator's, in the keys folder)
+    token = None if fleet else args.api_token or (None if args.insecure or is_loopback(args.host) else new_secret(18))
     t0 = time.monotonic()
     print(f"starting router on {args.router} and services {', '.join(PIPELINE_SERVICES)} + gateway …", flush=True)
     if args.keys:
@@ -133,10 +158,12 @@ def _up(args: argparse.Namespace) -> int:
                               args.port, token, args.timeout, secure=not args.insecure,
                               ros2_domain=args.ros2_domain, foxglove_port=args.foxglove_port or None,
                               record_descriptors=args.record_descriptors, maps=args.maps, keys=args.keys,
-                              replicas=replicas, max_robots=max_robots)
+                              replicas=replicas, max_robots=max_robots, map_versions=args.map_versions)
     except (TimeoutError, RuntimeError) as exc:
         raise TwohrError(str(exc)) from None
     url = gateway_url(args.host, args.port, system.access.keys)
+    if fleet is not None and args.host.strip("[]") in WILDCARDS:
+        url += f" (as {', '.join(fleet.served('gateway'))}: the names its certificate holds)"
     print(f"all healthy in {time.monotonic() - t0:.1f} s — gateway {url} (docs at /docs); poses on "
           f"twohr/<robot>/pose; admits {max_robots:g} robots at 30 Hz (--max-robots); Ctrl-C stops everything",
           flush=True)
@@ -145,16 +172,22 @@ def _up(args: argparse.Namespace) -> int:
               file=sys.stderr, flush=True)
     elif token and not args.api_token:
         print(f"HTTP API token (generated): {token}   use: -H 'Authorization: Bearer {token}'", flush=True)
-    if args.keys:
+    if fleet is not None:
         print(f"fleet keys {args.keys}: robots join with their bundle (twohr keys add {args.keys} ROBOT --out "
-              f"ROBOT.bundle --endpoint {args.router}); HTTPS verified with {Path(args.keys) / 'ca.crt'}", flush=True)
+              f"ROBOT.bundle --endpoint {args.router}); HTTPS verified with {Path(args.keys) / 'ca.crt'}; the "
+              f"operator's API token is in {fleet.operator_token}", flush=True)
     elif not args.insecure:
         client_config = write_client_config(Path(args.write_client_config), args.router, system.credentials)
         print(f"Zenoh client config for outside clients: {client_config}", flush=True)
     if args.foxglove_port:
-        from twohr.foxglove_live import view_url
+        from twohr.foxglove_live import view_url, ws_url
 
-        print(f"live view: {view_url(args.host, args.foxglove_port)}", flush=True)
+        if args.keys:  # TLS and a token (the placeholder: a token never goes to the terminal)
+            print(f"live view: {ws_url(args.host, args.foxglove_port)} with TOKEN the operator's API token (every "
+                  f"robot) or a robot's (its own); TLS verified with {Path(args.keys) / 'ca.crt'}; in Foxglove: "
+                  f"{view_url(args.host, args.foxglove_port, tls=True)}", flush=True)
+        else:
+            print(f"live view: {view_url(args.host, args.foxglove_port)}", flush=True)
     return _run_until_stopped(system)
 
 
@@ -168,10 +201,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--maps", default=None, metavar="DIR", help="the map store: sessions build, localize in and "
                    "extend the maps in this folder (POST /sessions with \"map\", GET /maps; served on "
                    "twohr/maps/<name>); kept across restarts")
+    p.add_argument("--map-versions", type=int, default=10, metavar="N", help="versions of each map the store keeps "
+                   "(default 10): past it the oldest go, the others keep their numbers")
     p.add_argument("--host", default="127.0.0.1", help="gateway host")
     p.add_argument("--port", type=int, default=8080, help="gateway port")
     p.add_argument("--api-token", default=None, help="bearer token the HTTP API requires (default: none on a "
-                   "loopback --host; on any other host one is generated and printed)")
+                   "loopback --host; on any other host one is generated and printed; with --keys none: the "
+                   "operator's token is DIR/operator.token)")
     p.add_argument("--write-client-config", default="runs/up/zenoh-client.json5", metavar="FILE",
                    help="where to write the Zenoh client config (router endpoint and credentials) that outside "
                    "clients, camera drivers and ROS 2 nodes use (default: %(default)s, private to you)")
@@ -180,11 +216,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "rmw_zenoh in this domain, which ROS 2 nodes with the client config can read")
     p.add_argument("--keys", default=None, metavar="DIR", help="a fleet's keys (twohr keys init DIR): every link "
                    "mutual TLS with one certificate per process, one identity per robot, revocation while running "
-                   "(twohr keys revoke), the gateway on HTTPS; needed for a --router other hosts can reach")
+                   "(twohr keys revoke), the gateway on HTTPS; needed for a --router other hosts can reach. Runs "
+                   "without DIR/ca.key, on the hosts the keys name (twohr keys add-host)")
     p.add_argument("--insecure", action="store_true", help="no bus authentication, access control or API token "
                    "(local experiments only)")
     p.add_argument("--foxglove-port", type=int, default=8765,
-                   help="Foxglove WebSocket live view on the gateway host (default 8765; 0 turns it off)")
+                   help="Foxglove WebSocket live view on the gateway host (default 8765; 0 turns it off); with "
+                   "--keys on TLS, and a viewer needs ?token= in its URL: the operator's token sees every robot, a "
+                   "robot's its own and the others' poses")
     p.add_argument("--record-descriptors", action="store_true",
                    help="keep the raw keypoint descriptors in every recording (large)")
     p.add_argument("--replicas", action="append", metavar="SERVICE=N", help="run N processes of a network service "

@@ -26,9 +26,21 @@ from .credentials import (
     write_private,
     write_users,
 )
-from .store import LOCAL_NAMES, SERVING_ROLES, Fleet, FleetError, FleetFile, RobotRecord, active_robots, check_robot_id
+from .store import (
+    LOCAL_NAMES,
+    SERVING_ROLES,
+    WILDCARDS,
+    Fleet,
+    FleetError,
+    FleetFile,
+    ReplicaRecord,
+    RobotRecord,
+    active_robots,
+    check_robot_id,
+)
 
-__all__ = ["CLIENT_ROLE", "LOCAL_NAMES", "SERVICE_ROLES", "SERVING_ROLES", "USERS_FILE", "Credentials", "Fleet",
-           "FleetError", "FleetFile", "RobotRecord", "active_robots", "check_robot_id", "client_config",
+__all__ = ["CLIENT_ROLE", "LOCAL_NAMES", "SERVICE_ROLES", "SERVING_ROLES", "USERS_FILE", "WILDCARDS", "Credentials",
+           "Fleet", "FleetError", "FleetFile", "ReplicaRecord", "RobotRecord", "active_robots",
+           "check_robot_id", "client_config",
            "new_secret", "password_file", "pem", "private_folder", "read_users", "reveal", "token_digest",
            "write_client_config", "write_private", "write_users"]

@@ -71,11 +71,13 @@ def issue(ca, ca_key, name: str, days: float, hosts: list[str] | None = None,
 
     key = ec.generate_private_key(ec.SECP256R1())
     start = _start(not_before)
+    # valid ``days`` from now (or from ``not_before``): a short-lived certificate's lifetime is not eaten by the skew
+    until = (not_before or datetime.datetime.now(datetime.timezone.utc)) + datetime.timedelta(days=days)
     builder = (x509.CertificateBuilder()
                .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)]))
                .issuer_name(ca.subject).public_key(key.public_key())
                .serial_number(x509.random_serial_number())
-               .not_valid_before(start).not_valid_after(start + datetime.timedelta(days=days))
+               .not_valid_before(start).not_valid_after(until)
                .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
                .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.CLIENT_AUTH,
                                                      ExtendedKeyUsageOID.SERVER_AUTH]), critical=False))

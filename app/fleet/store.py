@@ -5,34 +5,46 @@ list.
 
     DIR/                      private (0700): whoever holds ca.key can add robots
       ca.crt                  the fleet CA's certificate, the one issuer every process of the fleet trusts
-      ca.key                  its private key (0600)
-      fleet.json              the robots: certificate serial and expiry, revoked or not, bus password,
-                              the SHA-256 of their API token (0600)
+      ca.key                  its private key (0600): needed only to add or renew a certificate (``keys add``,
+                              ``add-host``, ``add-service``); ``twohr up`` and ``keys revoke`` run without it,
+                              so keep it offline
+      operator.token          the operator's API token (0600); the gateway's folder holds the same file
+      fleet.json              the robots and the service replicas of other hosts: certificate serial and expiry,
+                              revoked or not, bus password, the SHA-256 of a robot's API token (0600)
       services/<role>/        one key folder per service role (ca.crt, cert.pem, key.pem, password): the one
                               folder that service's process or container is given
-      services/router/        also users.txt (the bus passwords of the services and of every robot not revoked)
-                              and robots.json (the robots not revoked): the router watches it, and a change
-                              (``twohr keys revoke``) makes it restart with the new list
-      services/gateway/       also api-token (the operator's) and tokens.json: robot -> SHA-256 of its API token,
-                              robots not revoked
+      services/router/        also users.txt (the bus passwords of the services, of the replicas and of every
+                              robot not revoked) and robots.json (the robots and replicas not revoked): the router
+                              watches it, and a change (``twohr keys revoke``) makes it restart with the new list
+      services/gateway/       also operator.token (a hard link to DIR/operator.token) and tokens.json: robot ->
+                              SHA-256 of its API token, robots not revoked
+      services/gateway/grants.json  the operator's map grants (``twohr keys grant``): map -> robot -> when; a
+                              robot may build or extend the maps it built and those it is granted
       robots/<robot>.crt      each robot's certificate, for audit
 
 A robot is given one bundle file (:class:`twohr.identity.Bundle`): its certificate with the robot id as common
-name, its key, the fleet CA, its bus password, its API token and the stack's endpoint.
+name, its key, the fleet CA, its bus password, its API token and the stack's endpoint. A service replica on another
+host is given a key folder of its own (``twohr keys add-service DIR ROLE HOST --out FOLDER``: FOLDER/services/ROLE,
+its certificate named ``ROLE@HOST``), which ``twohr up --join ... --keys FOLDER`` runs with; it is revoked as a robot
+is (``twohr keys revoke DIR ROLE@HOST``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import os
+import re
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 from pydantic import BaseModel, Field, SecretStr
 
 from twohr.errors import TwohrError
 from twohr.identity import CA_FILE, CERT_FILE, KEY_FILE, PASSWORD_FILE, Bundle, Identity, load_identity
-from twohr.keys import RESERVED_ROBOT_IDS, ROBOT_PATTERN
+from twohr.keys import RESERVED_ROBOT_IDS, ROBOT_PATTERN, ROS2_RESERVED_NAMES
 
 from . import certificates
 from .certificates import pem
@@ -50,9 +62,21 @@ from .credentials import (
 #: The roles whose certificates name the hosts they are reached at: they serve TLS (the bus, HTTPS).
 SERVING_ROLES = ("router", "gateway")
 LOCAL_NAMES = ("localhost", "127.0.0.1", "::1")
+#: listen addresses that serve every interface: the names a certificate holds, none of their own
+WILDCARDS = ("0.0.0.0", "::", "")
 CA_DAYS, SERVICE_DAYS, ROBOT_DAYS = 3650, 825, 365
-CA_KEY_FILE, FLEET_FILE, ROBOTS_FILE, TOKENS_FILE, API_TOKEN_FILE = (
-    "ca.key", "fleet.json", "robots.json", "tokens.json", "api-token")
+CA_KEY_FILE, FLEET_FILE, ROBOTS_FILE, TOKENS_FILE, OPERATOR_TOKEN_FILE = (
+    "ca.key", "fleet.json", "robots.json", "tokens.json", "operator.token")
+#: where keys made before operator.token kept the operator's token (``keys init --if-absent`` moves it)
+LEGACY_TOKEN_FILE = "api-token"
+#: the keys folder's lock (:meth:`Fleet.locked`), and how long a command waits for it
+LOCK_FILE, LOCK_TIMEOUT = "keys.lock", 30.0
+#: a robot certificate's longest lifetime (``--days``)
+MAX_ROBOT_DAYS = CA_DAYS
+#: the stack's endpoint in a robot's bundle
+ENDPOINT_PATTERN = re.compile(r"tls/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):[0-9]{1,5}")
+#: a replica's host label, as its certificate names it (``ROLE@HOST``)
+HOST_LABEL = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,62}")
 
 
 class FleetError(TwohrError):
@@ -70,15 +94,31 @@ class RobotRecord(BaseModel):
     token_sha256: str = Field(description="SHA-256 (hex) of its API token; the token itself is in its bundle only")
 
 
+class ReplicaRecord(BaseModel):
+    """A service replica that joins from another host with a certificate of its own (``ROLE@HOST``)."""
+
+    serial: str = Field(description="its certificate's serial number (hex)")
+    not_after: datetime.datetime
+    added: datetime.datetime
+    revoked: datetime.datetime | None = None
+    password: SecretStr
+
+
 class FleetFile(BaseModel):
     """``fleet.json``."""
 
     version: int = Field(1, description="raised by every change; the router restarts when its copy changes")
     robots: dict[str, RobotRecord] = Field(default_factory=dict)
+    replicas: dict[str, ReplicaRecord] = Field(default_factory=dict, description="service replicas of other hosts, "
+                                               "by certificate name ROLE@HOST")
 
     def active(self) -> dict[str, RobotRecord]:
         """The robots not revoked."""
         return {robot: record for robot, record in self.robots.items() if record.revoked is None}
+
+    def active_replicas(self) -> dict[str, ReplicaRecord]:
+        """The replicas not revoked."""
+        return {name: record for name, record in self.replicas.items() if record.revoked is None}
 
 
 class Fleet:
@@ -86,13 +126,62 @@ class Fleet:
 
     def __init__(self, folder: str | Path) -> None:
         self.folder = Path(folder)
+        self._lock_depth = 0
 
     # -- the folder ---------------------------------------------------------------------------------------------
     def exists(self) -> bool:
-        return (self.folder / CA_KEY_FILE).is_file() and (self.folder / FLEET_FILE).is_file()
+        """Whether the folder holds a fleet's keys (its CA's private key may be kept elsewhere)."""
+        return (self.folder / CA_FILE).is_file() and (self.folder / FLEET_FILE).is_file()
+
+    @property
+    def operator_token(self) -> Path:
+        """The operator's API token (``DIR/operator.token``)."""
+        return self.folder / OPERATOR_TOKEN_FILE
 
     def service_folder(self, role: str) -> Path:
         return self.folder / "services" / role
+
+    @property
+    def router_state(self) -> Path:
+        """Where the stack's router keeps its lease and acknowledges each robots' list (``state/router``), which
+        ``twohr keys revoke`` reads: no key in it, so a router whose key folder is read-only writes it."""
+        return self.folder / "state" / "router"
+
+    @contextlib.contextmanager
+    def locked(self, timeout: float = LOCK_TIMEOUT) -> Iterator[None]:
+        """Hold the keys folder's lock (``DIR/keys.lock``, ``flock``) for a read and rewrite of ``fleet.json``:
+        every change (``keys add``, ``revoke``, ``renew``, ``grant``) is made under it, so that two made at once
+        (two processes) cannot lose one. Re-entrant within one :class:`Fleet`."""
+        import fcntl
+
+        if self._lock_depth:
+            self._lock_depth += 1
+            try:
+                yield
+            finally:
+                self._lock_depth -= 1
+            return
+        if not (self.folder / FLEET_FILE).is_file():
+            raise FleetError(f"{self.folder} holds no fleet's keys: make them with `twohr keys init {self.folder}`")
+        fd = os.open(self.folder / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            deadline = time.monotonic() + timeout
+            while True:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    if time.monotonic() > deadline:
+                        raise FleetError(f"{self.folder / LOCK_FILE} is held by another twohr keys command for "
+                                         f"over {timeout:.0f} s: try again when it is done") from None
+                    time.sleep(0.05)
+            self._lock_depth = 1
+            try:
+                yield
+            finally:
+                self._lock_depth = 0
+        finally:
+            os.close(fd)  # closing the file releases the lock
 
     def read(self) -> FleetFile:
         if not self.exists():
@@ -102,33 +191,43 @@ class Fleet:
         except (OSError, ValueError) as exc:
             raise FleetError(f"{self.folder / FLEET_FILE} is unreadable: {str(exc).splitlines()[0]}") from None
 
-    def _save(self, fleet: FleetFile) -> None:
-        fleet.version += 1
+    def _save(self, fleet: FleetFile, router: bool = True) -> None:
+        """Write ``fleet.json`` and what is made from it; ``router=False`` for a change the router has nothing to
+        load from (a renewed certificate): its list and the version stay, and it does not restart."""
+        fleet.version += router
         write_private(self.folder / FLEET_FILE, json.dumps(reveal(fleet), indent=1))
-        self._sync(fleet)
+        self._sync(fleet, router)
 
-    def _sync(self, fleet: FleetFile) -> None:
+    def _sync(self, fleet: FleetFile, router_too: bool = True) -> None:
         """Rewrite what the router and the gateway read from the robots' list (robots not revoked only)."""
         active = fleet.active()
         router, gateway = self.service_folder("router"), self.service_folder("gateway")
         users = {role: (self.service_folder(role) / PASSWORD_FILE).read_text().strip() for role in SERVICE_ROLES}
         users |= {robot: record.password.get_secret_value() for robot, record in active.items()}
-        write_users(router / USERS_FILE, users)
+        replicas = fleet.active_replicas()
+        users |= {name: record.password.get_secret_value() for name, record in replicas.items()}
         write_private(gateway / TOKENS_FILE, json.dumps({r: rec.token_sha256 for r, rec in active.items()}))
-        write_private(router / ROBOTS_FILE, json.dumps({"version": fleet.version, "robots": sorted(active)}))
+        if router_too:
+            write_users(router / USERS_FILE, users)
+            write_private(router / ROBOTS_FILE, json.dumps({"version": fleet.version, "robots": sorted(active),
+                                                            "replicas": sorted(replicas)}))
 
     # -- certificates -------------------------------------------------------------------------------------------
     def issue(self, name: str, days: float, hosts: list[str] | None = None,
               not_before: datetime.datetime | None = None):
         """A new key and a certificate of the fleet CA for common name ``name`` (client and server use; ``hosts``
-        as subject alternative names); returns ``(certificate, key)``."""
+        as subject alternative names); returns ``(certificate, key)``. The one step that needs ``ca.key``."""
+        if not (self.folder / CA_KEY_FILE).is_file():
+            raise FleetError(f"{self.folder / CA_KEY_FILE} is not here: adding or renewing a certificate needs the "
+                             "CA's private key; bring it back for this step (the stack and keys revoke run without it)")
         ca, ca_key = certificates.load_ca((self.folder / CA_FILE).read_bytes(),
                                           (self.folder / CA_KEY_FILE).read_bytes())
         return certificates.issue(ca, ca_key, name, days, hosts, not_before)
 
     def init(self, hosts: list[str] | None = None, api_token: str | None = None) -> None:
         """Make the CA and every service role's key folder, and the operator's API token (``api_token``, else a
-        new one) in the gateway's; :class:`FleetError` if the folder already holds keys."""
+        new one) in ``operator.token``, which the gateway's folder holds too; :class:`FleetError` if the folder
+        already holds keys."""
         if self.exists():
             raise FleetError(f"{self.folder} already holds a fleet's keys (twohr keys list {self.folder})")
         private_folder(self.folder)
@@ -138,8 +237,29 @@ class Fleet:
         for role in SERVICE_ROLES:
             self.issue_service(role, hosts if role in SERVING_ROLES else None)
         (self.folder / "robots").mkdir(exist_ok=True)
-        write_private(self.service_folder("gateway") / API_TOKEN_FILE, api_token or new_secret())
+        write_private(self.operator_token, api_token or new_secret())
+        self._share_operator_token()
         self._save(FleetFile(version=0))
+
+    def _share_operator_token(self) -> None:
+        """Put ``operator.token`` in the gateway's folder too, as a hard link (one file: the gateway, given its own
+        folder only, reads the token the operator reads), or a private copy where links cannot be made."""
+        shared = self.service_folder("gateway") / OPERATOR_TOKEN_FILE
+        shared.unlink(missing_ok=True)
+        try:
+            os.link(self.operator_token, shared)
+        except OSError:
+            write_private(shared, self.operator_token.read_text())
+
+    def adopt_legacy_token(self) -> bool:
+        """Keys made before ``operator.token`` kept the operator's token in the gateway's folder as ``api-token``:
+        move it to ``operator.token``; True if it was moved."""
+        legacy = self.service_folder("gateway") / LEGACY_TOKEN_FILE
+        if self.operator_token.is_file() or not legacy.is_file():
+            return False
+        os.replace(legacy, self.operator_token)
+        self._share_operator_token()
+        return True
 
     def give(self, owners: dict[str, int]) -> None:
         """Hand each service's key folder to the user its container runs as (``role`` or ``*`` -> uid): a
@@ -151,6 +271,11 @@ class Fleet:
             folder = self.service_folder(role)
             for path in (folder, *folder.iterdir()):
                 os.chown(path, uid, uid)
+            if role == "router":  # it writes its lease and acknowledgements there
+                private_folder(self.router_state.parent)
+                private_folder(self.router_state)
+                for path in (self.router_state, *self.router_state.iterdir()):
+                    os.chown(path, uid, uid)
 
     def issue_service(self, role: str, hosts: list[str] | None = None) -> Path:
         """(Re)make the key folder of service ``role``: a new certificate (for ``hosts`` besides the local names,
@@ -165,66 +290,220 @@ class Fleet:
             write_private(folder / PASSWORD_FILE, new_secret())
         return folder
 
-    def serves(self, role: str, hosts: list[str]) -> bool:
-        """Whether the certificate of ``role`` names every one of ``hosts``."""
-        have = set(self._served(role))
-        return all(host.strip("[]") in have for host in hosts)
+    def unnamed(self, role: str, hosts: list[str]) -> list[str]:
+        """Those of ``hosts`` that the certificate of ``role`` does not name; a wildcard address (``0.0.0.0``,
+        ``::``) serves the names the certificate holds, and needs none of its own."""
+        have = set(self.served(role))
+        return [host for host in hosts if host.strip("[]") not in have and host.strip("[]") not in WILDCARDS]
 
-    def ensure_serving(self, role: str, hosts: list[str]) -> None:
-        """Make sure the router's or the gateway's certificate names ``hosts``, issuing a new one if not."""
-        if not self.serves(role, hosts):
-            self.issue_service(role, [*self._served(role), *hosts])
+    def add_hosts(self, hosts: list[str]) -> list[str]:
+        """New certificates for the router and the gateway that name ``hosts`` too (needs ``ca.key``); returns the
+        names they now hold. A running stack serves them from its next start."""
+        for role in SERVING_ROLES:
+            self.issue_service(role, [*self.served(role), *hosts])
+        return self.served("gateway")
 
-    def _served(self, role: str) -> list[str]:
+    def served(self, role: str) -> list[str]:
+        """The host names and addresses the certificate of ``role`` names."""
         return certificates.served_hosts((self.service_folder(role) / CERT_FILE).read_bytes())
 
     # -- robots ---------------------------------------------------------------------------------------------------
     def add(self, robot: str, out: Path, endpoint: str | None = None, days: float = ROBOT_DAYS) -> Bundle:
-        """Add ``robot`` to the fleet and write its bundle to ``out`` (private, 0600)."""
+        """Add ``robot`` to the fleet and write its bundle to ``out`` (private, 0600, a new file of ours)."""
         check_robot_id(robot)
-        if days <= 0:
-            raise FleetError(f"--days must be positive, not {days}")
-        fleet = self.read()
-        if robot in fleet.active():
-            raise FleetError(f"robot {robot!r} is already in the fleet (revoke it first to issue a new bundle)")
-        cert, key = self.issue(robot, days)
-        token, password = new_secret(), new_secret()
+        check_days(days)
+        check_endpoint(endpoint)
+        out = check_out(out)
+        with self.locked():
+            fleet = self.read()
+            if robot in fleet.active():
+                raise FleetError(f"robot {robot!r} is already in the fleet (revoke it first to issue a new bundle)")
+            cert, key = self.issue(robot, days)
+            token, password = new_secret(), new_secret()
+            bundle = self._bundle(robot, cert, key, password, token, endpoint, out)
+            now = datetime.datetime.now(datetime.timezone.utc)
+            fleet.robots[robot] = RobotRecord(serial=f"{cert.serial_number:x}", not_after=cert.not_valid_after_utc,
+                                              added=now, password=SecretStr(password),
+                                              token_sha256=token_digest(token))
+            self._save(fleet)
+        return bundle
+
+    def _bundle(self, robot: str, cert, key, password: str, token: str, endpoint: str | None, out: Path) -> Bundle:
         bundle = Bundle(name=robot, ca_pem=(self.folder / CA_FILE).read_text(), cert_pem=pem(cert),
                         key_pem=SecretStr(pem(key)), password=SecretStr(password), endpoint=endpoint,
                         api_token=SecretStr(token))
-        out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
+        out.unlink(missing_ok=True)  # a new file, ours: write_private would keep an old one's owner
         write_private(out, json.dumps(reveal(bundle), indent=1))
         (self.folder / "robots" / f"{robot}.crt").write_text(bundle.cert_pem)  # public
-        now = datetime.datetime.now(datetime.timezone.utc)
-        fleet.robots[robot] = RobotRecord(serial=f"{cert.serial_number:x}", not_after=cert.not_valid_after_utc,
-                                          added=now, password=SecretStr(password), token_sha256=token_digest(token))
-        self._save(fleet)
         return bundle
 
-    def revoke(self, robot: str) -> RobotRecord:
-        """Shut ``robot`` out: the router drops it from its users and its access list when it sees the change
-        (within a second or two), and the gateway forgets its token."""
-        fleet = self.read()
-        record = fleet.robots.get(robot)
-        if record is None:
-            raise FleetError(f"no robot {robot!r} in {self.folder} (twohr keys list {self.folder})")
-        if record.revoked is None:
-            record.revoked = datetime.datetime.now(datetime.timezone.utc)
-            self._save(fleet)
+    def renew(self, robot: str, out: Path, days: float = ROBOT_DAYS, endpoint: str | None = None) -> Bundle:
+        """A new certificate and key for active robot ``robot``, valid ``days`` from now, in a bundle written to
+        ``out``; its bus password stays (the router has nothing new to load, the old bundle works until its
+        certificate expires). Its API token stays when ``out`` is the robot's current bundle, else a new one
+        replaces it. Needs ``ca.key``."""
+        check_days(days)
+        check_endpoint(endpoint)
+        out = check_out(out)
+        with self.locked():
+            fleet = self.read()
+            record = fleet.active().get(robot)
+            if record is None:
+                raise FleetError(f"no active robot {robot!r} in {self.folder} (a revoked robot is added again with "
+                                 f"twohr keys add; twohr keys list {self.folder})")
+            old = _own_bundle(out, robot, record)
+            token = old.api_token.get_secret_value() if old is not None and old.api_token else new_secret()
+            cert, key = self.issue(robot, days)
+            bundle = self._bundle(robot, cert, key, record.password.get_secret_value(), token,
+                                  endpoint or (old.endpoint if old is not None else None), out)
+            record.serial, record.not_after = f"{cert.serial_number:x}", cert.not_valid_after_utc
+            record.token_sha256 = token_digest(token)
+            self._save(fleet, router=False)
+        return bundle
+
+    def revoke(self, robot: str) -> RobotRecord | ReplicaRecord:
+        """Shut ``robot`` (or a service replica, ``ROLE@HOST``) out: the router drops it from its users and its
+        access list when it sees the change (within a second or two), and the gateway forgets its token. Needs no
+        ``ca.key``."""
+        with self.locked():
+            fleet = self.read()
+            record = fleet.robots.get(robot) or fleet.replicas.get(robot)
+            if record is None:
+                raise FleetError(f"no robot {robot!r} in {self.folder}, nor a replica (twohr keys list {self.folder})")
+            if record.revoked is None:
+                record.revoked = datetime.datetime.now(datetime.timezone.utc)
+                self._save(fleet)
         return record
+
+    def grant(self, robot: str, map_name: str, remove: bool = False) -> list[str]:
+        """Let ``robot`` build or extend map ``map_name`` though it did not build it (``remove``: take the grant
+        back). The grants are ``grants.json`` in the gateway's folder, which a running gateway reads at its next
+        request; no router restart. Needs no ``ca.key``. Returns the maps ``robot`` now holds grants on."""
+        from twohr.mapfile import GRANTS_FILE, MapGrants, MapStore
+
+        MapStore(self.folder).path(map_name)  # one line for a name no map can have
+        with self.locked():
+            fleet = self.read()
+            if not remove and robot not in fleet.active():
+                raise FleetError(f"no active robot {robot!r} in {self.folder} (twohr keys list {self.folder})")
+            path = self.service_folder("gateway") / GRANTS_FILE
+            try:
+                grants = MapGrants.model_validate_json(path.read_bytes()) if path.is_file() else MapGrants()
+            except (OSError, ValueError) as exc:
+                raise FleetError(f"{path} is unreadable: {str(exc).splitlines()[0]}") from None
+            held = grants.maps.setdefault(map_name, {})
+            if remove:
+                if held.pop(robot, None) is None:
+                    raise FleetError(f"robot {robot!r} holds no grant on map {map_name!r}")
+                grants.maps = {name: robots for name, robots in grants.maps.items() if robots}
+            else:
+                held.setdefault(robot, datetime.datetime.now(datetime.timezone.utc))
+            new = not path.exists()
+            write_private(path, grants.model_dump_json(indent=1))
+            if new:  # the gateway's own user reads it (a container's): as it reads tokens.json
+                with contextlib.suppress(OSError):
+                    reference = (self.service_folder("gateway") / TOKENS_FILE).stat()
+                    os.chown(path, reference.st_uid, reference.st_gid)
+            return sorted(name for name, robots in grants.maps.items() if robot in robots)
 
     def identity(self, role: str) -> Identity:
         """The identity of service ``role``, read from its key folder."""
         return load_identity(self.service_folder(role))
 
+    # -- service replicas of other hosts -------------------------------------------------------------------------
+    def add_service(self, role: str, host: str, out: Path, days: float = ROBOT_DAYS) -> str:
+        """A certificate of its own for a replica of ``role`` on ``host`` (common name ``ROLE@HOST``, the role's
+        grants), written as a key folder ``out/services/<role>`` (private) for ``twohr up --join --keys out``;
+        returns its name."""
+        from twohr.keys import NETWORK_SERVICES
+
+        if role not in NETWORK_SERVICES:
+            raise FleetError(f"add-service {role}: replicas that join from another host are of "
+                             f"{', '.join(NETWORK_SERVICES)}")
+        if not HOST_LABEL.fullmatch(host):
+            raise FleetError(f"invalid host {host!r}: letters, digits, '.', '_' and '-', at most 63")
+        if not 0 < days <= SERVICE_DAYS:  # a NaN fails this too
+            raise FleetError(f"--days {days}: give a number of days above 0, at most {SERVICE_DAYS}")
+        name = f"{role}@{host}"
+        with self.locked():
+            fleet = self.read()
+            if name in fleet.active_replicas():
+                raise FleetError(f"replica {name!r} is already in the fleet (revoke it first to issue a new key "
+                                 "folder)")
+            cert, key = self.issue(name, days)
+            password = new_secret()
+            folder = Path(out) / "services" / role
+            for made in (folder.parent.parent, folder.parent, folder):
+                private_folder(made)
+            (folder / CA_FILE).write_text((self.folder / CA_FILE).read_text())  # public
+            (folder / CERT_FILE).write_text(pem(cert))  # public
+            for secret, text in ((KEY_FILE, pem(key)), (PASSWORD_FILE, password)):
+                (folder / secret).unlink(missing_ok=True)  # new files, ours: write_private keeps an old one's owner
+                write_private(folder / secret, text)
+            private_folder(self.folder / "replicas")
+            (self.folder / "replicas" / f"{name}.crt").write_text(pem(cert))  # public, for audit
+            fleet.replicas[name] = ReplicaRecord(serial=f"{cert.serial_number:x}",
+                                                 not_after=cert.not_valid_after_utc,
+                                                 added=datetime.datetime.now(datetime.timezone.utc),
+                                                 password=SecretStr(password))
+            self._save(fleet)
+        return name
+
 
 def check_robot_id(robot: str) -> None:
-    """:class:`FleetError` unless ``robot`` may name a robot: a valid robot id, neither reserved nor a role's."""
-    if not ROBOT_PATTERN.match(robot) or robot in RESERVED_ROBOT_IDS or robot in SERVICE_ROLES:
-        taken = " (a service role's name)" if robot in SERVICE_ROLES else ""
+    """:class:`FleetError` unless ``robot`` may name a robot: a valid robot id (the whole of it: no line break, no
+    path separator), neither reserved, a role's nor a global ROS 2 name."""
+    taken = (" (a service role's name)" if robot in SERVICE_ROLES else
+             " (a global ROS 2 topic, or the ros2 bridge's camera input: its namespace would be that topic)"
+             if robot in ROS2_RESERVED_NAMES else "")
+    if not ROBOT_PATTERN.fullmatch(robot) or robot in RESERVED_ROBOT_IDS or taken:
         raise FleetError(f"invalid robot id {robot!r}{taken}: letters, digits, '_' and '-', at most 64, not "
-                         f"{', '.join([*RESERVED_ROBOT_IDS, *SERVICE_ROLES])}")
+                         f"{', '.join([*RESERVED_ROBOT_IDS, *SERVICE_ROLES, *ROS2_RESERVED_NAMES])}")
+
+
+def check_days(days: float) -> None:
+    """:class:`FleetError` unless a robot certificate may be valid ``days`` days (more than 0, at most
+    :data:`MAX_ROBOT_DAYS`; NaN and infinity are neither)."""
+    if not 0 < days <= MAX_ROBOT_DAYS:  # False for a NaN too
+        raise FleetError(f"--days {days}: give a number of days above 0 and at most {MAX_ROBOT_DAYS} (a fraction "
+                         "for hours or minutes)")
+
+
+def check_endpoint(endpoint: str | None) -> None:
+    """:class:`FleetError` unless ``endpoint`` (the stack's router, written into a bundle) is ``tls/HOST:PORT``: a
+    robot with keys sends its password over no other link."""
+    if endpoint is not None and not ENDPOINT_PATTERN.fullmatch(endpoint):
+        raise FleetError(f"--endpoint {endpoint!r}: give tls/HOST:PORT, the stack's router (a robot with keys "
+                         "joins over TLS only: a tcp/ link would carry its password in clear)")
+
+
+def check_out(out: str | Path) -> Path:
+    """``out`` as a path a bundle may be written to: a file there already must be ours, since whoever owns it
+    could read the key written into it (we then replace it with a new file, ours); not a folder."""
+    out = Path(out)
+    try:
+        st = out.lstat()
+    except FileNotFoundError:
+        return out
+    if out.is_dir():
+        raise FleetError(f"--out {out} is a folder: name the bundle file to write")
+    if st.st_uid != os.geteuid():
+        raise FleetError(f"--out {out} belongs to user {st.st_uid}, not to you ({os.geteuid()}): whoever owns it "
+                         "could read the robot's key; remove it or name another file")
+    return out
+
+
+def _own_bundle(out: Path, robot: str, record: RobotRecord) -> Bundle | None:
+    """The robot's current bundle at ``out`` (its token's digest is the one on record), else None."""
+    try:
+        bundle = Bundle.model_validate_json(out.read_bytes())
+    except (OSError, ValueError):
+        return None
+    if bundle.name != robot or bundle.api_token is None or \
+            token_digest(bundle.api_token.get_secret_value()) != record.token_sha256:
+        return None
+    return bundle
 
 
 def active_robots(router_folder: Path) -> tuple[int, list[str]]:

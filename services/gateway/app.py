@@ -2,9 +2,9 @@
 handlers and the routers.
 
 The routes live in one ``APIRouter`` per resource: ``routes/sessions.py`` (``POST /sessions`` and the rest of
-``/sessions``), ``routes/maps.py`` (``/maps``), ``routes/health.py`` (``/healthz``) and ``page.py`` (``/``,
-``/live``). They reach the shared state (settings, :class:`~.bus.GatewayBus`, session table) through the
-dependencies of ``deps.py``, which read ``app.state``.
+``/sessions``), ``routes/maps.py`` (``/maps``), ``routes/audit.py`` (``/audit``), ``routes/health.py``
+(``/healthz``) and ``page.py`` (``/``, ``/live``). They reach the shared state (settings,
+:class:`~.bus.GatewayBus`, session table) through the dependencies of ``deps.py``, which read ``app.state``.
 """
 
 from __future__ import annotations
@@ -19,18 +19,22 @@ from fastapi.staticfiles import StaticFiles
 from twohr.errors import validation_problems
 
 from . import page
+from .audit import AuditLog, KeysWatch
 from .bus import GatewayBus
-from .deps import RobotTokens
-from .routes import health, maps, sessions
+from .ownership import Grants
+from .routes import audit, health, maps, sessions
 from .sessions import SessionTable
 from .settings import GatewaySettings
+from .tokens import RobotTokens
 
 
 @asynccontextmanager
 async def lifespan(app: FastAPI):
-    """The bus is up while the app serves."""
+    """The bus is up while the app serves, and the keys folder is watched for the audit trail."""
     app.state.bus.start()
+    app.state.keys_watch.start()
     yield
+    app.state.keys_watch.close()
     app.state.bus.close()
 
 
@@ -64,7 +68,10 @@ def create_app(settings: GatewaySettings) -> FastAPI:
                   "twohr/<robot>/pose.")
     app.state.settings = settings
     app.state.table = SessionTable()
-    app.state.bus = GatewayBus(settings, app.state.table)
+    audit_log = AuditLog(settings.audit_file())
+    app.state.keys_watch = KeysWatch(audit_log, settings.robot_tokens, settings.grants_file())
+    app.state.bus = GatewayBus(settings, app.state.table, audit_log,
+                               Grants(settings.grants_file(), on_change=app.state.keys_watch.poll))
     app.state.robot_tokens = RobotTokens(settings.robot_tokens) if settings.robot_tokens else None
     app.middleware("http")(limit_body)
     app.add_exception_handler(RequestValidationError, validation_error)
@@ -73,4 +80,5 @@ def create_app(settings: GatewaySettings) -> FastAPI:
     app.include_router(health.router)
     app.include_router(sessions.router)
     app.include_router(maps.router)
+    app.include_router(audit.router)
     return app

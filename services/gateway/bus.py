@@ -19,11 +19,13 @@ from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
 from twohr.evaluation import evaluate
 from twohr.keys import PIPELINE_SERVICES
-from twohr.mapfile import MapFileError, MapStore
+from twohr.mapfile import OPERATOR, MapAccessError, MapFileError, MapStore
 from twohr.messages import ControlMsg, MessageError, PathMsg, PoseMsg, StatusMsg, decode, encode, path_trajectory
 from twohr.service import declare_publisher
 
-from .live import BusLiveView
+from .audit import STACK, AuditLog
+from .live import BusLiveView, live_access
+from .ownership import Grants
 from .sessions import Session, SessionTable
 
 log = logging.getLogger("twohr.gateway")
@@ -34,11 +36,15 @@ MAP_STORE_WORKERS = 4
 
 
 class GatewayBus:
-    """The gateway's Zenoh session and what it does with it (``settings`` is a ``GatewaySettings``)."""
+    """The gateway's Zenoh session and what it does with it (``settings`` is a ``GatewaySettings``; ``audit``: the
+    audit trail, none by default; ``grants``: the operator's map grants, none by default)."""
 
-    def __init__(self, settings, table: SessionTable) -> None:
+    def __init__(self, settings, table: SessionTable, audit: AuditLog | None = None,
+                 grants: Grants | None = None) -> None:
         self.settings = settings
         self.table = table
+        self.audit = audit or AuditLog(None)
+        self.grants = grants or Grants(None)
         self.alive: dict[str, set[str]] = {}  # service -> its replicas whose liveliness token is up
         self._gone: dict[str, float] = {}  # pipeline service -> when its token went, while it has not come back
         self._linked_since: float | None = 0.0  # when this gateway's own link to a router last came up
@@ -65,7 +71,9 @@ class GatewayBus:
                 self.session.declare_queryable(f"{keys.MAPS_PREFIX}/*", self._handed_on(self._read_map)),
                 self.session.declare_queryable(f"{keys.MAPS_PREFIX}/*/save", self._handed_on(self._save_map))]
         if self.settings.foxglove_port:
-            self._live = BusLiveView(self.session, self.settings.foxglove_host, self.settings.foxglove_port)
+            tls, authorize = live_access(self.settings)
+            self._live = BusLiveView(self.session, self.settings.foxglove_host, self.settings.foxglove_port,
+                                     tls=tls, authorize=authorize)
         self._monitor = threading.Thread(target=self._watch, name="session-monitor", daemon=True)
         self._monitor.start()
 
@@ -116,19 +124,46 @@ class GatewayBus:
             query.reply_err(str(exc).encode())
 
     def _save_map(self, query: zenoh.Query) -> None:
-        """``twohr/maps/<name>/save`` with a map file's bytes: checked, kept as the map's next version."""
-        name = str(query.key_expr)
+        """``twohr/maps/<name>/save`` with a map file's bytes: checked, kept as the map's next version. The tracker
+        attaches the id of the session that built it: the session's robot becomes one of the map's owners, and
+        replacing an existing map needs whoever started the session to own it or hold the operator's grant. Only
+        the tracker may save (the bus's access control); a save naming no session is the stack's, the operator's."""
+        name, session = str(query.key_expr), None
         try:
             name = keys.parse_map_key(query.key_expr, save=True)
             if query.payload is None:
                 raise MapFileError("a save carries the map file's bytes")
-            entry = MapStore(self.settings.maps).save(query.payload.to_bytes(), name)
+            session = self._saving_session(query, name)
+            builder, starter = (OPERATOR, OPERATOR) if session is None else (session.request.robot_id,
+                                                                            session.started_by)
+            entry = MapStore(self.settings.maps, self.settings.map_versions).save(
+                query.payload.to_bytes(), name, builder=builder,
+                may_replace=lambda owners: self.grants.may_change(starter, name, owners))
             log.info("map %s version %d saved (%d keyframes, %d bytes)", name, entry.version, entry.keyframes,
                      entry.size_bytes)
+            by_session = {} if session is None else {"robot": builder, "session": session.id}
+            self.audit.record("map.save", STACK if session is None else starter, map=name, version=entry.version,
+                              detail=f"owners {', '.join(entry.owners)}", **by_session)
             query.reply(query.key_expr, entry.model_dump_json())
-        except (ValueError, MapFileError, OSError) as exc:  # a key naming no single map, a bad file
+        except (ValueError, MapFileError, OSError) as exc:  # a key naming no single map, a bad file, not theirs
             log.warning("map %s not saved: %s", name, exc)
+            if isinstance(exc, MapAccessError) and session is not None:
+                self.audit.record("map.save", session.started_by, robot=session.request.robot_id, map=name,
+                                  session=session.id, detail=f"refused: {exc}")
             query.reply_err(str(exc).encode())
+
+    def _saving_session(self, query: zenoh.Query, name: str) -> Session | None:
+        """The session a save's attachment names (None: it names none); :class:`MapAccessError` when that is no
+        session of this gateway that builds or extends map ``name``."""
+        if query.attachment is None:
+            return None
+        session_id = query.attachment.to_bytes().decode(errors="replace")[:64]
+        session = self.table.get(session_id)
+        wanted = None if session is None else session.request.map
+        if wanted is None or wanted.name != name or wanted.mode not in ("build", "extend"):
+            raise MapAccessError(f"session {session_id!r} is no session of this gateway that builds or extends map "
+                                 f"{name}")
+        return session
 
     def missing_services(self) -> list[str]:
         """The pipeline services whose liveliness token is not up."""
@@ -199,6 +234,8 @@ class GatewayBus:
 
     def _fail(self, session: Session) -> None:
         log.warning("session %s failed: %s", session.id, session.detail)
+        self.audit.record("session.fail", STACK, robot=session.request.robot_id, session=session.id,
+                          detail=session.detail)
         self.send_control(session, "stop")
 
     def _on_status(self, status: StatusMsg) -> None:
@@ -245,6 +282,8 @@ class GatewayBus:
         self._score(session)
         self.send_control(session, "stop")
         session.state = "finished"
+        self.audit.record("session.finish", STACK, robot=session.request.robot_id, session=session.id,
+                          detail=f"{len(session.poses)} poses")
 
     def _watch(self) -> None:
         settings = self.settings

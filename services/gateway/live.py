@@ -1,32 +1,62 @@
 """The gateway's live view: every robot's frames, keypoints, masks, poses and map points from the bus, shown on
 a Foxglove WebSocket server (:class:`twohr.foxglove_live.LiveView`).
 
-Samples go through a small drop-oldest queue to one worker thread: a slow viewer loses old frames, it never
-holds up the bus.
+Samples go through a small drop-oldest queue to one worker thread, and each viewer has its own drop-oldest queue
+in the server: a slow viewer loses old frames, it never holds up the bus or the other viewers.
+
+On a fleet's keys (``--tls-keys``) the live view is as guarded as the HTTP API (:func:`live_access`): TLS with the
+gateway's certificate, and a token in the URL (``?token=``) checked before the WebSocket upgrade. The operator's
+token sees every robot; a robot's token (the tokens file, read again when it changes, as the HTTP API reads it)
+sees its own channels and the others' poses, paths and transforms.
 """
 
 from __future__ import annotations
 
 import collections
 import logging
+import secrets
+import ssl
 import threading
 
 import zenoh
 
 from twohr import keys
-from twohr.foxglove_live import LiveView
+from twohr.foxglove_live import EVERYTHING, Authorize, LiveView, Viewer, robot_viewer, server_tls
+from twohr.identity import CERT_FILE, KEY_FILE
 from twohr.messages import ControlMsg, MessageError, decode
+
+from .tokens import RobotTokens
 
 log = logging.getLogger("twohr.gateway.live")
 
 STREAMS = ("frames", "keypoints", "dynamics", "pose", "landmarks", "path")
 
 
-class BusLiveView:
-    """A :class:`LiveView` on ``host:port`` fed by a Zenoh session's subscriptions."""
+def live_access(settings) -> tuple[ssl.SSLContext | None, Authorize | None]:
+    """The live view's TLS and token check for the gateway's ``settings`` (a ``GatewaySettings``): none without
+    ``tls_keys``; with them TLS, and the operator's token (``api_token``) or a robot's (``robot_tokens``)."""
+    if settings.tls_keys is None:
+        return None, None
+    robots = RobotTokens(settings.robot_tokens) if settings.robot_tokens else None
 
-    def __init__(self, session: zenoh.Session, host: str, port: int, backlog: int = 32) -> None:
-        self.view = LiveView(host, port)
+    def authorize(token: str) -> Viewer | None:
+        operator = settings.api_token
+        # compared as bytes: a token with non-ASCII characters is simply a wrong one
+        if operator and secrets.compare_digest(token.encode("utf-8", "surrogateescape"), operator.encode()):
+            return EVERYTHING
+        robot = robots.robot_of(token) if robots is not None else None
+        return robot_viewer(robot) if robot else None
+
+    return server_tls(settings.tls_keys / CERT_FILE, settings.tls_keys / KEY_FILE), authorize
+
+
+class BusLiveView:
+    """A :class:`LiveView` on ``host:port`` fed by a Zenoh session's subscriptions; ``tls`` and ``authorize`` as
+    :func:`live_access` makes them (None: plain WebSocket, no token)."""
+
+    def __init__(self, session: zenoh.Session, host: str, port: int, backlog: int = 32,
+                 tls: ssl.SSLContext | None = None, authorize: Authorize | None = None) -> None:
+        self.view = LiveView(host, port, tls=tls, authorize=authorize)
         self.queue: collections.deque = collections.deque(maxlen=backlog)
         self.ready = threading.Condition()
         self.malformed = 0

@@ -21,9 +21,11 @@ router = APIRouter()
 
 
 class LiveInfo(BaseModel):
-    """Where the Foxglove live view listens (the page builds ``ws://<page host>:<port>`` from it)."""
+    """Where the Foxglove live view listens (the page builds ``ws://<page host>:<port>`` from it, or on TLS
+    ``wss://<page host>:<port>/?token=<the token entered>``)."""
 
     foxglove_port: int | None = Field(None, description="the Foxglove WebSocket port; null when it is off")
+    tls: bool = Field(False, description="the live view is on TLS (wss://) and needs ?token= (a fleet's keys)")
 
 
 @router.get("/", include_in_schema=False)
@@ -34,5 +36,5 @@ def index() -> FileResponse:
 
 @router.get("/live", response_model=LiveInfo)
 def live(settings: Settings) -> LiveInfo:
-    """The live view's Foxglove WebSocket port."""
-    return LiveInfo(foxglove_port=settings.foxglove_port)
+    """The live view's Foxglove WebSocket port, and whether it is on TLS with a token."""
+    return LiveInfo(foxglove_port=settings.foxglove_port, tls=settings.tls_keys is not None)

@@ -11,7 +11,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, Field, model_validator
 
-from twohr.mapfile import NAME_PATTERN
+from twohr.mapfile import NAME_PATTERN, OPERATOR
 from twohr.messages import ID_PATTERN, PathMsg, PoseMsg, StatusMsg
 from twohr.trajectory import Trajectory
 
@@ -26,7 +26,9 @@ class MapRequest(BaseModel):
     name: str = Field(pattern=NAME_PATTERN, description="the map's name, also the frame id of the session's poses")
     mode: Literal["build", "localize", "extend"] = Field(
         "localize", description="build: a new map, saved under the name when the session ends; localize: track in "
-        "the map (not saved); extend: track in it, add keyframes, save as its next version")
+        "the map (not saved); extend: track in it, add keyframes, save as its next version. Any robot may localize "
+        "in any map; build or extend of an existing map needs its robot to own it (to have built it) or to hold "
+        "the operator's grant (403 otherwise)")
 
     model_config = {"extra": "forbid"}
 
@@ -148,6 +150,8 @@ class Session:
     id: str
     request: SessionRequest
     folder: Path | None  # the sequence of a replay; None for a camera session
+    started_by: str = OPERATOR
+    """who started it: the operator, or the robot whose token did (a map it saves is checked against them)"""
     state: SessionState = "starting"
     detail: str = ""
     created: float = field(default_factory=time.time)

@@ -8,6 +8,7 @@ from pathlib import Path
 from pydantic import BaseModel, Field
 
 from twohr.bus import BusConfig
+from twohr.mapfile import GRANTS_FILE
 
 
 class GatewaySettings(BaseModel):
@@ -35,6 +36,23 @@ class GatewaySettings(BaseModel):
     max_request_bytes: int = Field(256 * 1024, ge=1024, description="larger request bodies get 413")
     foxglove_host: str = Field("127.0.0.1", description="interface of the Foxglove live view")
     foxglove_port: int | None = Field(None, ge=0, le=65535, description="Foxglove live view port; None = off")
+    tls_keys: Path | None = Field(None, description="the gateway's key folder (cert.pem, key.pem of a fleet's keys): "
+                                  "HTTPS, and the live view on TLS with a token (?token=, the operator's or a "
+                                  "robot's); None = neither")
     maps: Path | None = Field(None, description="the map store's folder (served on twohr/maps/<name> and /maps); "
                               "None = no map store")
     max_map_bytes: int = Field(512 * 1024 * 1024, ge=1024, description="larger map uploads get 413")
+    map_versions: int = Field(10, ge=1, le=10_000, description="versions of each map the store keeps (past it the "
+                              "oldest go; the others keep their numbers)")
+    map_grants: Path | None = Field(None, description="the operator's map grants (grants.json, as twohr keys grant "
+                                    "writes it); None = grants.json beside robot_tokens")
+    audit_log: Path | None = Field(None, description="the audit trail (JSON lines, private, append-only; GET "
+                                   "/audit); None = audit.jsonl in the recordings folder")
+
+    def grants_file(self) -> Path | None:
+        """Where the operator's map grants are read from (None: no robots' tokens, so no grants either)."""
+        return self.map_grants or (self.robot_tokens.parent / GRANTS_FILE if self.robot_tokens else None)
+
+    def audit_file(self) -> Path:
+        """Where the audit trail is written."""
+        return self.audit_log or self.recordings / "audit.jsonl"

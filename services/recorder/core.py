@@ -40,6 +40,7 @@ from twohr.messages import (
     pose_trajectory,
     split,
 )
+from twohr.paths import open_private
 from twohr.trajectory import Trajectory
 
 WIRE_ENCODING = "twohr"
@@ -62,8 +63,8 @@ class SessionRecorder:
         self.path = Path(path)
         self.options = options or RecordingOptions()
         self.converter = FoxgloveConverter(self.options.jpeg_quality, self.options.path_every)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.file = open(self.path, "wb")  # noqa: SIM115 (closed in close())
+        self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+        self.file = open_private(self.path)  # closed in close(); 0600: the robots' surroundings are no one else's
         self.writer = Writer(self.file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
         self.writer.start(profile="", library="twohr")
         self.schemas: dict[str, int] = {}

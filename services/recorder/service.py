@@ -131,7 +131,7 @@ def unwritable(folder: Path) -> str | None:
     """Why the recorder could not write MCAP files into ``folder`` (None if it can). Checked at start,
     so that a wrongly owned volume is one clear line in the log, not a failed session later."""
     try:
-        folder.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(parents=True, exist_ok=True, mode=0o700)  # made here: private, as the files in it
     except OSError as exc:
         return f"cannot create the recordings folder {folder}: {exc.strerror}"
     if not os.access(folder, os.W_OK | os.X_OK):

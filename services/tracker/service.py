@@ -328,7 +328,8 @@ class TrackerService(Service):
             self.report(control, "error", f"map {control.map_name} not saved: {exc}")
             return
         key = keys.map_key(control.map_name, save=True)
-        for reply in self.session.get(key, payload=payload, timeout=MAP_TIMEOUT_S):
+        # the session's id goes with the map: the map store records its robot as an owner, and checks its rights
+        for reply in self.session.get(key, payload=payload, attachment=control.session_id, timeout=MAP_TIMEOUT_S):
             if reply.ok is not None:
                 self.report(control, "map saved", f"map {control.map_name}: {stored.header.keyframes} keyframes, "
                             f"{stored.header.landmarks} landmarks", keyframes=stored.header.keyframes,

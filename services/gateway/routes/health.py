@@ -1,28 +1,51 @@
-"""``GET /healthz``: the gateway's liveness, the stack's load against its capacity, and every pipeline service's
-counters (each replica's under ``replicas``)."""
+"""``GET /healthz``: whether the stack is up, to anyone; to the operator, also the stack's load against its capacity
+and every pipeline service's counters (each replica's under ``replicas``)."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Depends, HTTPException, Request
+from pydantic import BaseModel, Field
 
 from twohr.bus import query_health
 from twohr.keys import PIPELINE_SERVICES
 
 from ..admission import admitted_load
-from ..deps import Bus, Settings, Table
+from ..deps import Bus, Caller, Settings, Table, require_token
 
 router = APIRouter()
 
 
-@router.get("/healthz")
-def healthz(bus: Bus, table: Table, settings: Settings) -> dict:
-    """Gateway liveness; ``degraded`` with the reason while a live session is (its tracker drops frames or its
-    keyframe jobs come back late: more robots than the CPU serves) or a pipeline service has no replica alive; the
-    admitted load in robots against the capacity; each service's counters (null when no replica answers)."""
+class StackUp(BaseModel):
+    """``/healthz`` without the operator's token: whether the stack is up, nothing of its robots or hosts."""
+
+    status: Literal["up", "down"] = Field(description="up: the gateway answers and every pipeline service has a "
+                                          "replica alive")
+
+
+async def _caller(request: Request, settings: Settings) -> Caller | None:
+    """Who asks, or None for a request without a token the gateway knows: liveness answers everyone."""
+    try:
+        return await require_token(request, settings)
+    except HTTPException:
+        return None
+
+
+@router.get("/healthz", response_model=None)
+def healthz(bus: Bus, table: Table, settings: Settings,
+            caller: Annotated[Caller | None, Depends(_caller)]) -> StackUp | dict:
+    """Whether the stack is up (``StackUp``) to anyone; the operator's token (or a gateway with no token, on loopback)
+    also sees: ``degraded`` with the reason while a live session is (its tracker drops frames or its keyframe jobs
+    come back late: more robots than the CPU serves) or a pipeline service has no replica alive; the admitted load
+    in robots against the capacity; each service's counters, its replicas and their hosts (null when no replica
+    answers). A robot's token sees what anyone does: other robots' ids and the replicas' hosts are the operator's."""
+    missing = bus.missing_services()  # no liveliness token up: POST /sessions answers 503 until they are back
+    if caller is None or caller.robot is not None:  # and no bus query for a caller without the token
+        return StackUp(status="down" if missing else "up")
     zsession = bus.session
     services = {name: query_health(zsession, name, timeout=0.5) for name in PIPELINE_SERVICES} if zsession else {}
     degraded = [f"{s.request.robot_id}: {s.health_detail}" for s in table.active() if s.health == "degraded"]
-    missing = bus.missing_services()  # no liveliness token up: POST /sessions answers 503 until they are back
     reasons = degraded + ([f"services not running: {', '.join(missing)}"] if missing else [])
     return {"status": "degraded" if reasons else "ok", "reason": "; ".join(reasons), "missing_services": missing,
             "robots": {"admitted": admitted_load(table), "capacity": settings.max_robots}, "services": services}

@@ -18,7 +18,7 @@ from fastapi.responses import FileResponse, PlainTextResponse
 from twohr.config import PipelineConfig, load_config
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
-from twohr.mapfile import MapStore, read_map
+from twohr.mapfile import MapFileError, MapStore, read_map
 from twohr.mcapfile import is_finalised, partial_marker
 from twohr.models import get_spec, keyframe_network
 from twohr.paths import resolve_under_roots
@@ -26,6 +26,7 @@ from twohr.trajectory import tum_text
 
 from ..admission import admit
 from ..deps import Bus, Caller, Settings, Table, Who, errors, require_token
+from ..ownership import Grants, identity
 from ..sessions import ACTIVE, MapRequest, PoseOut, Session, SessionInfo, SessionRequest, SessionTable
 from ..settings import GatewaySettings
 
@@ -56,6 +57,21 @@ def check_map(wanted: MapRequest, config: PipelineConfig, maps: Path | None) -> 
     if not path.is_file():
         raise TwohrError(f"map: no map named {wanted.name!r} in the map store (GET /maps lists them)")
     read_map(path, detector=config.detector)
+
+
+def check_map_rights(wanted: MapRequest, who: Caller, maps: Path | None, grants: Grants) -> None:
+    """403 (one line) when a robot's token builds or extends an existing map that its robot neither owns nor holds
+    the operator's grant for; localize, a new map's build and the operator's token pass."""
+    if who.robot is None or maps is None or wanted.mode == "localize":
+        return
+    try:
+        owners = MapStore(maps).owners(wanted.name)
+    except MapFileError:
+        return  # not a name a map can have: checked_start says so (422)
+    if owners is not None and not grants.may_change(identity(who.robot), wanted.name, owners):
+        raise HTTPException(status.HTTP_403_FORBIDDEN, f"map {wanted.name!r} is owned by {', '.join(owners)}: robot "
+                            f"{who.robot} may {wanted.mode} it only with the operator's grant (twohr keys grant "
+                            f"DIR {who.robot} --map {wanted.name}); localize needs none")
 
 
 def checked_start(request: SessionRequest, settings: GatewaySettings) -> tuple[PipelineConfig, Path | None]:
@@ -117,8 +133,10 @@ def lookup(table: SessionTable, session_id: str, who: Caller) -> Session:
 def create_session(request: SessionRequest, settings: Settings, bus: Bus, table: Table, who: Who) -> SessionInfo:
     """Start a session on a sequence under the data roots. 409 if the robot already runs one, 503 if a
     service is not running or the stack is full (``Retry-After``; see ``admission``), 403 for a robot's token and
-    another robot's session."""
+    another robot's session, or a map it may not build or extend (it neither built it nor holds a grant)."""
     who.check_robot(request.robot_id)
+    if request.map is not None:
+        check_map_rights(request.map, who, settings.maps, bus.grants)
     config, folder = checked_start(request, settings)
     missing = bus.missing_services()
     if missing:
@@ -127,9 +145,12 @@ def create_session(request: SessionRequest, settings: Settings, bus: Bus, table:
         if table.active_for_robot(request.robot_id):
             raise HTTPException(status.HTTP_409_CONFLICT, f"robot {request.robot_id} already runs a session")
         admit(request, table, settings.max_robots)
-        session = Session(id=uuid.uuid4().hex[:12], request=request, folder=folder)
+        session = Session(id=uuid.uuid4().hex[:12], request=request, folder=folder, started_by=identity(who.robot))
         table.add(session)
     bus.send_control(session, "start", config)
+    bus.audit.record("session.start", session.started_by, robot=request.robot_id, session=session.id,
+                     map=request.map.name if request.map else None,
+                     detail=request.source + (f", {request.map.mode} map {request.map.name}" if request.map else ""))
     return session_info(session, settings.recordings)
 
 
@@ -153,6 +174,7 @@ def stop_session(session_id: str, settings: Settings, bus: Bus, table: Table, wh
     if session.state in ACTIVE:
         session.state = "stopped"
         bus.send_control(session, "stop")
+        bus.audit.record("session.stop", identity(who.robot), robot=session.request.robot_id, session=session.id)
     return session_info(session, settings.recordings)
 
 

@@ -196,9 +196,16 @@ async function showLiveLink() {
     const live = await (await fetch("/live")).json();
     if (live.foxglove_port) {
       const link = $("foxglove-link");
-      const ws = `ws://${location.hostname}:${live.foxglove_port}`;
-      link.href = `https://app.foxglove.dev/?ds=foxglove-websocket&ds.url=${ws}`;
-      link.title = ws;
+      const update = () => {
+        // on TLS the live view needs a token in its URL: the one entered for the API
+        const token = $("token").value.trim();
+        const address = `${live.tls ? "wss" : "ws"}://${location.hostname}:${live.foxglove_port}`;
+        const ws = live.tls ? `${address}/?token=${encodeURIComponent(token)}` : address;
+        link.href = "https://app.foxglove.dev/?ds=foxglove-websocket&ds.url=" + (live.tls ? encodeURIComponent(ws) : ws);
+        link.title = address;
+      };
+      update();
+      if (live.tls) $("token").addEventListener("input", update);
       link.classList.remove("hidden");
     }
   } catch (e) { /* no live view */ }

@@ -42,7 +42,7 @@ def gateway(bus_config, dev_sequence, tmp_path, tiny_map):
 def test_page_sends_the_token_it_is_given(gateway, dev_sequence, tmp_path):
     index = httpx.get(gateway + "/")
     assert index.status_code == 200 and index.headers["content-type"].startswith("text/html")
-    assert httpx.get(gateway + "/live").json() == {"foxglove_port": None}
+    assert httpx.get(gateway + "/live").json() == {"foxglove_port": None, "tls": False}
     with sync_playwright() as playwright:
         browser = playwright.chromium.launch(executable_path="/usr/bin/chromium", headless=True)
         try:

@@ -1,0 +1,240 @@
+"""The audit trail: who started, stopped or failed a session, who saved, uploaded, rolled back or deleted a map, who
+was granted a map and who was added or revoked, with the time, as JSON lines appended to one private file (0600),
+``audit.jsonl`` in the recordings folder unless ``--audit-log`` says otherwise. The operator reads it with
+``GET /audit``; a robot's token gets 403.
+
+The gateway logs what it does itself (sessions; maps over HTTP and on the bus). What the operator does in the keys
+folder it notices: :class:`KeysWatch` looks at the robots' tokens (``tokens.json``) and the map grants
+(``grants.json``) four times a second, and at start compares them with what it last saw (a private
+``.audit-seen.json`` beside the log), so that a grant or a revocation made while no stack ran is logged at the next
+start. ``twohr maps rollback`` (no stack running) appends to the same file. Lines are only ever appended (``O_APPEND``,
+one ``write`` each, fsynced); nothing here rewrites or truncates the log."""
+
+from __future__ import annotations
+
+import datetime
+import json
+import logging
+import os
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, Field, ValidationError
+
+from twohr.mapfile import OPERATOR, MapGrants
+
+log = logging.getLogger("twohr.gateway")
+
+#: the identity of what the stack does by itself: a session that finished or failed
+STACK = "@stack"
+#: the audit events, by what happened
+Action = Literal["session.start", "session.stop", "session.finish", "session.fail", "map.save", "map.upload",
+                 "map.rollback", "map.delete", "map.grant", "map.ungrant", "robot.add", "robot.revoke"]
+SEEN_FILE = ".audit-seen.json"
+WATCH_PERIOD_S = 0.25
+
+
+class AuditEvent(BaseModel):
+    """One line of the audit trail."""
+
+    time: float = Field(description="when it was logged (Unix time)")
+    utc: str = Field(description="the same time, ISO 8601 in UTC")
+    action: Action
+    who: str = Field(description=f"who did it: a robot id, {OPERATOR} (the operator's token, the keys folder, "
+                     f"twohr maps) or {STACK} (the stack: a session that finished or failed)")
+    robot: str | None = Field(None, description="the robot acted on or for")
+    session: str | None = None
+    map: str | None = None
+    version: int | None = Field(None, description="the map version made (saved, uploaded, rolled back to)")
+    detail: str = ""
+
+
+class AuditLog:
+    """The append-only audit trail in ``path`` (None: events are made and dropped, for a gateway with no log)."""
+
+    def __init__(self, path: Path | None) -> None:
+        self.path = path
+        self._lock = threading.Lock()
+
+    def record(self, action: Action, who: str, **fields) -> AuditEvent:
+        """Append one event; a log that cannot be written is an error in the gateway's log, not in the request."""
+        now = time.time()
+        event = AuditEvent(time=now, utc=datetime.datetime.fromtimestamp(now, datetime.timezone.utc).isoformat(
+            timespec="milliseconds"), action=action, who=who, **fields)
+        if self.path is None:
+            return event
+        line = (event.model_dump_json(exclude_none=True) + "\n").encode()
+        try:
+            with self._lock:
+                append_private(self.path, line)
+        except OSError as exc:
+            log.error("audit trail %s not written (%s): %s", self.path, exc.strerror or exc, line.decode().strip())
+        return event
+
+    def read(self, limit: int = 1000, since: float | None = None) -> list[AuditEvent]:
+        """The newest ``limit`` events (from ``since``, Unix time, if given), oldest first. A line that is not an
+        event (cut short by a power loss) is left out and logged."""
+        if self.path is None or not self.path.is_file():
+            return []
+        events = []
+        for number, line in enumerate(self.path.read_bytes().splitlines(), 1):
+            try:
+                event = AuditEvent.model_validate_json(line)
+            except ValidationError:
+                log.warning("audit trail %s line %d is not an event", self.path, number)
+                continue
+            if since is None or event.time >= since:
+                events.append(event)
+        return events[-limit:]
+
+
+def append_private(path: Path, data: bytes) -> None:
+    """Append ``data`` to ``path`` in one write, creating it readable by its owner only (0600); a file found wider
+    is narrowed first."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
+    try:
+        if os.fstat(handle).st_mode & 0o077:
+            os.fchmod(handle, 0o600)
+        os.write(handle, data)
+        os.fsync(handle)
+    finally:
+        os.close(handle)
+
+
+class KeysState(BaseModel):
+    """What :class:`KeysWatch` last saw in the keys folder (``.audit-seen.json``)."""
+
+    robots: list[str] | None = None
+    grants: dict[str, dict[str, str]] | None = None
+
+
+class KeysWatch:
+    """Logs the changes the operator makes in the keys folder: a robot added or revoked (``tokens``: robot ->
+    token digest, the robots not revoked) and a map granted or withdrawn (``grants``)."""
+
+    def __init__(self, audit: AuditLog, tokens: Path | None, grants: Path | None) -> None:
+        self.audit = audit
+        self.tokens, self.grants = tokens, grants
+        self.seen_file = None if audit.path is None else audit.path.with_name(SEEN_FILE)
+        self._stamps: tuple | None = None
+        self._seen: KeysState | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._polling = threading.Lock()
+
+    def start(self) -> None:
+        """Compare with what was seen before this start, then watch four times a second until :meth:`close`."""
+        if self.audit.path is None or (self.tokens is None and self.grants is None):
+            return
+        self._thread = threading.Thread(target=self._watch, name="keys-audit", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2)
+
+    def _watch(self) -> None:
+        while True:
+            try:
+                self.poll()
+            except Exception:  # the watch goes on: the next change is logged
+                log.exception("the keys folder's audit watch failed")
+            if self._stop.wait(WATCH_PERIOD_S):
+                return
+
+    def poll(self) -> None:
+        """Log what changed in the keys folder since it was last looked at (from the watch, and from a request that
+        finds the grants changed: whichever comes first logs it)."""
+        if self.audit.path is None:
+            return
+        with self._polling:
+            self._poll()
+
+    def _poll(self) -> None:
+        stamps = (_stamp(self.tokens), _stamp(self.grants))
+        if stamps == self._stamps:
+            return
+        now = KeysState(robots=self._robots(), grants=self._grants())
+        seen = self._seen if self._seen is not None else self._load_seen()
+        if seen is not None:
+            self._log_changes(seen, now)
+        # a file that could not be read keeps what was seen of it: its robots are not all revoked at once
+        merged = KeysState(robots=now.robots if now.robots is not None else seen.robots if seen else None,
+                           grants=now.grants if now.grants is not None else seen.grants if seen else None)
+        if merged != seen:
+            self._save_seen(merged)
+        self._seen, self._stamps = merged, stamps
+
+    def _log_changes(self, seen: KeysState, now: KeysState) -> None:
+        if seen.robots is not None and now.robots is not None:
+            for robot in sorted(set(now.robots) - set(seen.robots)):
+                self.audit.record("robot.add", OPERATOR, robot=robot, detail="its token is in force")
+            for robot in sorted(set(seen.robots) - set(now.robots)):
+                self.audit.record("robot.revoke", OPERATOR, robot=robot, detail="its token no longer works")
+        if seen.grants is not None and now.grants is not None:
+            for name, robot, when in _pairs(now.grants, seen.grants):
+                self.audit.record("map.grant", OPERATOR, robot=robot, map=name, detail=f"granted at {when}")
+            for name, robot, _ in _pairs(seen.grants, now.grants):
+                self.audit.record("map.ungrant", OPERATOR, robot=robot, map=name, detail="grant withdrawn")
+
+    def _robots(self) -> list[str] | None:
+        if self.tokens is None:
+            return None
+        try:
+            return sorted(json.loads(self.tokens.read_text()))
+        except FileNotFoundError:
+            return []
+        except (OSError, ValueError, TypeError):
+            return None
+
+    def _grants(self) -> dict[str, dict[str, str]] | None:
+        if self.grants is None:
+            return None
+        try:
+            grants = MapGrants.model_validate_json(self.grants.read_bytes())
+        except FileNotFoundError:
+            return {}
+        except (OSError, ValueError):
+            return None
+        return {name: {robot: when.isoformat() for robot, when in robots.items()}
+                for name, robots in grants.maps.items()}
+
+    def _load_seen(self) -> KeysState | None:
+        try:
+            return KeysState.model_validate_json(self.seen_file.read_bytes())
+        except FileNotFoundError:
+            return None  # the first start: what is there now is where the trail begins
+        except (OSError, ValueError):
+            log.warning("%s unreadable: changes in the keys folder before this start are not in the audit trail",
+                        self.seen_file)
+            return None
+
+    def _save_seen(self, state: KeysState) -> None:
+        self.seen_file.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(prefix=f"{SEEN_FILE}.", suffix=".tmp", dir=self.seen_file.parent)
+        try:
+            with os.fdopen(handle, "w") as out:
+                out.write(state.model_dump_json())
+            os.replace(temporary, self.seen_file)
+        except BaseException:
+            Path(temporary).unlink(missing_ok=True)
+            raise
+
+
+def _pairs(ours: dict[str, dict[str, str]], theirs: dict[str, dict[str, str]]) -> list[tuple[str, str, str]]:
+    """(map, robot, when) of each grant in ``ours`` that ``theirs`` lacks."""
+    return [(name, robot, when) for name, robots in sorted(ours.items()) for robot, when in sorted(robots.items())
+            if robot not in theirs.get(name, {})]
+
+
+def _stamp(path: Path | None) -> tuple | None:
+    try:
+        stat = path.stat() if path is not None else None
+    except OSError:
+        return None
+    return None if stat is None else (stat.st_mtime_ns, stat.st_size, stat.st_ino)
