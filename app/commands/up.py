@@ -127,7 +127,7 @@ def _up(args: argparse.Namespace) -> int:
     from twohr.errors import TwohrError
     from twohr_services.gateway.admission import parse_max_robots
 
-    from ..fleet import WILDCARDS, new_secret, write_client_config
+    from ..fleet import LOCAL_NAMES, WILDCARDS, new_secret, write_client_config
     from ..supervisor import check_replicas, gateway_url
 
     if args.join:
@@ -162,8 +162,12 @@ def _up(args: argparse.Namespace) -> int:
     except (TimeoutError, RuntimeError) as exc:
         raise TwohrError(str(exc)) from None
     url = gateway_url(args.host, args.port, system.access.keys)
+    view_host = args.host
     if fleet is not None and args.host.strip("[]") in WILDCARDS:
-        url += f" (as {', '.join(fleet.served('gateway'))}: the names its certificate holds)"
+        served = fleet.served("gateway")
+        url += f" (as {', '.join(served)}: the names its certificate holds)"
+        # a viewer verifies the live view's certificate, so its address must be one of those names
+        view_host = next((name for name in served if name not in LOCAL_NAMES), served[0])
     print(f"all healthy in {time.monotonic() - t0:.1f} s — gateway {url} (docs at /docs); poses on "
           f"twohr/<robot>/pose; admits {max_robots:g} robots at 30 Hz (--max-robots); Ctrl-C stops everything",
           flush=True)
@@ -183,9 +187,9 @@ def _up(args: argparse.Namespace) -> int:
         from twohr.foxglove_live import view_url, ws_url
 
         if args.keys:  # TLS and a token (the placeholder: a token never goes to the terminal)
-            print(f"live view: {ws_url(args.host, args.foxglove_port)} with TOKEN the operator's API token (every "
+            print(f"live view: {ws_url(view_host, args.foxglove_port)} with TOKEN the operator's API token (every "
                   f"robot) or a robot's (its own); TLS verified with {Path(args.keys) / 'ca.crt'}; in Foxglove: "
-                  f"{view_url(args.host, args.foxglove_port, tls=True)}", flush=True)
+                  f"{view_url(view_host, args.foxglove_port, tls=True)}", flush=True)
         else:
             print(f"live view: {view_url(args.host, args.foxglove_port)}", flush=True)
     return _run_until_stopped(system)

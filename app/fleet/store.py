@@ -83,25 +83,21 @@ class FleetError(TwohrError):
     """A keys folder or a request on it that cannot be carried out."""
 
 
-class RobotRecord(BaseModel):
-    """One robot of the fleet, as ``fleet.json`` keeps it."""
-
-    serial: str = Field(description="its certificate's serial number (hex)")
-    not_after: datetime.datetime
-    added: datetime.datetime
-    revoked: datetime.datetime | None = None
-    password: SecretStr
-    token_sha256: str = Field(description="SHA-256 (hex) of its API token; the token itself is in its bundle only")
-
-
 class ReplicaRecord(BaseModel):
-    """A service replica that joins from another host with a certificate of its own (``ROLE@HOST``)."""
+    """A service replica that joins from another host with a certificate of its own (``ROLE@HOST``), as
+    ``fleet.json`` keeps it."""
 
     serial: str = Field(description="its certificate's serial number (hex)")
     not_after: datetime.datetime
     added: datetime.datetime
     revoked: datetime.datetime | None = None
     password: SecretStr
+
+
+class RobotRecord(ReplicaRecord):
+    """One robot of the fleet: a certificate and bus password as a replica's, and an API token."""
+
+    token_sha256: str = Field(description="SHA-256 (hex) of its API token; the token itself is in its bundle only")
 
 
 class FleetFile(BaseModel):
