@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, Field
 
+from twohr.bus import endpoint_host, is_loopback_host
 from twohr.keys import ALIVE_PREFIX, HEALTH_PREFIX, MAPS_PREFIX, PREFIX, RAW_CAMERA, key
 
 #: rmw_zenoh's liveliness space (``twohr_services.ros2.rmw.ADMIN_SPACE``)
@@ -36,6 +37,8 @@ class Grants(BaseModel):
     serve: list[str] = Field(default_factory=list, description="keys it may answer queries on")
     ask: list[str] = Field(default_factory=list, description="keys it may query")
     watch_liveliness: bool = Field(False, description="may follow which services are alive")
+    read_health: bool = Field(True, description="may ask the services' health counters (``twohr/_health/**``), "
+                              "which name every replica and its host")
     matching: list[str] | None = Field(None, description="subscriber declarations it may learn of, so that it sends "
                                        "what it publishes at all (default: its publish keys); a robot learns of "
                                        "every camera subscriber, since they subscribe to all cameras at once")
@@ -141,12 +144,13 @@ def role_rules(role: str, grants: Grants) -> list[dict]:
     if grants.subscribe:
         rules += [_rule(f"{role}-sub", ["declare_subscriber"], "ingress", grants.subscribe),
                   _rule(f"{role}-sub-data", ["put", "delete"], "egress", grants.subscribe)]
-    ask = grants.ask + [f"{HEALTH_PREFIX}/**"]  # every role may read the services' health counters
+    ask = grants.ask + ([f"{HEALTH_PREFIX}/**"] if grants.read_health else [])
     rules += [_rule(f"{role}-serve", ["declare_queryable", "reply"], "ingress", serve),
               _rule(f"{role}-serve-query", ["query"], "egress", serve),
-              _rule(f"{role}-alive", ["liveliness_token"], "ingress", [f"{ALIVE_PREFIX}/{role}/*"]),
-              _rule(f"{role}-ask", ["query"], "ingress", ask),
-              _rule(f"{role}-ask-reply", ["reply", "declare_queryable"], "egress", ask)]
+              _rule(f"{role}-alive", ["liveliness_token"], "ingress", [f"{ALIVE_PREFIX}/{role}/*"])]
+    if ask:
+        rules += [_rule(f"{role}-ask", ["query"], "ingress", ask),
+                  _rule(f"{role}-ask-reply", ["reply", "declare_queryable"], "egress", ask)]
     ros2_tokens = grants.tokens + [k for k in grants.publish if k.startswith(f"{ADMIN_SPACE_ROS2}/")]
     if ros2_tokens:
         rules.append(_rule(f"{role}-ros2-tokens", ["liveliness_token"], "ingress", ros2_tokens))
@@ -160,19 +164,21 @@ def role_rules(role: str, grants: Grants) -> list[dict]:
 
 def robot_grants(robot: str, ros2_domain: int = 0) -> Grants:
     """What robot ``robot`` may do on a fleet's bus: what a ``client`` may of twohr's keys, but publish only its own
-    camera; of ROS 2, :func:`robot_ros2_grants`."""
+    camera, and neither ask the services' health nor follow their liveliness tokens (both name every replica and
+    its host: the operator's, through ``GET /healthz``); of ROS 2, :func:`robot_ros2_grants`."""
     client = role_grants(ros2_domain)["client"]
     ros2 = robot_ros2_grants(robot, ros2_domain)
     twohr_only = [k for k in client.subscribe if k.startswith(f"{PREFIX}/")]
     return Grants(publish=[key(robot, RAW_CAMERA), *ros2.publish], subscribe=twohr_only + ros2.subscribe,
-                  serve=ros2.serve, ask=client.ask + ros2.ask, watch_liveliness=client.watch_liveliness,
+                  serve=ros2.serve, ask=client.ask + ros2.ask, watch_liveliness=False, read_health=False,
                   matching=[k for k in client.publish if k.startswith(f"{PREFIX}/")] + ros2.publish,
                   tokens=ros2.tokens)
 
 
-def _policy(subject: dict, rules: list[dict]) -> tuple[list[dict], dict, dict]:
-    return rules, subject, {"id": f"{subject['id']}-policy", "rules": [r["id"] for r in rules],
-                            "subjects": [subject["id"]]}
+def _policy(subjects: list[dict], rules: list[dict]) -> tuple[list[dict], list[dict], dict]:
+    """``rules`` and one policy that gives them to every one of ``subjects`` (the policy is named for the first)."""
+    return rules, subjects, {"id": f"{subjects[0]['id']}-policy", "rules": [r["id"] for r in rules],
+                             "subjects": [subject["id"] for subject in subjects]}
 
 
 def access_control(ros2_domain: int = 0, uplinks: list[str] | None = None, robots: list[str] | None = None,
@@ -189,26 +195,23 @@ def access_control(ros2_domain: int = 0, uplinks: list[str] | None = None, robot
     parts = []
     for role, grants in role_grants(ros2_domain).items():
         if robots is None:
-            parts.append(_policy({"id": role, "usernames": [role]}, role_rules(role, grants)))
+            parts.append(_policy([{"id": role, "usernames": [role]}], role_rules(role, grants)))
         elif role not in ("client", "router"):
-            parts.append(_policy({"id": role, "cert_common_names": [role], "usernames": [role]},
+            names = [role, *(name for name in replicas or [] if name.partition("@")[0] == role)]
+            parts.append(_policy([{"id": name, "cert_common_names": [name], "usernames": [name]} for name in names],
                                  role_rules(role, grants)))
-            for name in (name for name in replicas or [] if name.partition("@")[0] == role):
-                parts.append(([], {"id": name, "cert_common_names": [name], "usernames": [name]},
-                              {"id": f"{name}-policy", "rules": parts[-1][2]["rules"], "subjects": [name]}))
     for robot in robots or []:
         subject = {"id": f"robot-{robot}", "cert_common_names": [robot], "usernames": [robot]}
-        parts.append(_policy(subject, role_rules(subject["id"], robot_grants(robot, ros2_domain))))
+        parts.append(_policy([subject], role_rules(subject["id"], robot_grants(robot, ros2_domain))))
     if uplinks:
-        parts.append(_policy({"id": "uplink", "zids": list(uplinks)},
+        parts.append(_policy([{"id": "uplink", "zids": list(uplinks)}],
                              role_rules("uplink", uplink_grants(ros2_domain))))
     return {"enabled": True, "default_permission": "deny", "rules": [r for rules, _, _ in parts for r in rules],
-            "subjects": [subject for _, subject, _ in parts], "policies": [policy for _, _, policy in parts]}
+            "subjects": [subject for _, subjects, _ in parts for subject in subjects],
+            "policies": [policy for _, _, policy in parts]}
 
 
 def is_loopback(endpoint: str) -> bool:
-    """Whether a Zenoh endpoint (``tcp/HOST:PORT``) or a bare host is reachable from this host only."""
-    host = endpoint.split("/", 1)[-1]
-    host = host.rsplit(":", 1)[0] if "/" in endpoint else host
-    host = host.strip("[]")
-    return host in ("localhost", "::1") or host.startswith("127.")
+    """Whether a Zenoh endpoint (``tcp/HOST:PORT``) or a bare host is reachable from this host only (a loopback
+    address or ``localhost``; :func:`twohr.bus.is_loopback_host`)."""
+    return is_loopback_host(endpoint_host(endpoint))

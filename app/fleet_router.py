@@ -35,7 +35,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections import Counter
+from collections import OrderedDict
 from pathlib import Path
 
 from pydantic import BaseModel, Field, SecretStr
@@ -55,6 +55,11 @@ log = logging.getLogger("twohr.router")
 LEASE_FILE, APPLIED_FILE = "router.lease", "applied.json"
 #: a lease older than this (s) is a router's that is gone; how long ``keys revoke`` waits for the acknowledgement
 LEASE_STALE, CONFIRM_TIMEOUT = 5.0, 15.0
+#: a list the router could not open with is tried again after this (s), doubling up to the second figure: each try
+#: restarts the router, which every client feels for about a second
+RETRY_FIRST, RETRY_MAX = 10.0, 300.0
+#: the most (identity, action, key) triples and Zenoh ids the denial log remembers: a client chooses its keys
+MAX_TRACKED = 10_000
 
 ACL_TARGET = "zenoh::net::routing::interceptor::access_control"
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
@@ -87,6 +92,20 @@ def _identity(subject: str) -> str | None:
     return names.get("CertCommonName") or names.get("Username")
 
 
+class Bounded(OrderedDict):
+    """A dict that keeps its ``limit`` most recently set keys (:meth:`put`) and forgets the oldest."""
+
+    def __init__(self, limit: int = MAX_TRACKED) -> None:
+        super().__init__()
+        self.limit = limit
+
+    def put(self, key, value) -> None:
+        self[key] = value
+        self.move_to_end(key)
+        while len(self) > self.limit:
+            self.popitem(last=False)
+
+
 def printable(text: str) -> str:
     """``text`` with control characters written as escapes: a key is the client's text, and goes to a terminal."""
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
@@ -99,7 +118,7 @@ class DenialFilter:
 
     def __init__(self) -> None:
         self._caching: dict[str, str] = {}  # thread -> the key whose permissions it is caching
-        self._names: dict[str, str] = {}  # Zenoh id -> identity, for denials Zenoh logs by id alone (cached ones)
+        self._names = Bounded()  # Zenoh id -> identity, for denials Zenoh logs by id alone (cached ones)
 
     def denial(self, line: str) -> tuple[str, str, str] | None:
         """``(identity, action, key)`` of a denied message in this log line, None for any other line."""
@@ -110,7 +129,7 @@ class DenialFilter:
         subject = message.partition(_UNAUTHORIZED)[0]
         zid, name = _SUBJECT.match(subject), _identity(subject)
         if zid is not None and name:
-            self._names[zid[1]] = name
+            self._names.put(zid[1], name)
         caching = _CACHING.match(message)
         if caching is not None and thread is not None:
             self._caching[thread] = caching[1]
@@ -143,15 +162,20 @@ class DenialLog:
     """Reads what Zenoh writes to this process's standard output (file descriptor 1) through a pipe: Zenoh's ACL
     trace records become one line per denied (identity, action, key), every other record passes through unchanged.
     Python's own output, and the children's (:mod:`twohr_app.supervisor` hands them this process's ``sys.stdout``),
-    go to the real standard output beside it, so that all that comes through the pipe is Zenoh's."""
+    go to the real standard output beside it, so that all that comes through the pipe is Zenoh's.
+
+    It must never stop reading: Zenoh writes its log from the router's own threads, and a pipe nobody drains would
+    block them once full. So a line it cannot handle is skipped, output to a terminal that is gone is dropped, and
+    it remembers at most :data:`MAX_TRACKED` distinct denials (a client chooses its keys)."""
 
     def __init__(self, every: float = 10.0, out=None) -> None:
         self.every = every
-        self.counts: Counter[tuple[str, str, str]] = Counter()
-        self._reported: Counter[tuple[str, str, str]] = Counter()
+        self.counts: Bounded = Bounded()  # (identity, action, key) -> times denied
+        self._reported: Bounded = Bounded()  # (identity, action, key) -> the count last reported
         self._out = out
         self._filter = DenialFilter()
         self._thread: threading.Thread | None = None
+        self.skipped = 0  # lines it could not handle
 
     def start(self) -> DenialLog:
         import zenoh
@@ -174,11 +198,17 @@ class DenialLog:
         # only a line feed ends a line: a key may hold a carriage return
         with os.fdopen(fd, "r", errors="replace", newline="\n") as lines:
             for line in lines:
-                self.feed(line, acl)
-                acl = _ACL_RECORD in line if _RECORD.match(line) else acl
-                if time.monotonic() - last >= self.every:
-                    last = time.monotonic()
-                    self._summarise()
+                record_acl = _ACL_RECORD in line if _RECORD.match(line) else acl
+                try:
+                    self.feed(line, acl)
+                    if time.monotonic() - last >= self.every:
+                        last = time.monotonic()
+                        self._summarise()
+                except Exception as exc:  # the pipe must be drained, whatever a line holds
+                    self.skipped += 1
+                    if self.skipped == 1:
+                        log.warning("denial log: a line could not be handled (%s); it goes on", _one_line(exc))
+                acl = record_acl
 
     def feed(self, line: str, acl: bool = False) -> None:
         """Take one line Zenoh wrote; ``acl``: whether the record before it was of the ACL target. A line that does
@@ -186,29 +216,32 @@ class DenialLog:
         that record is an ACL one, as the record itself is."""
         if _RECORD.match(line):
             if _ACL_RECORD not in line:
-                self._out.write(line)
-                self._out.flush()
+                self._write(line)
                 return
             denial = self._filter.denial(line)
             if denial is not None:
-                self.counts[denial] += 1
-                if self.counts[denial] == 1:
-                    self._say(f"twohr router: denied {denial[0]!r} {denial[1]} on {printable(denial[2])}")
-                    self._reported[denial] = 1
+                count = self.counts.get(denial, 0) + 1
+                self.counts.put(denial, count)
+                if count == 1:
+                    self._write(f"twohr router: denied {denial[0]!r} {denial[1]} on {printable(denial[2])}\n")
+                    self._reported.put(denial, 1)
         elif not acl and ACL_TARGET not in line:
-            self._out.write("  " + line)  # indented: it goes on the record before, and starts nothing
-            self._out.flush()
+            self._write("  " + line)  # indented: it goes on the record before, and starts nothing
 
     def _summarise(self) -> None:
-        for denial, count in self.counts.items():
-            if count > self._reported[denial]:
-                self._say(f"twohr router: denied {denial[0]!r} {denial[1]} on {printable(denial[2])} {count} times "
-                          "so far")
-                self._reported[denial] = count
+        for denial, count in list(self.counts.items()):
+            if count > self._reported.get(denial, 0):
+                self._write(f"twohr router: denied {denial[0]!r} {denial[1]} on {printable(denial[2])} {count} "
+                            "times so far\n")
+                self._reported.put(denial, count)
 
-    def _say(self, text: str) -> None:
-        self._out.write(text + "\n")
-        self._out.flush()
+    def _write(self, text: str) -> None:
+        """Write to the real standard output; once that is gone (a closed terminal, a broken pipe), drop it all."""
+        try:
+            self._out.write(text)
+            self._out.flush()
+        except (OSError, ValueError):  # ValueError: a closed file
+            self._out = open(os.devnull, "w")  # kept for the process's life
 
 
 class Applied(BaseModel):
@@ -269,32 +302,42 @@ class FleetRouter:
     In its ``state`` folder (default ``<keys>/state/router``) it keeps a lease (:data:`LEASE_FILE`, touched every
     ``poll`` s while it runs, removed when it closes) and acknowledges every list it tries (:class:`Applied` in
     :data:`APPLIED_FILE`); a list it cannot open with leaves it running with the one before, which it says there
-    and in its log. ``twohr keys revoke`` waits for both (:func:`confirm`)."""
+    and in its log, and is tried again later (after ``retry`` s, then twice as long each time, up to
+    :data:`RETRY_MAX`). ``twohr keys revoke`` waits for both (:func:`confirm`). The users file in force is written
+    afresh for every opening into a new private folder (in ``state``, else the system's temporary folder), so a
+    cleaner that empties the temporary folder while the router runs costs it nothing."""
 
     def __init__(self, folder: str | Path, listen: list[str], ros2_domain: int = 0, poll: float = 0.5,
-                 state: str | Path | None = None) -> None:
+                 state: str | Path | None = None, retry: float = RETRY_FIRST) -> None:
         self.folder = Path(folder)
         self.listen = listen
         self.ros2_domain = ros2_domain
         self.poll = poll
+        self.retry = retry  # s before a list that failed is tried again the first time
         self.identity = load_identity(self.folder)
         self.state = Path(state) if state is not None else router_state(self.folder)
-        self._private = Path(tempfile.mkdtemp(prefix="twohr-router-"))  # the users file in force (0700)
-        try:
-            self.list = read_list(self.folder)
-        except (OSError, ValueError) as exc:
-            shutil.rmtree(self._private, ignore_errors=True)
-            raise TwohrError(f"cannot start the fleet's router: {_one_line(exc)}") from None
-        self.seen = self.list.version
-        self.restarts = 0
-        try:
-            self.session = self._open(self.list)
-        except BaseException:
-            shutil.rmtree(self._private, ignore_errors=True)
-            raise
         if self.state is not None:
             try:
                 private_folder(self.state)
+            except OSError as exc:
+                log.warning("cannot keep a lease in %s (%s)", self.state, exc)
+                self.state = None
+            for stale in self.state.glob("users-*") if self.state is not None else []:
+                shutil.rmtree(stale, ignore_errors=True)  # a router killed before it could remove its copy
+        self._private: Path | None = None  # the folder of the users file in force (0700)
+        try:
+            self.list = read_list(self.folder)
+        except (OSError, ValueError) as exc:
+            raise TwohrError(f"cannot start the fleet's router: {_one_line(exc)}") from None
+        self.seen = self.list.version
+        self._refused: int | None = None  # the last version whose list could not be read
+        self._retry_at: float | None = None  # when to try the list of version ``seen`` again (it failed)
+        self._backoff = retry
+        self._last_error: str | None = None
+        self.restarts = 0
+        self.session = self._open(self.list)
+        if self.state is not None:
+            try:
                 self._lease()
             except OSError as exc:
                 log.warning("cannot keep a lease in %s (%s)", self.state, exc)
@@ -318,33 +361,64 @@ class FleetRouter:
         return self.list.robots
 
     def _open(self, listing: RouterList):
-        users = write_private(self._private / USERS_FILE, listing.users.get_secret_value())
-        security = RouterSecurity(users_file=users, identity=self.identity,
-                                  access_control=access_control(self.ros2_domain, robots=listing.robots,
-                                                                replicas=listing.replicas))
-        return start_router(self.listen, security)
+        """A router session with ``listing``'s users and access list. Its users file goes to a new private folder
+        (``mkdtemp``: made by us, 0700, whatever was there before), which replaces the last one once it opened."""
+        private = None
+        if self.state is not None:
+            with contextlib.suppress(OSError):  # one it cannot write to: the system's temporary folder
+                private = Path(tempfile.mkdtemp(prefix="users-", dir=self.state))
+        private = private or Path(tempfile.mkdtemp(prefix="twohr-router-"))
+        try:
+            users = write_private(private / USERS_FILE, listing.users.get_secret_value())
+            security = RouterSecurity(users_file=users, identity=self.identity,
+                                      access_control=access_control(self.ros2_domain, robots=listing.robots,
+                                                                    replicas=listing.replicas))
+            session = start_router(self.listen, security)
+        except BaseException:
+            shutil.rmtree(private, ignore_errors=True)
+            raise
+        if self._private is not None:
+            shutil.rmtree(self._private, ignore_errors=True)
+        self._private = private
+        return session
 
     def _watch(self) -> None:
+        """Every ``poll`` s: the lease, and the list. Nothing may end this thread: the lease would go stale and the
+        list unwatched, with no word said."""
         while not self._stop.wait(self.poll):
-            self._heartbeat()
-            try:
-                listing = read_list(self.folder)
-            except ListError as exc:
-                if exc.version != self.seen:
-                    self.seen = exc.version
-                    log.error("robots' list version %d not applied: %s; the router goes on with version %d",
-                              exc.version, exc, self.list.version)
-                    self._acknowledge(exc.version, str(exc))
-                continue
-            except (OSError, ValueError, KeyError, TypeError):  # being rewritten: read it again next time
-                continue
-            if listing.version != self.seen or self.session is None:
-                self.reload(listing)
+            for what, step in (("keep its lease", self._heartbeat), ("check the robots' list", self._check)):
+                try:
+                    step()
+                    continue
+                except Exception as exc:
+                    error = f"{what} ({_one_line(exc)})"
+                if error != self._last_error:  # once, not every poll
+                    log.error("the router's watcher could not %s; it goes on", error)
+                    self._last_error = error
+
+    def _check(self) -> None:
+        """Read the list; reload when it is new, when the router is down, or when a list that failed is due again."""
+        try:
+            listing = read_list(self.folder)
+        except ListError as exc:
+            if exc.version != self._refused:
+                self._refused = exc.version
+                log.error("robots' list version %d not applied: %s; the router goes on with version %d",
+                          exc.version, exc, self.list.version)
+                self._acknowledge(exc.version, str(exc))
+            return
+        except (OSError, ValueError, KeyError, TypeError):  # being rewritten: read it again next time
+            return
+        due = self._retry_at is not None and time.monotonic() >= self._retry_at
+        if listing.version != self.seen or self.session is None or due:
+            self.reload(listing)
 
     def reload(self, listing: RouterList) -> None:
         """Close the router and open it again with the robots' new list; if it cannot open with that list, open it
         again with the list it had, and say why (in the log and in :data:`APPLIED_FILE`)."""
         with self._lock:
+            if listing.version != self.seen:
+                self._backoff = self.retry  # a new list: its first try
             before = self.list
             gone = sorted(set(before.robots) - set(listing.robots))
             t0 = time.monotonic()
@@ -360,9 +434,17 @@ class FleetRouter:
                 try:
                     self.session = self._open(before)
                 except Exception as again:
-                    error += f"; nor with version {before.version} again: {_one_line(again)} (retrying)"
+                    error += f"; nor with version {before.version} again: {_one_line(again)}"
             self.seen = listing.version
             self.restarts += 1
+            if error is None or self.session is None:
+                self._retry_at = None
+                if error is not None:
+                    error += f" (the router is down: tried again every {self.poll:g} s)"
+            else:
+                error += f" (tried again in {self._backoff:.0f} s)"
+                self._retry_at = time.monotonic() + self._backoff
+                self._backoff = min(2 * self._backoff, RETRY_MAX)
         self._heartbeat()
         self._acknowledge(listing.version, error)
         if error is None:
@@ -411,7 +493,8 @@ class FleetRouter:
                 self.session.close()
         if self.state is not None:
             (self.state / LEASE_FILE).unlink(missing_ok=True)
-        shutil.rmtree(self._private, ignore_errors=True)
+        if self._private is not None:
+            shutil.rmtree(self._private, ignore_errors=True)
 
 
 def _one_line(exc: BaseException) -> str:

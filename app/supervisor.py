@@ -30,6 +30,15 @@ from twohr.keys import PIPELINE_SERVICES
 from .fleet import USERS_FILE, Credentials, Fleet, password_file
 from .fleet.store import OPERATOR_TOKEN_FILE
 
+#: the audit trail's file in the map store's folder (:func:`audit_file`)
+AUDIT_FILE = "audit.jsonl"
+
+
+def audit_file(maps: str | Path) -> Path:
+    """The audit trail of a stack whose map store is ``maps``: ``<maps>/audit.jsonl``, where ``twohr up`` has the
+    gateway write it, compose keeps it (``/maps/audit.jsonl``) and ``twohr maps rollback`` appends by default."""
+    return Path(maps) / AUDIT_FILE
+
 
 def _die_with_parent() -> None:
     """In a child, before exec: on Linux, have the kernel send SIGTERM when ``twohr up`` dies, even by SIGKILL,
@@ -259,11 +268,15 @@ def local_endpoint(endpoint: str) -> str:
 
 def check_custody(fleet: Fleet, router: str, hosts: list[str], api_token: str | None = None) -> None:
     """One line (:class:`~twohr_app.fleet.FleetError`) unless the stack can run on ``fleet``'s keys as they are,
-    without the CA's private key: the router's and the gateway's certificates name their hosts (a wildcard serves
-    the names they hold), and the operator's token is in ``operator.token``, not on a command line."""
+    without the CA's private key: the router listens on ``tls/``, the router's and the gateway's certificates name
+    their hosts (a wildcard serves the names they hold), and the operator's token is in ``operator.token``, not on a
+    command line."""
     from .fleet import FleetError
 
     fleet.read()  # one clear line for a folder without keys
+    if not router.startswith("tls/"):
+        raise FleetError(f"--router {router}: on a fleet's keys the stack's router listens on tls/HOST:PORT only (a "
+                         "robot's password crosses no plain link)")
     if api_token is not None:
         raise FleetError(f"on a fleet's keys the operator's API token is {fleet.operator_token} (twohr keys init "
                          "wrote it): give no --api-token")
@@ -292,9 +305,10 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
     stays None. ``foxglove_port`` turns on the
     gateway's Foxglove live view on ``host`` (with ``keys`` on TLS, and a viewer needs a token);
     ``ros2_domain`` starts the ros2 service, which speaks ROS 2 over rmw_zenoh in that domain. ``maps``: the map
-    store's folder (the gateway serves it). ``replicas``: how many processes of each network service to run
-    (:func:`check_replicas`; default one each). ``max_robots``: the gateway's admission limit (None: none).
-    ``map_versions``: versions of each map the store keeps (None: the gateway's default, 10)."""
+    store's folder (the gateway serves it, and keeps its audit trail there: :func:`audit_file`). ``replicas``: how
+    many processes of each network service to run (:func:`check_replicas`; default one each). ``max_robots``: the
+    gateway's admission limit (None: none). ``map_versions``: versions of each map the store keeps (None: the
+    gateway's default, 10)."""
 
     if keys is not None:
         fleet = Fleet(keys)
@@ -314,7 +328,8 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
                 ["--record-descriptors"] if record_descriptors else [])}.get(name, [])
             started[name] = start_replicas(system.group, name, counts[name], extra, base_env | access.env(name))
         gateway_args = ["twohr_services.gateway", "--host", host, "--port", str(port), "--recordings", recordings,
-                        *roots, "--foxglove-port", str(foxglove_port or 0), *(["--maps", maps] if maps else []),
+                        *roots, "--foxglove-port", str(foxglove_port or 0),
+                        *(["--maps", maps, "--audit-log", str(audit_file(maps))] if maps else []),
                         *(_gateway_tls_args(access.keys) if access.keys else []),
                         *(["--max-robots", f"{max_robots:g}"] if max_robots else []),
                         *(["--map-versions", str(map_versions)] if map_versions else [])]

@@ -207,7 +207,9 @@ def keys_page() -> str:
               "`client` is everything outside the stack (camera drivers, other robots, viewers, ROS 2 nodes, "
               "`twohr health`), and `router` a robot's own router linked to the stack's, with a client's grants. "
               "In a fleet (`twohr up --keys`), each robot is its own subject with a client's grants, except that it "
-              "may put only its own camera (`twohr/<robot>/camera`), and of ROS 2 it uses its own namespace and reads "
+              "may put only its own camera (`twohr/<robot>/camera`), may neither ask the services' health nor watch "
+              "their liveliness (both name every replica and its host), and of ROS 2 it uses its own namespace and "
+              "reads "
               "the others' poses, odometry, paths and transforms only; see [Fleet](fleet.md#threat-model). "
               "The ros2 service and clients are also granted rmw_zenoh's keys of one ROS 2 domain "
               "([ROS 2](ros2.md)). What a message holds: [Microservices on Zenoh](microservices.md#messages).", ""]

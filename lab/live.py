@@ -275,11 +275,11 @@ def live_runs(sequence, frames: int, busy_counts: list[int], repeats: int, progr
 
 def _fleet_keys(scratch: Path, router: str, robots: list[str]) -> Path:
     """A fleet's keys for one bench run, with a bundle per robot (``<scratch>/<robot>.bundle``); the operator's token
-    is ``bench``."""
+    is ``bench-operator-token``."""
     from twohr_app.fleet import Fleet
 
     fleet = Fleet(scratch / "keys")
-    fleet.init(api_token="bench")
+    fleet.init(api_token="bench-operator-token")
     for robot in robots:
         fleet.add(robot, scratch / f"{robot}.bundle", endpoint=router)
     return fleet.folder
@@ -301,7 +301,7 @@ def _stack(system, scratch: Path, router: str, port: int, robot: str, keys: Path
     identity = load_identity(bundle)
     observer = BusConfig(connect=[router], identity=identity, user=None, password=None, config_file=None)
     return LiveStack(system, f"https://127.0.0.1:{port}", observer, ["--keys", str(bundle)],
-                     headers={"Authorization": "Bearer bench"},
+                     headers={"Authorization": "Bearer bench-operator-token"},
                      verify=ssl.create_default_context(cafile=str(keys / "ca.crt")))
 
 

@@ -11,6 +11,7 @@ Kept light (no numpy or OpenCV): container health checks import only this module
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import os
 import socket
@@ -122,13 +123,31 @@ class BusConfig(BaseModel):
         return zenoh.Config.from_json5(json.dumps(conf))
 
 
+def is_loopback_host(host: str) -> bool:
+    """Whether ``host`` (an address, or a name) reaches this host only: a loopback address, or ``localhost``. Any
+    other name is not, whatever it starts with (``127.attacker.example`` resolves wherever its owner says)."""
+    host = host.strip("[]")
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a name: it may resolve to any address
+        return False
+
+
+def endpoint_host(endpoint: str) -> str:
+    """The host of a Zenoh endpoint (``tcp/HOST:PORT#metadata``), or ``endpoint`` itself when it is a bare host."""
+    if "/" not in endpoint:
+        return endpoint.strip("[]")
+    address = endpoint.split("/", 1)[1].split("#", 1)[0]
+    return address.rsplit(":", 1)[0].strip("[]")
+
+
 def _check_keyed_link(endpoint: str, name: str) -> None:
     """A process with keys sends its password inside TLS only: a plain link (``tcp/``...) to another host is
     refused; on loopback it is a robot's own router (``twohr router --keys``), which its processes join so."""
-    scheme, _, address = endpoint.partition("/")
-    host = address.rsplit(":", 1)[0].strip("[]").split("#", 1)[0]
-    if scheme not in ("tls", "quic", "unixsock-stream") and not (host in ("localhost", "::1") or
-                                                                 host.startswith("127.")):
+    scheme = endpoint.partition("/")[0]
+    if scheme not in ("tls", "quic", "unixsock-stream") and not is_loopback_host(endpoint_host(endpoint)):
         raise TwohrError(f"{endpoint}: {name}'s keys join over tls/HOST:PORT only (a {scheme}/ link would carry its "
                          "password in clear); plain tcp/ is for a robot's own router on loopback")
 

@@ -57,13 +57,20 @@ SHARED_KINDS = ("pose", "path", "keyframes", "path_refined", "tf")
 MESSAGE_DATA = struct.Struct("<BIQ")  # opcode 0x01, subscription id, log time (ns); the payload follows
 #: what one viewer may have waiting: past either bound its oldest messages are dropped
 VIEWER_BACKLOG, VIEWER_BACKLOG_BYTES = 512, 16 << 20
-MAX_VIEWERS = 32
+#: viewers at once: without tokens, all of them; with tokens, the robots' together (each robot at most
+#: VIEWERS_PER_ROBOT), and the operator's on their own, so that no robot can fill the server and keep the operator out
+MAX_VIEWERS, VIEWERS_PER_ROBOT, OPERATOR_VIEWERS = 32, 4, 8
+#: a subscription id is a u32 on the wire
+MAX_SUBSCRIPTION_ID = 2**32 - 1
 #: batches of messages logged and not yet handed to the viewers' queues: past it the oldest go (the server's loop is
 #: behind the producer)
 OUTBOX = 64
 #: how often the tokens of open connections are checked again (a revoked robot's viewer is closed)
 RECHECK_S = 1.0
 CLIENT_MESSAGE_BYTES = 1 << 16  # viewers send only subscribe and unsubscribe
+#: how long a viewer's TLS and WebSocket handshakes may take: on a small CPU busy with the stack, more than
+#: websockets' default 10 s has been seen
+OPEN_TIMEOUT_S = 30.0
 
 
 @dataclass(frozen=True)
@@ -174,7 +181,7 @@ class LiveView:
     async def _start(self, host: str, port: int):
         return await serve(self._serve, host, port, ssl=self.tls, subprotocols=list(SUBPROTOCOLS),
                            process_request=self._admit, compression=None, max_size=CLIENT_MESSAGE_BYTES,
-                           logger=_ws_log)
+                           logger=_ws_log, open_timeout=OPEN_TIMEOUT_S)
 
     @property
     def url(self) -> str:
@@ -235,19 +242,29 @@ class LiveView:
     # --- the server's side (its event loop) ---
 
     def _admit(self, connection: ServerConnection, request):
-        """Before the upgrade: the token in the URL decides who this is, or the request gets 401 (503 when full)."""
-        if len(self.clients) >= MAX_VIEWERS:
-            return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, f"at most {MAX_VIEWERS} viewers\n")
+        """Before the upgrade: the token in the URL decides who this is, or the request gets 401 (503 when that
+        viewer's share is full, see :data:`MAX_VIEWERS`)."""
+        watching = [client.viewer for client in self.clients] + [viewer for viewer, _ in self._admitted.values()]
         if self.authorize is None:
+            if len(watching) >= MAX_VIEWERS:
+                return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, f"at most {MAX_VIEWERS} viewers\n")
             self._admitted[connection] = (EVERYTHING, None)
             return None
         token = (parse_qs(urlsplit(request.path).query).get("token") or [""])[0]
-        viewer = self.authorize(token) if token else None
+        try:
+            viewer = self.authorize(token) if token else None
+        except Exception:  # a check that fails lets no one in
+            log.exception("live view: the token check failed")
+            return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, "the token check failed: try again\n")
         if viewer is None:
             log.warning("live view: refused a viewer from %s: %s token", connection.remote_address[0],
                         "a wrong" if token else "no")
             return connection.respond(HTTPStatus.UNAUTHORIZED, "missing or wrong token: open the live view's URL "
-                                      "with ?token=<the operator's or a robot's API token>\n")
+                                      "with ?token=<a view token (GET /live with your API token gives it)>\n")
+        full = _full(viewer, watching)
+        if full:
+            log.warning("live view: refused %s from %s: %s", viewer.name, connection.remote_address[0], full)
+            return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, full + "\n")
         self._admitted[connection] = (viewer, token)
         return None
 
@@ -279,20 +296,22 @@ class LiveView:
                 await writer
 
     def _on_request(self, client: _Client, text: str) -> None:
-        """A viewer's subscribe or unsubscribe; a channel it may not see is as unknown as one that does not exist."""
+        """A viewer's subscribe or unsubscribe; a channel it may not see is as unknown as one that does not exist.
+        A request with an id that is not a u32 changes nothing and is answered "malformed request"."""
         try:
             request = json.loads(text)
             op = request["op"]
             if op == "subscribe":
+                wanted = [(_u32(s["channelId"]), _u32(s["id"])) for s in request["subscriptions"]]
                 by_id = {c.id: c for c in list(self.channels.values())}
-                for subscription in request["subscriptions"]:
-                    channel = by_id.get(subscription["channelId"])
+                for channel_id, subscription in wanted:
+                    channel = by_id.get(channel_id)
                     if channel is None or not client.viewer.sees(channel.topic):
-                        self._status(client, f"Unknown channel ID: {subscription['channelId']}")
+                        self._status(client, f"Unknown channel ID: {channel_id}")
                     else:
-                        client.subscriptions[channel.id] = int(subscription["id"])
+                        client.subscriptions[channel.id] = subscription
             elif op == "unsubscribe":
-                ended = {int(i) for i in request["subscriptionIds"]}
+                ended = {_u32(i) for i in request["subscriptionIds"]}
                 client.subscriptions = {c: s for c, s in client.subscriptions.items() if s not in ended}
         except (ValueError, KeyError, TypeError):
             self._status(client, "malformed request")
@@ -352,13 +371,20 @@ class LiveView:
                     await client.connection.send(MESSAGE_DATA.pack(1, subscription, log_time) + payload)
 
     async def _recheck_tokens(self) -> None:
-        """Close the connections whose token is no longer valid (a robot revoked since it connected)."""
+        """Close the connections whose token is no longer valid (a robot revoked since it connected, or expired). A
+        check that fails counts as a refusal: that viewer is closed, the others are checked, and the task goes on."""
         while True:
             await asyncio.sleep(RECHECK_S)
             for client in list(self.clients):
-                if self.authorize(client.token) is None:
+                try:
+                    valid = self.authorize(client.token) is not None
+                except Exception:
+                    log.exception("live view: checking %s's token failed: closing its connection", client.viewer.name)
+                    valid = False
+                if not valid:
                     log.warning("live view: %s's token is no longer valid: closing its connection", client.viewer.name)
                     self.clients.discard(client)
+                    self._update_subscribed()
                     asyncio.create_task(client.connection.close(1008, "token no longer valid"))
 
     def _idle(self) -> bool:
@@ -390,6 +416,28 @@ class LiveView:
         self._stop_loop()
 
 
+def _u32(value) -> int:
+    """A subscription or channel id from a viewer: an integer that fits the wire's u32 (ValueError otherwise)."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_SUBSCRIPTION_ID:
+        raise ValueError(f"not an id: {value!r}")
+    return value
+
+
+def _full(viewer: Viewer, watching: list[Viewer]) -> str | None:
+    """Why ``viewer`` cannot be let in beside those ``watching`` (None: it can): the operator has
+    :data:`OPERATOR_VIEWERS` of its own; a robot at most :data:`VIEWERS_PER_ROBOT`, and all robots together
+    :data:`MAX_VIEWERS`."""
+    if viewer is EVERYTHING:
+        if sum(other is EVERYTHING for other in watching) >= OPERATOR_VIEWERS:
+            return f"the operator has {OPERATOR_VIEWERS} viewers open, the most it may"
+        return None
+    if sum(other.name == viewer.name for other in watching) >= VIEWERS_PER_ROBOT:
+        return f"{viewer.name} has {VIEWERS_PER_ROBOT} viewers open, the most a robot may"
+    if sum(other is not EVERYTHING for other in watching) >= MAX_VIEWERS:
+        return f"the robots have {MAX_VIEWERS} viewers open, the most they may together"
+    return None
+
+
 class FoxgloveClient:
     """A Foxglove WebSocket client on its own thread: it subscribes to every channel the server advertises and
     counts the messages of each topic (and keeps the latest one). For tests, the bench and quick checks.
@@ -397,7 +445,7 @@ class FoxgloveClient:
     ``token`` goes into the URL as ``?token=``; a ``wss://`` URL is verified with ``cafile`` (the fleet's
     ``ca.crt``), else with the system's roots. A refused upgrade raises ``websockets.exceptions.InvalidStatus``."""
 
-    def __init__(self, url: str, subprotocol: str = "foxglove.websocket.v1", timeout: float = 10.0,
+    def __init__(self, url: str, subprotocol: str = "foxglove.websocket.v1", timeout: float = 30.0,
                  token: str | None = None, cafile: str | Path | None = None) -> None:
         if token is not None:
             url += ("&" if urlsplit(url).query else ("?" if urlsplit(url).path else "/?")) + urlencode({"token": token})

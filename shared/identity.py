@@ -28,6 +28,18 @@ from .errors import TwohrError, validation_problems
 BUNDLE_KIND = "twohr-robot-bundle"
 #: The files of a service's key folder.
 CA_FILE, CERT_FILE, KEY_FILE, PASSWORD_FILE = "ca.crt", "cert.pem", "key.pem", "password"
+#: the shortest API token a gateway or ``twohr keys init`` accepts (a generated one has 32 characters)
+MIN_TOKEN_CHARS = 16
+
+
+def api_token_problem(token: str) -> str | None:
+    """Why ``token`` cannot be an API token (blank, shorter than :data:`MIN_TOKEN_CHARS`, or with spaces: a header
+    would not carry it as it is), or None when it can."""
+    if not token.strip():
+        return "the API token is empty: a blank token would let in a request with no token at all"
+    if len(token) < MIN_TOKEN_CHARS or any(c.isspace() for c in token):
+        return f"the API token must have at least {MIN_TOKEN_CHARS} characters and no spaces (it has {len(token)})"
+    return None
 
 
 class IdentityError(TwohrError):

@@ -10,9 +10,10 @@ Written atomically (a temporary file beside the target, fsync, rename). :func:`r
 answers a wrong, corrupt or inconsistent file, or one built with another detector model, with one
 :class:`MapFileError` line. Plain arrays and pydantic only: the tracker, the gateway and the CLI all use it.
 
-Format version 2 adds the map's owners (:attr:`MapHeader.owners`: the identities that built it); a version-1 file
-still loads, owned by the operator. :class:`MapStore` keeps a folder of maps, numbered versions of each (at most
-``keep``), with rollback; :class:`MapGrants` lists the robots the operator lets build or extend a map they do not own.
+Format version 2 adds the map's owners (:attr:`MapHeader.owners`: who built it first) and contributors (who changed
+it under a grant: a record, no right); a version-1 file still loads, owned by the operator. :class:`MapStore` keeps
+a folder of maps, numbered versions of each (at most ``keep``), with rollback; :class:`MapGrants` lists the robots
+the operator lets build or extend a map they do not own.
 """
 
 from __future__ import annotations
@@ -68,6 +69,14 @@ class MapAccessError(MapFileError):
     """An identity that may not replace a map: neither one of its owners nor granted it by the operator."""
 
 
+def check_map_name(name: str) -> str:
+    """``name`` if a map may have it (:data:`NAME_PATTERN`, not ending in ``.v<number>``, a kept version's name);
+    :class:`MapFileError` (one line) otherwise."""
+    if not re.fullmatch(NAME_PATTERN, name) or _is_version(name):
+        raise MapFileError(f"{name!r} is not a map name ({NAME_PATTERN}, not ending in .v<number>)")
+    return name
+
+
 def check_owner(identity: str) -> str:
     """``identity`` if it can own a map (a robot id, or :data:`OPERATOR`); ValueError otherwise."""
     if identity != OPERATOR and not re.fullmatch(ROBOT_PATTERN.pattern, identity):
@@ -88,6 +97,9 @@ class MapHeader(BaseModel):
     owners: list[str] = Field(default_factory=lambda: [OPERATOR], min_length=1, description="the identities that "
                               f"built it (robot ids; {OPERATOR} for the operator's uploads and runs): a robot may "
                               "build or extend the map only when it is one of them or holds the operator's grant")
+    contributors: list[str] = Field(default_factory=list, description="the identities that changed it without "
+                                    "owning it (a robot under the operator's grant, the operator): a record, no "
+                                    "right; a robot among them needs the grant again for its next change")
     parent: str | None = Field(None, description="the map it extends (name@created), if any")
     camera: CameraIntrinsics
     detector_model: str = Field(description="the 2HR detector model its descriptors come from")
@@ -98,7 +110,7 @@ class MapHeader(BaseModel):
     keyframes: int = Field(ge=0)
     landmarks: int = Field(ge=0)
 
-    @field_validator("owners")
+    @field_validator("owners", "contributors")
     @classmethod
     def _known_owners(cls, owners: list[str]) -> list[str]:
         return list(dict.fromkeys(check_owner(owner) for owner in owners))  # once each, in the order they came
@@ -269,12 +281,13 @@ def verify_bytes(data: bytes) -> MapHeader:
     return read_map(data).header
 
 
-def with_owners(data: bytes, owners: list[str]) -> bytes:
-    """A map file's bytes with ``owners`` in its header (and this twohr's format version); the arrays are copied
-    as they are."""
+def with_owners(data: bytes, owners: list[str], contributors: list[str] | None = None) -> bytes:
+    """A map file's bytes with ``owners`` and ``contributors`` in its header (and this twohr's format version); the
+    arrays are copied as they are."""
     with _archive(data) as archive:
         header = _header(archive, "map")
-        header = MapHeader.model_validate({**header.model_dump(), "owners": owners, "version": VERSION})
+        header = MapHeader.model_validate({**header.model_dump(), "owners": owners,
+                                           "contributors": contributors or [], "version": VERSION})
         buffer = io.BytesIO()
         with zipfile.ZipFile(buffer, "w", zipfile.ZIP_STORED) as out:
             out.writestr("header.json", header.model_dump_json(indent=1))
@@ -305,7 +318,10 @@ class MapEntry(BaseModel):
                          "one more per save or rollback (numbers are never reused)")
     versions: list[int] = Field(default_factory=list, description="the versions the store keeps, oldest first (the "
                                 "oldest go past the store's limit; the others keep their numbers)")
-    owners: list[str] = Field(default_factory=list, description="the identities that built the latest version")
+    owners: list[str] = Field(default_factory=list, description="the identities that own the latest version: "
+                              "who built the map first (a robot, or the operator)")
+    contributors: list[str] = Field(default_factory=list, description="those that changed it under the operator's "
+                                    "grant (or as the operator) without owning it: a record, no right")
     keyframes: int
     landmarks: int
     size_bytes: int
@@ -315,11 +331,15 @@ class MapEntry(BaseModel):
 
 
 class MapStore:
-    """A folder of maps. Every version of map ``name`` is ``<name>.v<N>.map`` (N = 1, 2, … never reused) and
-    ``<name>.map`` is the latest (a hard link to its numbered file), the one readers load; a file is never
-    overwritten in place. At most ``keep`` versions are kept: past it the oldest go. A folder written before
-    versions were numbered this way (no numbered file for the latest) is read as it is and converted at its next
-    save. Changes hold a lock that other processes on the folder (``twohr maps rollback``) respect too."""
+    """A folder of maps. Every version of map ``name`` is ``<name>.v<N>.map`` (N = 1, 2, … never reused), written
+    whole under a temporary name and renamed to its number, so that a numbered file is always complete; the highest
+    numbered is the latest. ``<name>.map`` is a hard link to it, the one readers outside the store load; a file is
+    never overwritten in place. At most ``keep`` versions are kept: past it the oldest go. A save interrupted
+    between its numbered file and the link leaves ``<name>.map`` on the version before: the store still serves the
+    highest numbered, and the next change links it. A folder written before versions were numbered this way
+    (``<name>.map`` none of the numbered files) is read as it is, its latest one more than its highest numbered, and
+    converted at its next save. Changes hold a lock that other processes on the folder (``twohr maps rollback``)
+    respect too."""
 
     def __init__(self, root: str | Path, keep: int = DEFAULT_KEEP) -> None:
         if keep < 1:
@@ -328,15 +348,14 @@ class MapStore:
         self.keep = keep
 
     def path(self, name: str) -> Path:
-        """The latest version's file of map ``name`` (:class:`MapFileError` for a name that is not one)."""
-        if not re.fullmatch(NAME_PATTERN, name) or _is_version(name):
-            raise MapFileError(f"{name!r} is not a map name ({NAME_PATTERN}, not ending in .v<number>)")
-        return self.root / f"{name}{SUFFIX}"
+        """The readers' file of map ``name``, ``<name>.map`` (:class:`MapFileError` for a name that is not one)."""
+        return self.root / f"{check_map_name(name)}{SUFFIX}"
 
     def names(self) -> list[str]:
-        """The names of the maps in the folder (their latest versions' files)."""
-        stems = (p.name.removesuffix(SUFFIX) for p in self.root.glob(f"*{SUFFIX}"))
-        return sorted(stem for stem in stems if re.fullmatch(NAME_PATTERN, stem) and not _is_version(stem))
+        """The names of the maps in the folder (with a readers' file or a numbered version)."""
+        stems = {p.name.removesuffix(SUFFIX) for p in self.root.glob(f"*{SUFFIX}")}
+        names = {stem.rpartition(".v")[0] if _is_version(stem) else stem for stem in stems}
+        return sorted(name for name in names if re.fullmatch(NAME_PATTERN, name) and not _is_version(name))
 
     def _numbered(self, name: str) -> dict[int, Path]:
         """Every numbered version file of map ``name``, by number."""
@@ -348,15 +367,24 @@ class MapStore:
         return found
 
     def _latest(self, name: str, numbered: dict[int, Path]) -> int | None:
-        """The latest version's number (None: no map ``name``): the highest numbered file when ``<name>.map`` is it,
-        else one more (a store of the earlier layout, whose latest had no numbered file)."""
+        """The latest version's number (None: no map ``name``): the highest numbered file, unless ``<name>.map`` is
+        none of the numbered files (a store of the earlier layout, whose latest had no number): then one more."""
         path = self.path(name)
-        if not path.is_file():
-            return None
         if not numbered:
-            return 1
+            return 1 if path.is_file() else None
         top = max(numbered)
-        return top if _same_file(path, numbered[top]) else top + 1
+        if not path.is_file() or any(_same_file(path, other) for other in numbered.values()):
+            return top
+        return top + 1
+
+    def latest_file(self, name: str) -> Path:
+        """The latest version's file of map ``name`` (:class:`MapMissingError` when there is none): its numbered file,
+        or ``<name>.map`` in a store of the earlier layout."""
+        numbered = self._numbered(name)
+        latest = self._latest(name, numbered)
+        if latest is None:
+            raise MapMissingError(f"no map named {name!r}")
+        return numbered.get(latest, self.path(name))
 
     def numbers(self, name: str) -> list[int]:
         """The numbers of the kept versions of map ``name``, oldest first, the latest last ([] for no map)."""
@@ -382,24 +410,31 @@ class MapStore:
                 f" (kept: {', '.join(map(str, kept))})" if kept else ""))
         return numbered[version]
 
+    def header(self, name: str) -> MapHeader | None:
+        """The header of map ``name``'s latest version; None when there is no such map. An unreadable file's is
+        the operator's alone (owners ``[@operator]``, no contributors) as far as rights go: :meth:`owners`."""
+        try:
+            path = self.latest_file(name)
+        except MapMissingError:
+            return None
+        return read_header(path)
+
     def owners(self, name: str) -> list[str] | None:
         """The owners of map ``name``'s latest version; None when there is no such map. An unreadable file is the
         operator's alone."""
-        path = self.path(name)
-        if not path.is_file():
-            return None
         try:
-            return read_header(path).owners
+            header = self.header(name)
         except MapFileError:
             return [OPERATOR]
+        return None if header is None else header.owners
 
     def entry(self, name: str) -> MapEntry:
         """What the latest version of map ``name`` is; :class:`MapFileError` when it is missing or unreadable."""
-        path = self.path(name)
+        path = self.latest_file(name)
         header = read_header(path)
         numbers = self.numbers(name)
-        return MapEntry(name=name, version=numbers[-1], versions=numbers,
-                        owners=header.owners, keyframes=header.keyframes, landmarks=header.landmarks,
+        return MapEntry(name=name, version=numbers[-1], versions=numbers, owners=header.owners,
+                        contributors=header.contributors, keyframes=header.keyframes, landmarks=header.landmarks,
                         size_bytes=path.stat().st_size, built_by=header.built_by, created=header.created,
                         detector_model=header.detector_model)
 
@@ -413,27 +448,37 @@ class MapStore:
                 bad[name] = str(exc)
         return good, bad
 
-    def save(self, data: bytes, name: str | None = None, builder: str | None = None,
+    def save(self, data: bytes, name: str | None = None, *, builder: str,
              may_replace: Callable[[list[str]], bool] | None = None) -> MapEntry:
         """Keep a map file's bytes (checked through first) as the next version of ``name`` (default, and it must
-        be: the name in its header, the frame its poses are in). With ``builder`` (a robot id or
-        :data:`OPERATOR`), the new version's owners are the replaced version's and ``builder`` (a new map:
-        ``builder`` alone); without, they are the file's own. ``may_replace(owners)``, asked under the store's lock
-        when the map exists, False: :class:`MapAccessError` and nothing changes. The latest file is replaced
-        atomically: a reader always finds the old or the new one."""
+        be: the name in its header, the frame its poses are in), built by ``builder`` (a robot id, or
+        :data:`OPERATOR`). A new map is ``builder``'s: its one owner. An existing map keeps its owners; a
+        ``builder`` not among them (a robot under the operator's grant, the operator) is recorded among its
+        ``contributors``, which gives no right: the grant stays what lets a robot change a map it does not own.
+        ``may_replace(owners)``, asked under the store's lock when the map exists, False: :class:`MapAccessError`
+        and nothing changes. The latest file is replaced atomically: a reader always finds the old or the new one."""
         header = verify_bytes(data)
         name = name or header.name
         if name != header.name:
             raise MapFileError(f"the file holds map {header.name!r}, not {name!r} (a map's name is its frame)")
+        check_owner(builder)
         path = self.path(name)
         with self._locked():  # an upload and a tracker's save may come at once, from two processes too
-            owners = self.owners(name)
-            if owners is not None and may_replace is not None and not may_replace(owners):
+            try:
+                current = self.header(name)
+            except MapFileError:  # an unreadable latest version: the operator's alone
+                current = MapHeader.model_construct(owners=[OPERATOR], contributors=[])
+            if current is not None and may_replace is not None and not may_replace(current.owners):
+                owners = current.owners
                 raise MapAccessError(f"map {name!r} is owned by {', '.join(owners)}: building or extending it needs "
                                      f"ownership or the operator's grant (twohr keys grant DIR ROBOT --map {name})")
-            if builder is not None:
-                data = with_owners(data, [*(owners or []), check_owner(builder)])
-            return self._add_version(name, path, data)
+            if current is None:
+                owners, contributors = [builder], []
+            elif builder in current.owners:
+                owners, contributors = current.owners, current.contributors
+            else:
+                owners, contributors = current.owners, [*current.contributors, builder]
+            return self._add_version(name, path, with_owners(data, owners, contributors))
 
     def rollback(self, name: str, version: int) -> MapEntry:
         """Make kept version ``version`` of map ``name`` the latest again, byte for byte, as a new version (the
@@ -452,7 +497,8 @@ class MapStore:
             return self._add_version(name, path, data)
 
     def _add_version(self, name: str, path: Path, data: bytes) -> MapEntry:
-        """Write ``data`` as the next version of map ``name`` and make it the latest (the store's lock held)."""
+        """Write ``data`` as the next version of map ``name`` and make it the latest (the store's lock held): the
+        numbered file whole first (a temporary name, renamed), then the readers' link to it."""
         numbered = self._numbered(name)
         latest = self._latest(name, numbered)
         if latest is not None and latest not in numbered:  # the earlier layout: the latest gets its number first
@@ -469,11 +515,12 @@ class MapStore:
         """Remove map ``name`` and its kept versions; False when there was none."""
         path = self.path(name)
         with self._locked():
-            if not path.exists():
+            numbered = self._numbered(name)
+            if not path.exists() and not numbered:
                 return False
-            for old in self._numbered(name).values():
+            path.unlink(missing_ok=True)  # readers lose it first
+            for old in numbered.values():
                 old.unlink(missing_ok=True)
-            path.unlink()
             return True
 
     @contextlib.contextmanager
@@ -494,10 +541,27 @@ LOCK_FILE = ".store.lock"
 
 
 def _same_file(a: Path, b: Path) -> bool:
-    """Whether two paths hold the same version: the same file (a hard link), or the same bytes (a copied store)."""
-    if os.path.samefile(a, b):
+    """Whether two paths hold the same version: the same file (a hard link, by inode), or, in a store copied without
+    its links, the same size and the same members (names, sizes and CRC-32s in the zip's directory: no data is
+    read)."""
+    try:
+        first, second = a.stat(), b.stat()
+    except FileNotFoundError:
+        return False
+    if (first.st_dev, first.st_ino) == (second.st_dev, second.st_ino):
         return True
-    return a.stat().st_size == b.stat().st_size and a.read_bytes() == b.read_bytes()
+    if first.st_size != second.st_size:
+        return False
+    try:
+        return _members(a) == _members(b)
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
+def _members(path: Path) -> list[tuple[str, int, int]]:
+    """A zip file's members as its directory lists them: name, CRC-32 and size of each."""
+    with zipfile.ZipFile(path) as archive:
+        return [(info.filename, info.CRC, info.file_size) for info in archive.infolist()]
 
 
 def _link_atomically(source: Path, target: Path) -> None:

@@ -107,3 +107,33 @@ def test_zero_quaternions_in_a_recording_are_one_line_and_exit_2(short_sequence,
     line = one_error_line(twohr("eval", "--gt", str(short_sequence / "groundtruth.txt"), "--est",
                                 str(tmp_path / "est.mcap")))
     assert "frames [7]" in line and "orientation" in line
+
+
+def test_map_versions_are_checked_in_one_place_and_a_rollback_is_audited_beside_the_maps(tmp_path, tiny_map):
+    """``--map-versions`` is one line wherever it is given, and ``twohr maps rollback`` appends to the map store's
+    audit trail (``MAPS/audit.jsonl``, the file ``twohr up --maps MAPS`` has the gateway write), not to a file
+    relative to wherever it was run."""
+    from twohr.dataset import CameraIntrinsics
+    from twohr.mapfile import MapStore, encode_map
+
+    maps = tmp_path / "maps"
+    store = MapStore(maps)
+    camera = CameraIntrinsics(fx=500, fy=500, cx=319.5, cy=239.5, width=640, height=480)
+    for shift in range(2):
+        made = tiny_map("lab", camera)
+        made.arrays.landmark_positions += shift
+        store.save(encode_map(made), builder="a")
+    for command, value in ((["up"], "0"), (["up"], "10001"), (["up"], "abc"),
+                           (["maps", "rollback", "lab", "--version", "1", "--maps", str(maps)], "0"),
+                           (["maps", "rollback", "lab", "--version", "1", "--maps", str(maps)], "1.5")):
+        line = one_error_line(twohr(*command, "--map-versions", value))
+        assert f"--map-versions {value}: keep at least one version of each map and at most 10000" in line, line
+    assert store.numbers("lab") == [1, 2]
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    done = subprocess.run([sys.executable, "-m", "twohr_app", "maps", "rollback", "lab", "--version", "1", "--maps",
+                           str(maps)], capture_output=True, text=True, timeout=600, cwd=elsewhere)
+    assert done.returncode == 0 and f"logged in {maps / 'audit.jsonl'}" in done.stdout, done.stdout + done.stderr
+    logged = [json.loads(line) for line in (maps / "audit.jsonl").read_text().splitlines()]
+    assert [(e["action"], e["map"], e["version"]) for e in logged] == [("map.rollback", "lab", 3)]
+    assert list(elsewhere.iterdir()) == []

@@ -80,6 +80,20 @@ def test_a_failed_write_keeps_the_old_file_and_leaves_nothing_behind(tmp_path):
     assert path.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["secret"]
 
 
+def test_a_secret_is_never_written_through_a_link(tmp_path):
+    from twohr.errors import TwohrError
+
+    target = tmp_path / "target"
+    target.write_text("someone's file")
+    link = tmp_path / "link"
+    link.symlink_to(target)
+    for keep_owner in (True, False):
+        with pytest.raises(TwohrError, match="is a symbolic link"):
+            write_private(link, "s3cret", keep_owner=keep_owner)
+    assert target.read_text() == "someone's file" and link.is_symlink()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link", "target"]  # no temporary file left
+
+
 def test_the_users_list_round_trips(tmp_path, open_umask):
     users = {"tracker": new_secret(), "robot-7": new_secret(), "client": "pa=ss/word+"}
     path = write_users(tmp_path / USERS_FILE, users)

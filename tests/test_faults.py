@@ -20,7 +20,7 @@ from twohr_app.access import access_control, role_grants
 from twohr_app.supervisor import start_system
 from twohr_services.recorder.core import read_messages
 
-TOKEN = "test-token-1"
+TOKEN = "test-token-faults-1"
 FAST = {"detector.input_scale": 0.5}
 
 

@@ -249,3 +249,50 @@ def test_a_robots_own_router_carries_the_robots_identity(keys, tmp_path):
         robot_router.terminate()
         robot_router.wait(10)
         router.close()
+
+
+def test_a_robot_reads_no_replica_or_host_of_the_services(keys):
+    """The services' health answers and liveliness tokens name every replica and its host: a service (here the
+    gateway, the tracker) reads them, a robot gets nothing of either, and ``twohr health`` with its bundle says only
+    that the stack's router admits it."""
+    from twohr.keys import alive_key, health_key
+
+    fleet, bundles = keys
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    router = FleetRouter(fleet.service_folder("router"), [endpoint])
+    sessions = []
+    try:
+        detector = _client(fleet.identity("detector"), endpoint)
+        gateway, tracker, b = (_client(fleet.identity("gateway"), endpoint), _client(fleet.identity("tracker"),
+                               endpoint), _client(bundles["b"], endpoint))
+        sessions += [detector, gateway, tracker, b]
+        replica = "gpu-host-1-detector"
+        answer = json.dumps({"service": "detector", "replica": replica, "host": "gpu-host", "received": 7})
+        queryable = detector.declare_queryable(health_key("detector", replica),
+                                               lambda query: query.reply(health_key("detector", replica), answer))
+        token = detector.liveliness().declare_token(alive_key("detector", replica))
+        time.sleep(1.0)
+        replies = {}
+        for name, session in (("gateway", gateway), ("b", b)):
+            replies[name] = [r.ok.payload.to_string() for r in session.get(health_key("detector"), timeout=2.0)
+                             if r.ok]  # what twohr health asks
+        tokens = {name: [str(r.ok.key_expr) for r in session.liveliness().get(alive_key("detector"), timeout=2.0)
+                         if r.ok] for name, session in (("tracker", tracker), ("b", b))}
+        watched: list[str] = []
+        b.liveliness().declare_subscriber("twohr/_alive/**", lambda s: watched.append(str(s.key_expr)))
+        time.sleep(0.5)
+        token.undeclare()
+        again = detector.liveliness().declare_token(alive_key("detector", "gpu-host-2-detector"))
+        time.sleep(1.0)
+        assert replies == {"gateway": [answer], "b": []}, replies
+        assert tokens == {"tracker": [alive_key("detector", replica)], "b": []}, tokens
+        assert watched == []
+        again.undeclare()
+        queryable.undeclare()
+        done = twohr("health", "--keys", str(bundles["b"]), "--router", endpoint)
+        assert done.returncode == 0 and f"the router at {endpoint} admits robot b" in done.stdout, done.stderr
+        assert "gpu-host" not in done.stdout and "NOT ANSWERING" not in done.stdout
+    finally:
+        for session in sessions:
+            session.close()
+        router.close()

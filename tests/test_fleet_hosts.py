@@ -27,7 +27,7 @@ PORT, GATEWAY = 7447, 8443
 # the stack's end of each host's link; "far" runs a detector replica that joins the stack
 STACK = {"a": "10.214.1.1", "b": "10.214.2.1", "x": "10.214.3.1", "far": "10.214.4.1"}
 HOST = {"a": "10.214.1.2", "b": "10.214.2.2", "x": "10.214.3.2", "far": "10.214.4.2"}
-TOKEN = "operator-token"
+TOKEN = "operator-token-fleet-hosts"
 FAST = json.dumps({"detector.input_scale": 0.5})
 
 

@@ -11,8 +11,10 @@ one line, with real processes: ``twohr keys`` and ``twohr router`` as a stack ru
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -132,6 +134,29 @@ def test_keys_input_is_refused_in_one_line(keys, tmp_path):
     assert "tls/HOST:PORT only" in line, line
     with pytest.raises(TwohrError, match="in clear"):
         join(load_identity(tmp_path / "a.bundle"), "tcp/192.0.2.1:7447")
+    # a name is not loopback because it starts with 127.: it resolves wherever its owner says
+    with pytest.raises(TwohrError, match="in clear"):
+        join(load_identity(tmp_path / "a.bundle"), "tcp/127.attacker.example:7447")
+    line = one_line_error(twohr("router", "--keys", str(tmp_path / "a.bundle"), "--listen",
+                                "tcp/127.attacker.example:7447", "--connect", "tls/127.0.0.1:9"))
+    assert "on loopback" in line, line
+    # the stack's router on a fleet's keys listens on tls/ only, said before anything starts
+    line = one_line_error(twohr("up", "--keys", str(keys.folder), "--router", f"tcp/127.0.0.1:{free_port()}",
+                                "--port", str(free_port())))
+    assert "tls/HOST:PORT only" in line and "--router tcp/127.0.0.1:" in line, line
+
+
+def test_loopback_is_a_loopback_address_or_localhost():
+    from twohr.bus import is_loopback_host
+    from twohr_app.access import is_loopback
+
+    for where in ("127.0.0.1", "127.1.2.3", "::1", "[::1]", "localhost", "LocalHost", "tcp/127.0.0.1:7447",
+                  "tcp/[::1]:7447", "tcp/localhost:7447#iface=lo"):
+        assert is_loopback(where), where
+    for where in ("127.attacker.example", "tcp/127.attacker.example:7447", "127.0.0.1.nip.io", "localhost.example",
+                  "10.0.0.1", "0.0.0.0", "::", "tcp/0.0.0.0:7447", "example.org", ""):
+        assert not is_loopback(where), where
+    assert is_loopback_host("127.0.0.1") and not is_loopback_host("127.attacker.example")
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="giving a file to another user needs root")
@@ -147,6 +172,47 @@ def test_keys_add_never_writes_a_key_into_a_file_someone_else_owns(keys, tmp_pat
     assert twohr("keys", "add", str(keys.folder), "x", "--out", str(ours)).returncode == 0
     st = ours.stat()
     assert st.st_uid == os.geteuid() and st.st_mode & 0o777 == 0o600 and load_identity(ours).name == "x"
+    # a link planted at --out (ours or theirs) is never followed: the file it names keeps its bytes and its owner
+    for owner in (os.geteuid(), 4242):
+        link = tmp_path / f"link-{owner}.bundle"
+        link.symlink_to(theirs)
+        os.lchown(link, owner, owner)
+        line = one_line_error(twohr("keys", "add", str(keys.folder), f"y{owner}", "--out", str(link)))
+        assert "symbolic link" in line, line
+        assert link.is_symlink() and theirs.read_text() == "someone else's" and theirs.stat().st_uid == 4242
+    # and the one writer of secrets: a file handed out is ours whoever owned the one it replaces
+    handed = tmp_path / "handed.bundle"
+    handed.write_text("old")
+    os.chown(handed, 4242, 4242)
+    write_private(handed, "new", keep_owner=False)
+    assert handed.stat().st_uid == os.geteuid() and handed.read_text() == "new"
+    kept = tmp_path / "kept"
+    kept.write_text("old")
+    os.chown(kept, 4242, 4242)
+    write_private(kept, "new")  # a service's file in its key folder keeps the user the service runs as
+    assert kept.stat().st_uid == 4242 and kept.stat().st_mode & 0o777 == 0o600
+    link = tmp_path / "kept-link"
+    link.symlink_to(kept)
+    with pytest.raises(TwohrError, match="symbolic link"):
+        write_private(link, "through a link")
+    assert kept.read_text() == "new" and link.is_symlink()
+
+
+def test_add_service_narrows_only_the_folders_it_makes(keys, tmp_path):
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o755)  # a folder others use, as /tmp is
+    keys.add_service("detector", "gpu-1", shared)
+    assert shared.stat().st_mode & 0o777 == 0o755
+    assert {(shared / sub).stat().st_mode & 0o777 for sub in ("services", "services/detector")} == {0o700}
+    assert {(shared / "services" / "detector" / name).stat().st_mode & 0o777 for name in ("key.pem", "password")} == {
+        0o600}
+    made = tmp_path / "made" / "G1"
+    keys.add_service("yolo", "gpu-1", made)
+    assert made.stat().st_mode & 0o777 == 0o700 and load_identity(made / "services" / "yolo").name == "yolo@gpu-1"
+    line = one_line_error(twohr("keys", "add-service", str(keys.folder), "matcher", "gpu-1", "--out",
+                                str(tmp_path / "a.bundle"), "--days", "nan"))
+    assert "--days nan" in line and "at most 825" in line, line
 
 
 def test_revoke_says_whether_the_list_is_in_force(keys, tmp_path):
@@ -297,3 +363,105 @@ def test_an_expired_robot_is_cut_mid_session(keys, tmp_path):
     (keys.folder / "ca.key").rename(tmp_path / "ca.key")
     line = one_line_error(twohr("keys", "renew", str(keys.folder), "e", "--out", str(tmp_path / "e2.bundle")))
     assert "ca.key" in line
+
+
+def test_the_router_survives_losing_its_users_copy_and_its_watchers_errors_and_retries_a_refused_list(
+        keys, tmp_path, caplog):
+    """The users file the router runs with is a private copy: a cleaner that removes it (``/tmp`` after ten days)
+    costs the next reload nothing; an error in the watcher is logged once and the watching goes on; a list Zenoh
+    refuses is tried again (here after 1 s) and applied once it can be, with no new version."""
+    from twohr_app.fleet_router import FleetRouter
+
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    router = FleetRouter(keys.service_folder("router"), [endpoint], retry=1.0)
+    sessions = []
+    try:
+        private = router._private
+        assert private.parent == keys.router_state and private.stat().st_mode & 0o777 == 0o700
+        assert (private / "users.txt").stat().st_mode & 0o777 == 0o600
+        shutil.rmtree(private)  # as a cleaner of a temporary folder would
+        faults = []
+        check = router._check
+
+        def fails_once() -> None:  # an error the watcher did not foresee, once
+            if not faults:
+                faults.append(time.monotonic())
+                raise RuntimeError("a fault in the watcher")
+            check()
+
+        router._check = fails_once
+        deadline = time.monotonic() + 10
+        while not faults:
+            assert time.monotonic() < deadline, "the watcher never ran"
+            time.sleep(0.1)
+        keys.revoke("c")
+        applied = wait_applied(keys, keys.read().version)
+        assert applied.ok and router.robots == ["a", "b"] and router._private.is_dir() and not private.exists()
+        assert "could not check the robots' list (a fault in the watcher); it goes on" in caplog.text
+        source = join(keys.identity("source"), endpoint)
+        a = join(load_identity(tmp_path / "a.bundle"), endpoint)
+        sessions += [source, a]
+        stream = Stream(source, a, "a")
+        time.sleep(1.5)
+        stream.stop()
+        assert len(stream.arrivals) > 20  # the router opened after the reload admits a, as before
+
+        # a list Zenoh refuses: acknowledged as not applied, tried again, and in force once the file is fixed
+        router_folder = keys.service_folder("router")
+        listed = json.loads((router_folder / "robots.json").read_text())
+        users = (router_folder / "users.txt").read_text()
+        write_private(router_folder / "users.txt", users + "not a user line\n")
+        write_private(router_folder / "robots.json", json.dumps(listed | {"version": listed["version"] + 1}))
+        refused = wait_applied(keys, listed["version"] + 1)
+        assert not refused.ok and "tried again in 1 s" in refused.error, refused
+        write_private(router_folder / "users.txt", users)  # fixed, under the same version
+        deadline = time.monotonic() + 20
+        while router.version != listed["version"] + 1:
+            assert time.monotonic() < deadline, "the refused list was not tried again"
+            time.sleep(0.1)
+        applied = Applied.model_validate_json((keys.router_state / APPLIED_FILE).read_bytes())
+        assert applied.ok and applied.version == applied.in_force == listed["version"] + 1, applied
+    finally:
+        for session in sessions:
+            session.close()
+        router.close()
+    assert not router._private.exists() and not list(keys.router_state.glob("users-*"))
+
+
+def test_the_denial_log_drains_zenohs_output_when_its_terminal_is_gone_and_remembers_a_bounded_number():
+    """Zenoh writes its log from the router's threads into a pipe the denial log reads: that reader must never stop
+    (a full pipe would block the router) nor grow without bound, whatever the clients' keys and whether the
+    terminal it writes to is still there."""
+    from twohr_app.fleet_router import ACL_TARGET, MAX_TRACKED, DenialLog
+
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    gone = os.fdopen(write_end, "w")  # a terminal that is gone: every write is a broken pipe
+    denials = DenialLog(every=0.05, out=gone)
+    zenoh_out, zenoh_in = os.pipe()
+    pump = threading.Thread(target=denials._pump, args=(zenoh_out,), daemon=True)
+    pump.start()
+    record = ("\x1b[2m2026-12-06T15:00:00.000000Z\x1b[0m \x1b[35mTRACE\x1b[0m \x1b[2mrx-1\x1b[0m "
+              f"\x1b[2m{ACL_TARGET}\x1b[0m\x1b[2m:\x1b[0m ")
+    lines = ["\x1b[2m2026-12-06T15:00:00.000000Z\x1b[0m  INFO zenoh::net::runtime: a line to pass through\n"]
+    extra = 500
+    lines += [f"{record}{i:x} on Interface(lo)+CertCommonName(b)+Username(b)+Transport(Tls)+{i:x} is unauthorized "
+              f"to Put (ingress) on twohr/b/k{i}\n" for i in range(MAX_TRACKED + extra)]
+    text = "".join(lines).encode()
+    assert len(text) > 1 << 20  # far more than a pipe holds: the writer blocks unless it is read
+
+    def write() -> None:
+        with os.fdopen(zenoh_in, "wb") as pipe:
+            pipe.write(text)
+
+    writer = threading.Thread(target=write, daemon=True)
+    writer.start()
+    writer.join(120)
+    pump.join(120)
+    assert not writer.is_alive() and not pump.is_alive(), "the denial log stopped reading"
+    assert denials.skipped == 0 and len(denials.counts) == MAX_TRACKED
+    assert ("b", "put", f"twohr/b/k{MAX_TRACKED + extra - 1}") in denials.counts
+    assert ("b", "put", "twohr/b/k0") not in denials.counts  # the oldest are forgotten
+    assert len(denials._filter._names) == MAX_TRACKED
+    with contextlib.suppress(OSError):
+        gone.close()

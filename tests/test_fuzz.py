@@ -211,7 +211,7 @@ def stack(tmp_path_factory, dev_sequence):
 
     recordings = tmp_path_factory.mktemp("recordings")
     system = start_system(f"tcp/127.0.0.1:{free_port()}", [str(dev_sequence.parent)], str(recordings), "127.0.0.1",
-                          free_port(), api_token="fuzz-token", timeout=180,
+                          free_port(), api_token="fuzz-token-0123456789", timeout=180,
                           maps=str(tmp_path_factory.mktemp("maps")))
     yield {"system": system, "recordings": recordings}
     system.stop()

@@ -35,7 +35,7 @@ from twohr.mapfile import write_map
 from twohr.mcapfile import MCAP_MAGIC
 from twohr_services.gateway.app import GatewaySettings, create_app
 
-TOKEN = "fuzz-token-1"
+TOKEN = "http-fuzz-token-1"
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance]
 CASES_PER_OPERATION = 40
 

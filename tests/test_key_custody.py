@@ -253,7 +253,7 @@ def test_the_denial_log_names_the_link_not_the_key(tmp_path):
 
 def test_recordings_and_maps_are_written_private(tmp_path, tiny_map):
     from twohr.dataset import CameraIntrinsics
-    from twohr.mapfile import MapStore, encode_map
+    from twohr.mapfile import OPERATOR, MapStore, encode_map
     from twohr.mcapfile import partial_marker, recover
     from twohr.messages import PoseMsg, encode
     from twohr_services.recorder.core import SessionRecorder
@@ -270,8 +270,8 @@ def test_recordings_and_maps_are_written_private(tmp_path, tiny_map):
         assert recover(cut) is not None  # rewritten whole, with a marker beside it
         store = MapStore(tmp_path / "maps")
         camera = CameraIntrinsics(fx=500, fy=500, cx=319.5, cy=239.5, width=640, height=480)
-        store.save(encode_map(tiny_map("lab", camera)))
-        store.save(encode_map(tiny_map("lab", camera)))  # version 2: version 1 kept beside it
+        store.save(encode_map(tiny_map("lab", camera)), builder=OPERATOR)
+        store.save(encode_map(tiny_map("lab", camera)), builder=OPERATOR)  # version 2: version 1 kept beside it
     finally:
         os.umask(before)
     maps = sorted((tmp_path / "maps").glob("lab*"))

@@ -4,9 +4,12 @@ and each viewer shown what its token may see.
 `twohr up --keys K` on loopback with robots `a` and `b`, during `a`'s session: a viewer with no token (or a wrong
 one) is refused with 401 and gets no channel, a plain ws:// connection fails, `b`'s token gets a's poses and paths
 but no channel of a's camera or map (not even by asking for every channel id), the operator's token gets every
-channel, and `a`'s token a's camera. Then, on the server alone with a fleet's real tokens file: a robot revoked while
-it watches is cut off, and a viewer that stops reading holds up neither the producer nor the other viewers. Last,
-`twohr bench --view-tls` (the TLS cost in docs/live-view.md) on a few frames.
+channel, and `a`'s token a's camera. A view token (`GET /live` with an API token) opens the live view with its API
+token's sight, and the HTTP API refuses it. Then, on the server alone with a fleet's real tokens file: a robot revoked
+or expired while it watches is cut off, one robot cannot take the operator's seats, a token check that fails closes
+that viewer and the checks go on, a subscription id past a u32 is a malformed request, and a viewer that stops
+reading holds up neither the producer nor the other viewers. Last, `twohr bench --view-tls` (the TLS cost in
+docs/live-view.md) on a few frames.
 """
 
 from __future__ import annotations
@@ -23,19 +26,21 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from websockets.exceptions import InvalidHandshake, InvalidStatus
+from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
 from websockets.sync.client import connect
 
 from twohr.bus import free_port
 from twohr.dataset import RGBDSequence
-from twohr.foxglove_live import FoxgloveClient, LiveView, sees_as_robot
+from twohr.foxglove_live import EVERYTHING, VIEWERS_PER_ROBOT, FoxgloveClient, LiveView, robot_viewer, sees_as_robot
 from twohr_app.fleet import Fleet
 from twohr_services.gateway.live import live_access
 from twohr_services.gateway.settings import GatewaySettings
+from twohr_services.gateway.tokens import view_token
 
 FRAMES = 90
 A_PRIVATE = ("/a/camera/image", "/a/camera/calibration", "/a/camera/keypoints", "/a/camera/dynamic_mask", "/a/map")
 A_SHARED = ("/a/pose", "/a/path", "/a/keyframes", "/a/path_refined", "/tf")
+OPERATOR_TOKEN = "operator-token-live-view"  # a gateway takes no token under 16 characters
 
 
 def twohr(*args: str) -> subprocess.CompletedProcess:
@@ -111,8 +116,9 @@ def test_keyed_live_view_needs_tls_and_a_token_and_shows_each_robot_its_own(keye
         with pytest.raises(InvalidStatus) as refused:
             FoxgloveClient(url, token=token, cafile=ca)
         assert refused.value.response.status_code == 401, token
-    # a plain WebSocket on the live view's port, with a good token: no TLS, no answer
-    with pytest.raises((InvalidHandshake, OSError)):
+    # a plain WebSocket on the live view's port, with a good token: no TLS, no answer (the server drops the plain
+    # bytes; the client sees a bad handshake, a reset or a close, depending on timing)
+    with pytest.raises((InvalidHandshake, ConnectionClosed, OSError)):
         connect(f"ws://127.0.0.1:{stack['fox']}/?token={stack['operator']}",
                 subprotocols=["foxglove.websocket.v1"], open_timeout=10)
     # TLS with any other trust than the fleet's CA: refused by the client
@@ -159,6 +165,33 @@ def test_keyed_live_view_needs_tls_and_a_token_and_shows_each_robot_its_own(keye
         viewer.close()
 
 
+def test_a_view_token_opens_the_live_view_and_nothing_of_the_api(keyed_stack):
+    stack, ca = keyed_stack, keyed_stack["keys"] / "ca.crt"
+    assert f"GET {stack['gateway']}/live with the API token" in stack["printed"], stack["printed"]
+    bearer = lambda token: {"Authorization": f"Bearer {token}"}  # noqa: E731
+    with httpx.Client(base_url=stack["gateway"], verify=ssl.create_default_context(cafile=str(ca)), timeout=30) as http:
+        assert http.get("/live").json() == {"foxglove_port": stack["fox"], "tls": True}  # no token: no view token
+        assert http.get("/live", headers=bearer("not-a-token-of-this-fleet")).status_code == 401
+        views = {who: http.get("/live", headers=bearer(token)).json()["view_token"]
+                 for who, token in (("operator", stack["operator"]), ("b", stack["tokens"]["b"]))}
+        assert views == {"operator": view_token(stack["operator"]), "b": view_token(stack["tokens"]["b"])}
+        for view in views.values():  # the HTTP API refuses a view token
+            assert http.get("/sessions", headers=bearer(view)).status_code == 401
+            assert http.get("/live", headers=bearer(view)).status_code == 401
+    url = f"wss://127.0.0.1:{stack['fox']}"
+    with pytest.raises(InvalidStatus) as refused:  # the view token of a token the gateway does not know
+        FoxgloveClient(url, token=view_token("not-a-token-of-this-fleet"), cafile=ca)
+    assert refused.value.response.status_code == 401
+    operator, b = (FoxgloveClient(url, token=views[who], cafile=ca) for who in ("operator", "b"))
+    wait_for(lambda: operator.server_info is not None and b.server_info is not None, 10, "both viewers admitted")
+    time.sleep(0.5)
+    # each sees what its API token sees (a's channels exist once the first test ran a's session)
+    assert set(b.topics()) & set(A_PRIVATE) == set() and set(b.topics()) <= set(operator.topics())
+    assert not b.closed and not operator.closed
+    b.close()
+    operator.close()
+
+
 def test_topics_a_robot_sees():
     assert all(sees_as_robot("a", topic) for topic in (*A_PRIVATE, *A_SHARED, "/a/anything"))
     assert [t for t in A_PRIVATE if sees_as_robot("b", t)] == []
@@ -185,12 +218,12 @@ def keyed_view(fleet: Fleet, operator: str) -> LiveView:
 
 def test_a_revoked_robot_is_cut_off_the_live_view(fleet):
     fleet, tokens = fleet
-    view = keyed_view(fleet, "operator-token")
+    view = keyed_view(fleet, OPERATOR_TOKEN)
     ca = fleet.folder / "ca.crt"
     try:
         view.advertise("a")
         url = f"wss://127.0.0.1:{view.port}"
-        a, operator = FoxgloveClient(url, token=tokens["a"], cafile=ca), FoxgloveClient(url, token="operator-token",
+        a, operator = FoxgloveClient(url, token=tokens["a"], cafile=ca), FoxgloveClient(url, token=OPERATOR_TOKEN,
                                                                                         cafile=ca)
         wait_for(lambda: len(a.subscriptions) == len(view.channels) == len(operator.subscriptions), 10, "subscribed")
         time.sleep(0.3)
@@ -213,9 +246,95 @@ def test_a_revoked_robot_is_cut_off_the_live_view(fleet):
         view.close()
 
 
+def test_an_expired_robot_is_cut_off_the_live_view(fleet):
+    """A robot whose certificate (and so its token) expires while it watches: closed at the next check, and refused
+    from then on; the operator stays."""
+    fleet, _ = fleet
+    brief = fleet.add("brief", fleet.folder.parent / "brief.bundle", days=5 / 86400).api_token.get_secret_value()
+    view = keyed_view(fleet, OPERATOR_TOKEN)
+    ca = fleet.folder / "ca.crt"
+    try:
+        url = f"wss://127.0.0.1:{view.port}"
+        watching = FoxgloveClient(url, token=view_token(brief), cafile=ca)
+        operator = FoxgloveClient(url, token=view_token(OPERATOR_TOKEN), cafile=ca)
+        wait_for(lambda: watching.closed, 20, "the expired robot's viewer to be closed")
+        with pytest.raises(InvalidStatus) as refused:
+            FoxgloveClient(url, token=brief, cafile=ca)
+        assert refused.value.response.status_code == 401 and not operator.closed
+        operator.close()
+    finally:
+        view.close()
+
+
+def test_one_robot_cannot_take_the_operators_seats(fleet):
+    fleet, tokens = fleet
+    view = keyed_view(fleet, OPERATOR_TOKEN)
+    ca = fleet.folder / "ca.crt"
+    url = f"wss://127.0.0.1:{view.port}"
+    try:
+        mine = [FoxgloveClient(url, token=tokens["b"], cafile=ca) for _ in range(VIEWERS_PER_ROBOT)]
+        for token in (tokens["b"], view_token(tokens["b"])):  # b's share is full, whichever of its tokens it shows
+            with pytest.raises(InvalidStatus) as refused:
+                FoxgloveClient(url, token=token, cafile=ca)
+            assert refused.value.response.status_code == 503
+        others = [FoxgloveClient(url, token=token, cafile=ca) for token in (OPERATOR_TOKEN, view_token(OPERATOR_TOKEN))]
+        wait_for(lambda: all(c.server_info is not None for c in [*mine, *others]), 10, "every viewer admitted")
+        assert len(view.clients) == VIEWERS_PER_ROBOT + 2
+        for client in (*mine, *others):
+            client.close()
+    finally:
+        view.close()
+
+
+def test_a_failing_token_check_closes_that_viewer_and_the_checks_go_on(pose_view):
+    view, valid, failing = pose_view
+    url = f"ws://127.0.0.1:{view.port}"
+    good, flaky, other = (FoxgloveClient(url, token=token) for token in ("good", "flaky", "other"))
+    wait_for(lambda: all(c.server_info is not None for c in (good, flaky, other)), 10, "every viewer admitted")
+    failing.add("flaky")  # its next check raises
+    wait_for(lambda: flaky.closed, 10, "the viewer whose check failed to be closed")
+    valid.discard("other")  # the checks went on: a token no longer valid is still seen
+    wait_for(lambda: other.closed, 10, "the next refused viewer to be closed")
+    assert not good.closed
+    good.close()
+
+
+def test_a_subscription_id_past_a_u32_is_a_malformed_request(pose_view):
+    view, _, _ = pose_view
+    client = FoxgloveClient(f"ws://127.0.0.1:{view.port}", token="good")
+    wait_for(lambda: "/a/pose" in client.topics() and len(client.subscriptions) == len(view.channels), 10,
+             "subscribed")
+    pose = next(c["id"] for c in client.channels.values() if c["topic"] == "/a/pose")
+    for bad in (2**32, -1, "1", 1.5):
+        client.ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": bad, "channelId": pose}]}))
+    wait_for(lambda: client.statuses.count("malformed request") == 4, 10, "four malformed requests")
+    time.sleep(0.2)
+    view.log(view.converter.pose("a", 1.0, [1, 0, 0], [0, 0, 0, 1]))  # the viewer's writer is still up
+    wait_for(lambda: client.counts.get("/a/pose") == 1, 10, "the pose after the malformed requests")
+    assert not client.closed
+    client.close()
+
+
+@pytest.fixture
+def pose_view():
+    """A live view with a token check of its own (no TLS): ``valid`` tokens see everything, a token in ``failing``
+    makes the check raise; robot a's channels advertised."""
+    valid, failing = {"good", "flaky", "other"}, set()
+
+    def authorize(token: str):
+        if token in failing:
+            raise RuntimeError(f"the check of {token} failed")
+        return EVERYTHING if token == "good" else robot_viewer(token) if token in valid else None
+
+    view = LiveView(port=0, authorize=authorize)
+    view.advertise("a")
+    yield view, valid, failing
+    view.close()
+
+
 def test_a_viewer_that_stops_reading_holds_up_no_one(fleet, dev_sequence):
     fleet, tokens = fleet
-    view = keyed_view(fleet, "operator-token")
+    view = keyed_view(fleet, OPERATOR_TOKEN)
     ca = fleet.folder / "ca.crt"
     sequence = RGBDSequence(dev_sequence)
     images = [path.read_bytes() for path in (record.rgb_path for record in sequence.records[:20])]

@@ -5,9 +5,10 @@ robot, the operator's in ``K/operator.token``), SLAM sessions on the real dev fr
 
 Robot ``a`` builds map ``lab``: the tracker saves it and the gateway records ``a`` as its owner. Robot ``b`` may
 localize in it at once, but its ``extend`` is a 403 (one line) until the operator grants it; then the same request
-is accepted and its session saves version 2, owned by both. The operator rolls ``lab`` back to version 1 over HTTP:
-the served bytes are version 1's. ``GET /audit`` shows all of it, with the times, to the operator; a robot's token
-gets 403."""
+is accepted and its session saves version 2, still owned by ``a`` alone with ``b`` among its contributors: once the
+operator takes the grant back (``keys grant --remove``), ``b``'s extend is a 403 again. The operator rolls ``lab``
+back to version 1 over HTTP: the served bytes are version 1's. ``GET /audit`` shows all of it, with the times, to the
+operator; a robot's token gets 403."""
 
 from __future__ import annotations
 
@@ -129,7 +130,12 @@ def test_a_map_is_its_builders_until_the_operator_grants_it_and_rolls_back(stack
         assert extended.status_code == 201, extended.text
         finished(b, extended.json()["id"])
         second = map_version(operator, "lab", 2)
-        assert second["owners"] == ["a", "b"] and second["versions"] == [1, 2]
+        assert second["owners"] == ["a"] and second["contributors"] == ["b"] and second["versions"] == [1, 2]
+        # the grant was the authority, not the change b made under it: taken back, b is refused again
+        removed = twohr("keys", "grant", str(stack["keys"]), "b", "--map", "lab", "--remove")
+        assert removed.returncode == 0, removed.stderr
+        again = session(b, "b", 30, 20, "lab", "extend")
+        assert again.status_code == 403 and "owned by a" in again.json()["detail"], again.text
         assert operator.get("/maps/lab").content != version_1
         assert operator.get("/maps/lab", params={"version": 1}).content == version_1
 
@@ -160,10 +166,12 @@ def test_a_map_is_its_builders_until_the_operator_grants_it_and_rolls_back(stack
                 ("session.start", "b", "b", "lab", None), ("session.stop", "b", "b", None, None),
                 ("map.grant", OPERATOR, "b", "lab", None),
                 ("session.start", "b", "b", "lab", None), ("map.save", "b", "b", "lab", 2),
+                ("map.ungrant", OPERATOR, "b", "lab", None),
                 ("map.rollback", OPERATOR, None, "lab", 3), ("robot.revoke", OPERATOR, "c", None, None)]
     assert [event for event in said if event in expected] == expected, said
     times = [e["time"] for e in events]
     assert times == sorted(times) and all(e["utc"].endswith("+00:00") for e in events)
     assert time.time() - 900 < times[0] <= times[-1] <= time.time()
-    log = stack["tmp"] / "recordings" / "audit.jsonl"
+    log = stack["tmp"] / "maps" / "audit.jsonl"  # twohr up keeps it in the map store, where twohr maps rollback appends
+    assert not (stack["tmp"] / "recordings" / "audit.jsonl").exists()
     assert log.stat().st_mode & 0o777 == 0o600 and len(log.read_text().splitlines()) == len(events)

@@ -60,12 +60,30 @@ def _init(args: argparse.Namespace) -> int:
     return 0
 
 
+def _admitted(fleet: Fleet, what: str) -> int:
+    """After a robot or a replica is added: wait until a running stack's router admits it (it restarts with the new
+    list), so that it can join as soon as this command returns; 1 with one line where the router could not."""
+    from ..fleet_router import confirm, running
+
+    if not running(fleet.router_state):
+        print(f"{what}: no stack runs on these keys now; it is admitted when the stack starts")
+        return 0
+    try:
+        applied = confirm(fleet.router_state, fleet.read().version)
+    except TwohrError as exc:
+        print(f"twohr: error: {what} is added, but {exc}", file=sys.stderr)
+        return 1
+    print(f"{what}: the running stack's router admits it now (list version {applied.version})")
+    return 0
+
+
 def _add(args: argparse.Namespace) -> int:
-    bundle = Fleet(args.dir).add(args.robot, Path(args.out), args.endpoint, args.days)
+    fleet = Fleet(args.dir)
+    bundle = fleet.add(args.robot, Path(args.out), args.endpoint, args.days)
     print(f"robot {bundle.name}: bundle {args.out} (private; give it to the robot alone)"
           + (f", endpoint {bundle.endpoint}" if bundle.endpoint else ", no endpoint: the robot names one with "
              "--router"))
-    return 0
+    return _admitted(fleet, f"robot {bundle.name}")
 
 
 def _add_host(args: argparse.Namespace) -> int:
@@ -76,11 +94,12 @@ def _add_host(args: argparse.Namespace) -> int:
 
 
 def _add_service(args: argparse.Namespace) -> int:
-    name = Fleet(args.dir).add_service(args.role, args.host, Path(args.out), args.days)
+    fleet = Fleet(args.dir)
+    name = fleet.add_service(args.role, args.host, Path(args.out), args.days)
     print(f"replica {name}: key folder {Path(args.out) / 'services' / args.role} (private; give {args.out} to "
           f"{args.host} alone, which joins with twohr up --join tls/STACK:PORT --only {args.role} --keys "
           f"{args.out}); revoke it with twohr keys revoke {args.dir} {name}")
-    return 0
+    return _admitted(fleet, f"replica {name}")
 
 
 def _list(args: argparse.Namespace) -> int:

@@ -9,6 +9,21 @@ import json
 import time
 from pathlib import Path
 
+#: the most versions of each map a store may be told to keep (the gateway's settings hold the same bound)
+MAX_MAP_VERSIONS = 10_000
+
+
+def parse_map_versions(value: str | int) -> int:
+    """``--map-versions`` (``twohr up``, ``twohr maps rollback``): a whole number of versions of each map to keep,
+    1 to :data:`MAX_MAP_VERSIONS`; :class:`~twohr.errors.ConfigError` in one line for anything else."""
+    from twohr.errors import ConfigError
+
+    text = str(value).strip()
+    if not (text.isascii() and text.isdigit()) or not 1 <= int(text) <= MAX_MAP_VERSIONS:
+        raise ConfigError(f"--map-versions {value}: keep at least one version of each map and at most "
+                          f"{MAX_MAP_VERSIONS} (a whole number)")
+    return int(text)
+
 
 def _list(args: argparse.Namespace) -> int:
     from twohr.errors import TwohrError
@@ -72,14 +87,17 @@ def _rollback(args: argparse.Namespace) -> int:
     from twohr.mapfile import OPERATOR, MapStore
     from twohr_services.gateway.audit import AuditLog
 
+    from ..supervisor import audit_file
+
+    keep = parse_map_versions(args.map_versions)
     if not Path(args.maps).is_dir():
         raise TwohrError(f"no map store folder {args.maps}")
-    entry = MapStore(args.maps, args.map_versions).rollback(args.map, args.version)
-    AuditLog(Path(args.audit)).record("map.rollback", OPERATOR, map=args.map, version=entry.version,
-                                      detail=f"version {entry.version} is version {args.version}'s bytes "
-                                      "(twohr maps rollback)")
+    audit = Path(args.audit) if args.audit else audit_file(args.maps)
+    entry = MapStore(args.maps, keep).rollback(args.map, args.version)
+    AuditLog(audit).record("map.rollback", OPERATOR, map=args.map, version=entry.version,
+                           detail=f"version {entry.version} is version {args.version}'s bytes (twohr maps rollback)")
     print(f"map {args.map}: version {entry.version} is version {args.version} again (byte for byte); kept "
-          f"versions {', '.join(map(str, entry.versions))}; logged in {args.audit}")
+          f"versions {', '.join(map(str, entry.versions))}; logged in {audit}")
     return 0
 
 
@@ -98,11 +116,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                                   "version, the same bytes), on the folder when no stack serves it")
     rollback.add_argument("map", help="the map's name in --maps")
     rollback.add_argument("--version", type=int, required=True, help="the kept version to restore (twohr maps list)")
-    rollback.add_argument("--map-versions", type=int, default=10, metavar="N", help="versions of each map to keep, "
-                          "as twohr up --map-versions (default 10)")
-    rollback.add_argument("--audit", default="recordings/audit.jsonl", metavar="FILE", help="the audit trail the "
-                          "rollback is appended to: the stack's (default recordings/audit.jsonl, twohr up's with its "
-                          "default --recordings)")
+    rollback.add_argument("--map-versions", default=10, metavar="N", help="versions of each map to keep, as twohr "
+                          "up --map-versions (default 10)")
+    rollback.add_argument("--audit", default=None, metavar="FILE", help="the audit trail the rollback is appended "
+                          "to (default MAPS/audit.jsonl: the stack's, as twohr up --maps MAPS and compose keep it)")
     rollback.set_defaults(func=_rollback)
     for action in (listing, show, verify, rollback):
         action.add_argument("--maps", default="maps", help="the map store folder (default ./maps)")

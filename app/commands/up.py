@@ -2,8 +2,9 @@
 
 Secure by default: the router listens on loopback unless told otherwise, admits only the users ``twohr up``
 generated for its own processes (one per role, passwords in a private folder that is removed at exit), and
-enforces each role's access-control list (``twohr_app.access``). The HTTP API needs a bearer token
-(``--api-token``) whenever the gateway listens beyond loopback; one is generated and printed if none is given.
+enforces each role's access-control list (``twohr_app.access``). The HTTP API serves this host only (``--host``
+on loopback) unless the stack runs on a fleet's keys (HTTPS, and the operator's token) or ``--insecure``; a bearer
+token (``--api-token``) guards it on request.
 Outside clients (camera drivers, other robots, ROS 2 nodes) join with the client config that
 ``--write-client-config`` writes. ``docker-compose.yml`` mirrors the same topology.
 
@@ -123,59 +124,67 @@ def _check_keys(args: argparse.Namespace):
     return fleet
 
 
-def _up(args: argparse.Namespace) -> int:
-    from twohr.errors import TwohrError
+def _check_args(args: argparse.Namespace) -> tuple[dict[str, int], float, int]:
+    """What ``twohr up`` is told, checked before anything starts, one line for anything wrong: ``(replicas,
+    max_robots, map_versions)``."""
+    from twohr.errors import ConfigError
     from twohr_services.gateway.admission import parse_max_robots
 
-    from ..fleet import LOCAL_NAMES, WILDCARDS, new_secret, write_client_config
-    from ..supervisor import check_replicas, gateway_url
+    from ..supervisor import check_replicas
+    from .maps import parse_map_versions
 
-    if args.join:
-        return _join(args)
     if args.only:
-        from twohr.errors import ConfigError
-
         raise ConfigError("--only names the services a --join host runs; a stack runs every service")
     replicas = check_replicas(parse_replicas(args.replicas))
     max_robots = parse_max_robots(args.max_robots)
-    if not 1 <= args.map_versions <= 10_000:
-        from twohr.errors import ConfigError
-
-        raise ConfigError(f"--map-versions {args.map_versions}: give the versions of each map to keep, 1 to 10000")
+    map_versions = parse_map_versions(args.map_versions)
     check_exposure(args)
-    fleet = _check_keys(args) if args.keys else None
-    # the gateway on loopback serves only this host's users; anywhere else it needs a token (on a fleet's keys,
-    # the operator's, in the keys folder)
-    token = None if fleet else args.api_token or (None if args.insecure or is_loopback(args.host) else new_secret(18))
-    t0 = time.monotonic()
+    return replicas, max_robots, map_versions
+
+
+def _start(args: argparse.Namespace, replicas: dict[str, int], max_robots: float, map_versions: int):
+    """Start the stack (on a fleet's keys, the denial log first: it takes over the router's output); one line if
+    it does not come up."""
+    from twohr.errors import TwohrError
+
     print(f"starting router on {args.router} and services {', '.join(PIPELINE_SERVICES)} + gateway …", flush=True)
     if args.keys:
         from ..fleet_router import DenialLog
 
         DenialLog().start()
     try:
-        system = start_system(args.router, args.data_root or [str(Path.cwd())], args.recordings, args.host,
-                              args.port, token, args.timeout, secure=not args.insecure,
-                              ros2_domain=args.ros2_domain, foxglove_port=args.foxglove_port or None,
-                              record_descriptors=args.record_descriptors, maps=args.maps, keys=args.keys,
-                              replicas=replicas, max_robots=max_robots, map_versions=args.map_versions)
+        # the API token is --api-token's or none: on loopback the gateway serves this host's users, and beyond it
+        # check_exposure asked for --keys (the operator's token, read from the keys folder) or --insecure
+        return start_system(args.router, args.data_root or [str(Path.cwd())], args.recordings, args.host,
+                            args.port, args.api_token, args.timeout, secure=not args.insecure,
+                            ros2_domain=args.ros2_domain, foxglove_port=args.foxglove_port or None,
+                            record_descriptors=args.record_descriptors, maps=args.maps, keys=args.keys,
+                            replicas=replicas, max_robots=max_robots, map_versions=map_versions)
     except (TimeoutError, RuntimeError) as exc:
         raise TwohrError(str(exc)) from None
-    url = gateway_url(args.host, args.port, system.access.keys)
-    view_host = args.host
-    if fleet is not None and args.host.strip("[]") in WILDCARDS:
-        served = fleet.served("gateway")
-        url += f" (as {', '.join(served)}: the names its certificate holds)"
-        # a viewer verifies the live view's certificate, so its address must be one of those names
-        view_host = next((name for name in served if name not in LOCAL_NAMES), served[0])
-    print(f"all healthy in {time.monotonic() - t0:.1f} s — gateway {url} (docs at /docs); poses on "
-          f"twohr/<robot>/pose; admits {max_robots:g} robots at 30 Hz (--max-robots); Ctrl-C stops everything",
-          flush=True)
+
+
+def _view_host(args: argparse.Namespace, fleet) -> tuple[str, str]:
+    """``(host, note)``: where a client reaches the gateway and the live view, and a note for the gateway's URL. On
+    a fleet's keys and a wildcard ``--host``, a client verifies the certificate, so the host is one of the names
+    it holds, and the note lists them."""
+    from ..fleet import LOCAL_NAMES, WILDCARDS
+
+    if fleet is None or args.host.strip("[]") not in WILDCARDS:
+        return args.host, ""
+    served = fleet.served("gateway")
+    return next((name for name in served if name not in LOCAL_NAMES), served[0]), \
+        f" (as {', '.join(served)}: the names its certificate holds)"
+
+
+def _print_access(args: argparse.Namespace, fleet, system, view_host: str) -> None:
+    """How clients reach the running stack: robots' bundles or the client config, the live view."""
+    from ..fleet import write_client_config
+    from ..supervisor import gateway_url
+
     if args.insecure:
         print("WARNING: --insecure: the bus admits anyone who reaches it and the HTTP API has no token",
               file=sys.stderr, flush=True)
-    elif token and not args.api_token:
-        print(f"HTTP API token (generated): {token}   use: -H 'Authorization: Bearer {token}'", flush=True)
     if fleet is not None:
         print(f"fleet keys {args.keys}: robots join with their bundle (twohr keys add {args.keys} ROBOT --out "
               f"ROBOT.bundle --endpoint {args.router}); HTTPS verified with {Path(args.keys) / 'ca.crt'}; the "
@@ -183,15 +192,35 @@ def _up(args: argparse.Namespace) -> int:
     elif not args.insecure:
         client_config = write_client_config(Path(args.write_client_config), args.router, system.credentials)
         print(f"Zenoh client config for outside clients: {client_config}", flush=True)
-    if args.foxglove_port:
-        from twohr.foxglove_live import view_url, ws_url
+    if not args.foxglove_port:
+        return
+    from twohr.foxglove_live import view_url, ws_url
 
-        if args.keys:  # TLS and a token (the placeholder: a token never goes to the terminal)
-            print(f"live view: {ws_url(view_host, args.foxglove_port)} with TOKEN the operator's API token (every "
-                  f"robot) or a robot's (its own); TLS verified with {Path(args.keys) / 'ca.crt'}; in Foxglove: "
-                  f"{view_url(view_host, args.foxglove_port, tls=True)}", flush=True)
-        else:
-            print(f"live view: {view_url(args.host, args.foxglove_port)}", flush=True)
+    if args.keys:  # TLS and a token (the placeholder: a token never goes to the terminal)
+        url = gateway_url(view_host, args.port, fleet)
+        print(f"live view: {ws_url(view_host, args.foxglove_port)} with TOKEN the view token of the operator's "
+              f"API token (every robot) or a robot's (its own): GET {url}/live with the API token as Bearer "
+              f"gives it (the API token itself never goes into a Foxglove URL); TLS verified with "
+              f"{Path(args.keys) / 'ca.crt'}; in Foxglove: {view_url(view_host, args.foxglove_port, tls=True)}",
+              flush=True)
+    else:
+        print(f"live view: {view_url(args.host, args.foxglove_port)}", flush=True)
+
+
+def _up(args: argparse.Namespace) -> int:
+    from ..supervisor import gateway_url
+
+    if args.join:
+        return _join(args)
+    replicas, max_robots, map_versions = _check_args(args)
+    fleet = _check_keys(args) if args.keys else None
+    t0 = time.monotonic()
+    system = _start(args, replicas, max_robots, map_versions)
+    view_host, note = _view_host(args, fleet)
+    print(f"all healthy in {time.monotonic() - t0:.1f} s — gateway {gateway_url(args.host, args.port, fleet)}{note} "
+          f"(docs at /docs); poses on twohr/<robot>/pose; admits {max_robots:g} robots at 30 Hz (--max-robots); "
+          "Ctrl-C stops everything", flush=True)
+    _print_access(args, fleet, system, view_host)
     return _run_until_stopped(system)
 
 
@@ -205,13 +234,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--maps", default=None, metavar="DIR", help="the map store: sessions build, localize in and "
                    "extend the maps in this folder (POST /sessions with \"map\", GET /maps; served on "
                    "twohr/maps/<name>); kept across restarts")
-    p.add_argument("--map-versions", type=int, default=10, metavar="N", help="versions of each map the store keeps "
+    p.add_argument("--map-versions", default=10, metavar="N", help="versions of each map the store keeps "
                    "(default 10): past it the oldest go, the others keep their numbers")
     p.add_argument("--host", default="127.0.0.1", help="gateway host")
     p.add_argument("--port", type=int, default=8080, help="gateway port")
-    p.add_argument("--api-token", default=None, help="bearer token the HTTP API requires (default: none on a "
-                   "loopback --host; on any other host one is generated and printed; with --keys none: the "
-                   "operator's token is DIR/operator.token)")
+    p.add_argument("--api-token", default=None, help="bearer token the HTTP API requires (default none: a "
+                   "loopback --host serves this host's users only; beyond it give --keys, whose operator's token is "
+                   "DIR/operator.token, and no --api-token)")
     p.add_argument("--write-client-config", default="runs/up/zenoh-client.json5", metavar="FILE",
                    help="where to write the Zenoh client config (router endpoint and credentials) that outside "
                    "clients, camera drivers and ROS 2 nodes use (default: %(default)s, private to you)")

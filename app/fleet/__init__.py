@@ -35,12 +35,11 @@ from .store import (
     FleetFile,
     ReplicaRecord,
     RobotRecord,
-    active_robots,
     check_robot_id,
 )
 
 __all__ = ["CLIENT_ROLE", "LOCAL_NAMES", "SERVICE_ROLES", "SERVING_ROLES", "USERS_FILE", "WILDCARDS", "Credentials",
-           "Fleet", "FleetError", "FleetFile", "ReplicaRecord", "RobotRecord", "active_robots",
+           "Fleet", "FleetError", "FleetFile", "ReplicaRecord", "RobotRecord",
            "check_robot_id", "client_config",
            "new_secret", "password_file", "pem", "private_folder", "read_users", "reveal", "token_digest",
            "write_client_config", "write_private", "write_users"]

@@ -19,12 +19,14 @@ import hashlib
 import json
 import os
 import secrets
+import stat
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
 from pydantic import BaseModel, SecretStr
 
+from twohr.errors import TwohrError
 from twohr.keys import PIPELINE_SERVICES
 
 #: The stack's own processes: one bus user each, and on a fleet's keys one certificate each. The router and the
@@ -58,20 +60,26 @@ def private_folder(path: Path) -> Path:
     return path
 
 
-def write_private(path: Path, text: str) -> Path:
+def write_private(path: Path, text: str, keep_owner: bool = True) -> Path:
     """Write ``text`` to ``path``, readable by its owner only (0600) from its first byte, whatever the umask.
 
     The text goes to a new file in the same folder (``mkstemp``: ``O_CREAT | O_EXCL``, mode 0600), which then
     replaces ``path`` at once: a reader sees the old file or the new one, never half of one, and a file replaced
-    is never widened. A file replaced keeps its owner when we may give it: the service that reads it (in a
-    container) may run as another user than whoever runs ``twohr keys``."""
+    is never widened. With ``keep_owner``, a regular file replaced keeps its owner when we may give it: the
+    service that reads it (in a container) may run as another user than whoever runs ``twohr keys``. Without it
+    (a file we hand out, such as a robot's bundle, perhaps in a folder others write to) the new file is ours,
+    whoever owned what was there. A symbolic link at ``path`` is never followed: it is refused in one line."""
     path = Path(path)
+    if path.is_symlink():
+        raise TwohrError(f"{path} is a symbolic link: a secret is written to a file of its own, never through a "
+                         "link (remove it, or name the file it points to)")
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
             fh.write(text)
-        _keep_owner(path, tmp)
-        os.replace(tmp, path)
+        if keep_owner:
+            _keep_owner(path, tmp)
+        os.replace(tmp, path)  # a rename: it replaces whatever is at ``path`` now (a link planted since)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -80,9 +88,12 @@ def write_private(path: Path, text: str) -> Path:
 
 
 def _keep_owner(path: Path, tmp: str) -> None:
+    """Give ``tmp`` the owner of the regular file at ``path``, if there is one (never a link's target's)."""
     try:
-        before = path.stat()
+        before = os.lstat(path)
     except FileNotFoundError:
+        return
+    if not stat.S_ISREG(before.st_mode):
         return
     with contextlib.suppress(PermissionError):  # not root: the file becomes ours, as it would be anyway
         os.chown(tmp, before.st_uid, before.st_gid)

@@ -17,7 +17,7 @@ list.
                               robot not revoked) and robots.json (the robots and replicas not revoked): the router
                               watches it, and a change (``twohr keys revoke``) makes it restart with the new list
       services/gateway/       also operator.token (a hard link to DIR/operator.token) and tokens.json: robot ->
-                              SHA-256 of its API token, robots not revoked
+                              SHA-256 of its API token and its certificate's expiry, robots not revoked
       services/gateway/grants.json  the operator's map grants (``twohr keys grant``): map -> robot -> when; a
                               robot may build or extend the maps it built and those it is granted
       robots/<robot>.crt      each robot's certificate, for audit
@@ -43,7 +43,16 @@ from pathlib import Path
 from pydantic import BaseModel, Field, SecretStr
 
 from twohr.errors import TwohrError
-from twohr.identity import CA_FILE, CERT_FILE, KEY_FILE, PASSWORD_FILE, Bundle, Identity, load_identity
+from twohr.identity import (
+    CA_FILE,
+    CERT_FILE,
+    KEY_FILE,
+    PASSWORD_FILE,
+    Bundle,
+    Identity,
+    api_token_problem,
+    load_identity,
+)
 from twohr.keys import RESERVED_ROBOT_IDS, ROBOT_PATTERN, ROS2_RESERVED_NAMES
 
 from . import certificates
@@ -140,7 +149,8 @@ class Fleet:
     @property
     def router_state(self) -> Path:
         """Where the stack's router keeps its lease and acknowledges each robots' list (``state/router``), which
-        ``twohr keys revoke`` reads: no key in it, so a router whose key folder is read-only writes it."""
+        ``twohr keys revoke`` reads, and the users file it runs with (a private copy of its folder's): no key in
+        it, so a router whose key folder is read-only writes it."""
         return self.folder / "state" / "router"
 
     @contextlib.contextmanager
@@ -202,7 +212,9 @@ class Fleet:
         users |= {robot: record.password.get_secret_value() for robot, record in active.items()}
         replicas = fleet.active_replicas()
         users |= {name: record.password.get_secret_value() for name, record in replicas.items()}
-        write_private(gateway / TOKENS_FILE, json.dumps({r: rec.token_sha256 for r, rec in active.items()}))
+        # each token with its certificate's expiry: the gateway refuses it after that, as the router does the link
+        write_private(gateway / TOKENS_FILE, json.dumps({r: {"sha256": rec.token_sha256, "not_after": rec.not_after
+                                                             .isoformat()} for r, rec in active.items()}))
         if router_too:
             write_users(router / USERS_FILE, users)
             write_private(router / ROBOTS_FILE, json.dumps({"version": fleet.version, "robots": sorted(active),
@@ -226,6 +238,8 @@ class Fleet:
         already holds keys."""
         if self.exists():
             raise FleetError(f"{self.folder} already holds a fleet's keys (twohr keys list {self.folder})")
+        if api_token is not None and (problem := api_token_problem(api_token)):
+            raise FleetError(f"TWOHR_API_TOKEN: {problem}; unset it and a new one is made")
         private_folder(self.folder)
         ca, key = certificates.make_ca(CA_DAYS)
         write_private(self.folder / CA_KEY_FILE, pem(key))
@@ -329,8 +343,7 @@ class Fleet:
                         key_pem=SecretStr(pem(key)), password=SecretStr(password), endpoint=endpoint,
                         api_token=SecretStr(token))
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.unlink(missing_ok=True)  # a new file, ours: write_private would keep an old one's owner
-        write_private(out, json.dumps(reveal(bundle), indent=1))
+        write_private(out, json.dumps(reveal(bundle), indent=1), keep_owner=False)  # a new file, ours
         (self.folder / "robots" / f"{robot}.crt").write_text(bundle.cert_pem)  # public
         return bundle
 
@@ -376,9 +389,9 @@ class Fleet:
         """Let ``robot`` build or extend map ``map_name`` though it did not build it (``remove``: take the grant
         back). The grants are ``grants.json`` in the gateway's folder, which a running gateway reads at its next
         request; no router restart. Needs no ``ca.key``. Returns the maps ``robot`` now holds grants on."""
-        from twohr.mapfile import GRANTS_FILE, MapGrants, MapStore
+        from twohr.mapfile import GRANTS_FILE, MapGrants, check_map_name
 
-        MapStore(self.folder).path(map_name)  # one line for a name no map can have
+        check_map_name(map_name)  # one line for a name no map can have
         with self.locked():
             fleet = self.read()
             if not remove and robot not in fleet.active():
@@ -419,8 +432,7 @@ class Fleet:
                              f"{', '.join(NETWORK_SERVICES)}")
         if not HOST_LABEL.fullmatch(host):
             raise FleetError(f"invalid host {host!r}: letters, digits, '.', '_' and '-', at most 63")
-        if not 0 < days <= SERVICE_DAYS:  # a NaN fails this too
-            raise FleetError(f"--days {days}: give a number of days above 0, at most {SERVICE_DAYS}")
+        check_days(days, SERVICE_DAYS)
         name = f"{role}@{host}"
         with self.locked():
             fleet = self.read()
@@ -430,13 +442,15 @@ class Fleet:
             cert, key = self.issue(name, days)
             password = new_secret()
             folder = Path(out) / "services" / role
-            for made in (folder.parent.parent, folder.parent, folder):
+            if folder.parent.parent.exists() and not folder.parent.parent.is_dir():
+                raise FleetError(f"--out {out} is a file: name a folder (its services/{role}/ is made private)")
+            folder.parent.parent.mkdir(parents=True, mode=0o700, exist_ok=True)  # one there already stays as it is
+            for made in (folder.parent, folder):  # ours to narrow; --out itself may be a folder others use
                 private_folder(made)
             (folder / CA_FILE).write_text((self.folder / CA_FILE).read_text())  # public
             (folder / CERT_FILE).write_text(pem(cert))  # public
             for secret, text in ((KEY_FILE, pem(key)), (PASSWORD_FILE, password)):
-                (folder / secret).unlink(missing_ok=True)  # new files, ours: write_private keeps an old one's owner
-                write_private(folder / secret, text)
+                write_private(folder / secret, text, keep_owner=False)  # new files, ours
             private_folder(self.folder / "replicas")
             (self.folder / "replicas" / f"{name}.crt").write_text(pem(cert))  # public, for audit
             fleet.replicas[name] = ReplicaRecord(serial=f"{cert.serial_number:x}",
@@ -458,12 +472,12 @@ def check_robot_id(robot: str) -> None:
                          f"{', '.join([*RESERVED_ROBOT_IDS, *SERVICE_ROLES, *ROS2_RESERVED_NAMES])}")
 
 
-def check_days(days: float) -> None:
-    """:class:`FleetError` unless a robot certificate may be valid ``days`` days (more than 0, at most
-    :data:`MAX_ROBOT_DAYS`; NaN and infinity are neither)."""
-    if not 0 < days <= MAX_ROBOT_DAYS:  # False for a NaN too
-        raise FleetError(f"--days {days}: give a number of days above 0 and at most {MAX_ROBOT_DAYS} (a fraction "
-                         "for hours or minutes)")
+def check_days(days: float, limit: float = MAX_ROBOT_DAYS) -> None:
+    """:class:`FleetError` unless a certificate may be valid ``days`` days: more than 0, at most ``limit`` (a
+    robot's :data:`MAX_ROBOT_DAYS`, a replica's :data:`SERVICE_DAYS`); NaN and infinity are neither."""
+    if not 0 < days <= limit:  # False for a NaN too
+        raise FleetError(f"--days {days}: give a number of days above 0 and at most {limit} (a fraction for hours "
+                         "or minutes)")
 
 
 def check_endpoint(endpoint: str | None) -> None:
@@ -476,12 +490,15 @@ def check_endpoint(endpoint: str | None) -> None:
 
 def check_out(out: str | Path) -> Path:
     """``out`` as a path a bundle may be written to: a file there already must be ours, since whoever owns it
-    could read the key written into it (we then replace it with a new file, ours); not a folder."""
+    could read the key written into it (we then replace it with a new file, ours); not a folder, nor a link."""
     out = Path(out)
     try:
         st = out.lstat()
     except FileNotFoundError:
         return out
+    if out.is_symlink():
+        raise FleetError(f"--out {out} is a symbolic link: a robot's key is written to a file of its own, never "
+                         "through a link; remove it or name another file")
     if out.is_dir():
         raise FleetError(f"--out {out} is a folder: name the bundle file to write")
     if st.st_uid != os.geteuid():
@@ -500,9 +517,3 @@ def _own_bundle(out: Path, robot: str, record: RobotRecord) -> Bundle | None:
             token_digest(bundle.api_token.get_secret_value()) != record.token_sha256:
         return None
     return bundle
-
-
-def active_robots(router_folder: Path) -> tuple[int, list[str]]:
-    """``(version, robots not revoked)`` as the router's key folder lists them (``robots.json``)."""
-    data = json.loads((Path(router_folder) / ROBOTS_FILE).read_text())
-    return int(data["version"]), list(data["robots"])

@@ -6,8 +6,10 @@ import ssl
 from pathlib import Path
 
 import uvicorn
+from pydantic import ValidationError
 
 from twohr.bus import bus_from_args
+from twohr.errors import TwohrError, validation_problems
 from twohr.service import one_line_errors, service_parser
 
 from .admission import parse_max_robots
@@ -43,18 +45,29 @@ def build_parser():
                         "RECORDINGS/audit.jsonl; GET /audit, the operator's token)")
     parser.add_argument("--foxglove-port", type=int, default=8765,
                         help="port of the Foxglove WebSocket live view on --host (default 8765; 0 turns it off; "
-                        "with --tls-keys on TLS, and a viewer needs ?token=, the operator's or a robot's)")
+                        "with --tls-keys on TLS, and a viewer needs ?token=, a view token from GET /live)")
     parser.add_argument("--tls-keys", default=None, metavar="FOLDER", help="serve HTTPS (TLS 1.3 only) with the "
                         "certificate and key of this key folder (cert.pem, key.pem: the gateway's of a fleet's keys)")
     parser.add_argument("--max-robots", default=None, metavar="N", help="robots the stack carries at 30 Hz, or auto "
                         "(from the cores): past it POST /sessions gets 503 with Retry-After (default: no limit)")
     parser.add_argument("--robot-tokens", default=None, metavar="FILE", help="the robots' API tokens (robot -> "
-                        "SHA-256, JSON, as twohr keys writes it): each starts, stops and reads its own sessions")
+                        "SHA-256 and expiry, JSON, as twohr keys writes it): each starts, stops and reads its own "
+                        "sessions until its certificate expires")
     return parser
 
 
 def settings_from_args(args) -> GatewaySettings:
-    """The gateway's settings from its parsed command line."""
+    """The gateway's settings from its parsed command line; :class:`TwohrError` (one line) for settings that cannot
+    be, such as a blank or short API token."""
+    try:
+        return _settings(args)
+    except ValidationError as exc:
+        raise TwohrError(f"invalid settings: {validation_problems(exc)}") from None
+    except OSError as exc:
+        raise TwohrError(f"--api-token-file {args.api_token_file}: {exc.strerror or exc}") from None
+
+
+def _settings(args) -> GatewaySettings:
     return GatewaySettings(
         data_roots=[Path(r) for r in (args.data_root or ["data"])],
         recordings=Path(args.recordings),

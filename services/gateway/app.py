@@ -25,7 +25,7 @@ from .ownership import Grants
 from .routes import audit, health, maps, sessions
 from .sessions import SessionTable
 from .settings import GatewaySettings
-from .tokens import RobotTokens
+from .tokens import Tokens
 
 
 @asynccontextmanager
@@ -70,9 +70,9 @@ def create_app(settings: GatewaySettings) -> FastAPI:
     app.state.table = SessionTable()
     audit_log = AuditLog(settings.audit_file())
     app.state.keys_watch = KeysWatch(audit_log, settings.robot_tokens, settings.grants_file())
+    app.state.tokens = Tokens(settings.api_token, settings.robot_tokens)
     app.state.bus = GatewayBus(settings, app.state.table, audit_log,
-                               Grants(settings.grants_file(), on_change=app.state.keys_watch.poll))
-    app.state.robot_tokens = RobotTokens(settings.robot_tokens) if settings.robot_tokens else None
+                               Grants(settings.grants_file(), on_change=app.state.keys_watch.poll), app.state.tokens)
     app.middleware("http")(limit_body)
     app.add_exception_handler(RequestValidationError, validation_error)
     app.include_router(page.router)

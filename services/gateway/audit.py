@@ -4,8 +4,9 @@ was granted a map and who was added or revoked, with the time, as JSON lines app
 ``GET /audit``; a robot's token gets 403.
 
 The gateway logs what it does itself (sessions; maps over HTTP and on the bus). What the operator does in the keys
-folder it notices: :class:`KeysWatch` looks at the robots' tokens (``tokens.json``) and the map grants
-(``grants.json``) four times a second, and at start compares them with what it last saw (a private
+folder it notices: :class:`KeysWatch` looks at the robots' tokens (``tokens.json``, their digests too: a token
+replaced between two looks is a revocation and an addition), the router's list of replicas (``robots.json``) and
+the map grants (``grants.json``) four times a second, and at start compares them with what it last saw (a private
 ``.audit-seen.json`` beside the log), so that a grant or a revocation made while no stack ran is logged at the next
 start. ``twohr maps rollback`` (no stack running) appends to the same file. Lines are only ever appended (``O_APPEND``,
 one ``write`` each, fsynced); nothing here rewrites or truncates the log."""
@@ -22,9 +23,11 @@ import time
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, Field, ValidationError
+from pydantic import BaseModel, Field, ValidationError, field_validator
 
 from twohr.mapfile import OPERATOR, MapGrants
+
+from .tokens import WatchedFile, parse_tokens
 
 log = logging.getLogger("twohr.gateway")
 
@@ -34,6 +37,8 @@ STACK = "@stack"
 Action = Literal["session.start", "session.stop", "session.finish", "session.fail", "map.save", "map.upload",
                  "map.rollback", "map.delete", "map.grant", "map.ungrant", "robot.add", "robot.revoke"]
 SEEN_FILE = ".audit-seen.json"
+#: the router's list of the robots and replicas not revoked, in its key folder
+ROUTER_LIST = "robots.json"
 WATCH_PERIOD_S = 0.25
 
 
@@ -106,21 +111,56 @@ def append_private(path: Path, data: bytes) -> None:
 
 
 class KeysState(BaseModel):
-    """What :class:`KeysWatch` last saw in the keys folder (``.audit-seen.json``)."""
+    """What :class:`KeysWatch` last saw in the keys folder (``.audit-seen.json``); None: not known."""
 
-    robots: list[str] | None = None
+    robots: dict[str, str] | None = Field(None, description="robot -> its token's SHA-256 (\"\": seen before the "
+                                          "trail kept digests)")
+    replicas: list[str] | None = Field(None, description="the service replicas of other hosts not revoked")
     grants: dict[str, dict[str, str]] | None = None
+
+    @field_validator("robots", mode="before")
+    @classmethod
+    def _names_only(cls, robots):
+        """A trail written before it kept digests listed the robots by name."""
+        return {robot: "" for robot in robots} if isinstance(robots, list) else robots
+
+
+def _robot_digests(data: bytes) -> dict[str, str]:
+    return {robot: record.sha256 for robot, record in parse_tokens(data).items()}
+
+
+def _replicas(data: bytes) -> list[str]:
+    listed = json.loads(data)
+    if not isinstance(listed, dict) or not isinstance(listed.get("replicas", []), list):
+        raise ValueError("not a robots' list")
+    return sorted(map(str, listed.get("replicas", [])))
+
+
+def _grant_times(data: bytes) -> dict[str, dict[str, str]]:
+    grants = MapGrants.model_validate_json(data)
+    return {name: {robot: when.isoformat() for robot, when in robots.items()} for name, robots in grants.maps.items()}
 
 
 class KeysWatch:
     """Logs the changes the operator makes in the keys folder: a robot added or revoked (``tokens``: robot ->
-    token digest, the robots not revoked) and a map granted or withdrawn (``grants``)."""
+    token digest, the robots not revoked; a token replaced, as a revocation and an addition made between two looks
+    leave it, is logged as both), a service replica of another host added or revoked (``replicas``: the router's
+    ``robots.json``, read only; by default beside the gateway's folder, not watched where the gateway cannot see
+    it, as in compose), and a map granted or withdrawn (``grants``)."""
 
-    def __init__(self, audit: AuditLog, tokens: Path | None, grants: Path | None) -> None:
+    def __init__(self, audit: AuditLog, tokens: Path | None, grants: Path | None,
+                 replicas: Path | None = None) -> None:
         self.audit = audit
-        self.tokens, self.grants = tokens, grants
+        if replicas is None and tokens is not None:
+            replicas = tokens.parent.parent / "router" / ROUTER_LIST
+        self.tokens, self.grants, self.replicas = tokens, grants, replicas
+        # None: not known (no such file given, or one not readable now); a missing tokens or grants file is empty, a
+        # missing robots.json is the router's folder out of the gateway's sight
+        self._files = (WatchedFile(tokens, _robot_digests, {} if tokens else None, None),
+                       WatchedFile(replicas, _replicas, None, None),
+                       WatchedFile(grants, _grant_times, {} if grants else None, None))
         self.seen_file = None if audit.path is None else audit.path.with_name(SEEN_FILE)
-        self._stamps: tuple | None = None
+        self._last: KeysState | None = None
         self._seen: KeysState | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -156,19 +196,19 @@ class KeysWatch:
             self._poll()
 
     def _poll(self) -> None:
-        stamps = (_stamp(self.tokens), _stamp(self.grants))
-        if stamps == self._stamps:
+        robots, replicas, grants = (watched.current() for watched in self._files)
+        now = KeysState(robots=robots, replicas=replicas, grants=grants)
+        if now == self._last:  # the files are read again only when they change: this look cost three stats
             return
-        now = KeysState(robots=self._robots(), grants=self._grants())
         seen = self._seen if self._seen is not None else self._load_seen()
         if seen is not None:
             self._log_changes(seen, now)
         # a file that could not be read keeps what was seen of it: its robots are not all revoked at once
-        merged = KeysState(robots=now.robots if now.robots is not None else seen.robots if seen else None,
-                           grants=now.grants if now.grants is not None else seen.grants if seen else None)
+        merged = KeysState(**{field: getattr(now, field) if getattr(now, field) is not None else
+                              getattr(seen, field) if seen else None for field in KeysState.model_fields})
         if merged != seen:
             self._save_seen(merged)
-        self._seen, self._stamps = merged, stamps
+        self._seen, self._last = merged, now
 
     def _log_changes(self, seen: KeysState, now: KeysState) -> None:
         if seen.robots is not None and now.robots is not None:
@@ -176,33 +216,24 @@ class KeysWatch:
                 self.audit.record("robot.add", OPERATOR, robot=robot, detail="its token is in force")
             for robot in sorted(set(seen.robots) - set(now.robots)):
                 self.audit.record("robot.revoke", OPERATOR, robot=robot, detail="its token no longer works")
+            for robot in sorted(set(seen.robots) & set(now.robots)):
+                if seen.robots[robot] and seen.robots[robot] != now.robots[robot]:
+                    self.audit.record("robot.revoke", OPERATOR, robot=robot, detail="its token was replaced: the "
+                                      "old one no longer works")
+                    self.audit.record("robot.add", OPERATOR, robot=robot, detail="a new token is in force (added "
+                                      "again, or renewed with a new token)")
+        if seen.replicas is not None and now.replicas is not None:
+            for name in sorted(set(now.replicas) - set(seen.replicas)):
+                self.audit.record("robot.add", OPERATOR, robot=name, detail="service replica: its certificate is "
+                                  "in force")
+            for name in sorted(set(seen.replicas) - set(now.replicas)):
+                self.audit.record("robot.revoke", OPERATOR, robot=name, detail="service replica: its certificate "
+                                  "and password no longer work")
         if seen.grants is not None and now.grants is not None:
             for name, robot, when in _pairs(now.grants, seen.grants):
                 self.audit.record("map.grant", OPERATOR, robot=robot, map=name, detail=f"granted at {when}")
             for name, robot, _ in _pairs(seen.grants, now.grants):
                 self.audit.record("map.ungrant", OPERATOR, robot=robot, map=name, detail="grant withdrawn")
-
-    def _robots(self) -> list[str] | None:
-        if self.tokens is None:
-            return None
-        try:
-            return sorted(json.loads(self.tokens.read_text()))
-        except FileNotFoundError:
-            return []
-        except (OSError, ValueError, TypeError):
-            return None
-
-    def _grants(self) -> dict[str, dict[str, str]] | None:
-        if self.grants is None:
-            return None
-        try:
-            grants = MapGrants.model_validate_json(self.grants.read_bytes())
-        except FileNotFoundError:
-            return {}
-        except (OSError, ValueError):
-            return None
-        return {name: {robot: when.isoformat() for robot, when in robots.items()}
-                for name, robots in grants.maps.items()}
 
     def _load_seen(self) -> KeysState | None:
         try:
@@ -231,10 +262,3 @@ def _pairs(ours: dict[str, dict[str, str]], theirs: dict[str, dict[str, str]]) -
     return [(name, robot, when) for name, robots in sorted(ours.items()) for robot, when in sorted(robots.items())
             if robot not in theirs.get(name, {})]
 
-
-def _stamp(path: Path | None) -> tuple | None:
-    try:
-        stat = path.stat() if path is not None else None
-    except OSError:
-        return None
-    return None if stat is None else (stat.st_mtime_ns, stat.st_size, stat.st_ino)

@@ -19,7 +19,7 @@ from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
 from twohr.evaluation import evaluate
 from twohr.keys import PIPELINE_SERVICES
-from twohr.mapfile import OPERATOR, MapAccessError, MapFileError, MapStore
+from twohr.mapfile import OPERATOR, MapAccessError, MapFileError, MapMissingError, MapStore
 from twohr.messages import ControlMsg, MessageError, PathMsg, PoseMsg, StatusMsg, decode, encode, path_trajectory
 from twohr.service import declare_publisher
 
@@ -27,6 +27,7 @@ from .audit import STACK, AuditLog
 from .live import BusLiveView, live_access
 from .ownership import Grants
 from .sessions import Session, SessionTable
+from .tokens import Tokens
 
 log = logging.getLogger("twohr.gateway")
 
@@ -37,11 +38,13 @@ MAP_STORE_WORKERS = 4
 
 class GatewayBus:
     """The gateway's Zenoh session and what it does with it (``settings`` is a ``GatewaySettings``; ``audit``: the
-    audit trail, none by default; ``grants``: the operator's map grants, none by default)."""
+    audit trail, none by default; ``grants``: the operator's map grants, none by default; ``tokens``: the token check
+    the live view shares with the HTTP API, made from the settings by default)."""
 
     def __init__(self, settings, table: SessionTable, audit: AuditLog | None = None,
-                 grants: Grants | None = None) -> None:
+                 grants: Grants | None = None, tokens: Tokens | None = None) -> None:
         self.settings = settings
+        self.tokens = tokens
         self.table = table
         self.audit = audit or AuditLog(None)
         self.grants = grants or Grants(None)
@@ -71,7 +74,7 @@ class GatewayBus:
                 self.session.declare_queryable(f"{keys.MAPS_PREFIX}/*", self._handed_on(self._read_map)),
                 self.session.declare_queryable(f"{keys.MAPS_PREFIX}/*/save", self._handed_on(self._save_map))]
         if self.settings.foxglove_port:
-            tls, authorize = live_access(self.settings)
+            tls, authorize = live_access(self.settings, self.tokens)
             self._live = BusLiveView(self.session, self.settings.foxglove_host, self.settings.foxglove_port,
                                      tls=tls, authorize=authorize)
         self._monitor = threading.Thread(target=self._watch, name="session-monitor", daemon=True)
@@ -117,16 +120,17 @@ class GatewayBus:
         """``twohr/maps/<name>``: the latest version's bytes of a map in the store."""
         try:
             name = keys.parse_map_key(query.key_expr)
-            query.reply(query.key_expr, MapStore(self.settings.maps).path(name).read_bytes())
-        except FileNotFoundError:
+            query.reply(query.key_expr, MapStore(self.settings.maps).latest_file(name).read_bytes())
+        except (FileNotFoundError, MapMissingError):
             query.reply_err(f"no map named {name!r} in the map store".encode())
         except (ValueError, MapFileError, OSError) as exc:  # a key naming no single map, a bad file
             query.reply_err(str(exc).encode())
 
     def _save_map(self, query: zenoh.Query) -> None:
         """``twohr/maps/<name>/save`` with a map file's bytes: checked, kept as the map's next version. The tracker
-        attaches the id of the session that built it: the session's robot becomes one of the map's owners, and
-        replacing an existing map needs whoever started the session to own it or hold the operator's grant. Only
+        attaches the id of the session that built it: the session's robot is its builder (the owner of a new map, a
+        contributor to another's), and replacing an existing map needs whoever started the session to own it or
+        hold the operator's grant. Only
         the tracker may save (the bus's access control); a save naming no session is the stack's, the operator's."""
         name, session = str(query.key_expr), None
         try:
@@ -143,7 +147,9 @@ class GatewayBus:
                      entry.size_bytes)
             by_session = {} if session is None else {"robot": builder, "session": session.id}
             self.audit.record("map.save", STACK if session is None else starter, map=name, version=entry.version,
-                              detail=f"owners {', '.join(entry.owners)}", **by_session)
+                              detail=f"owners {', '.join(entry.owners)}" + (
+                                  f"; contributors {', '.join(entry.contributors)}" if entry.contributors else ""),
+                              **by_session)
             query.reply(query.key_expr, entry.model_dump_json())
         except (ValueError, MapFileError, OSError) as exc:  # a key naming no single map, a bad file, not theirs
             log.warning("map %s not saved: %s", name, exc)

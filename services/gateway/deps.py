@@ -3,8 +3,6 @@ the API token check, and the error replies the routes document."""
 
 from __future__ import annotations
 
-import secrets
-from dataclasses import dataclass
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request, status
@@ -13,6 +11,7 @@ from pydantic import BaseModel
 from .bus import GatewayBus
 from .sessions import SessionTable
 from .settings import GatewaySettings
+from .tokens import Caller, Tokens
 
 
 class Problem(BaseModel):
@@ -57,39 +56,21 @@ Bus = Annotated[GatewayBus, Depends(gateway_bus)]
 Table = Annotated[SessionTable, Depends(session_table)]
 
 
-@dataclass(frozen=True)
-class Caller:
-    """Who sent a request: the operator (``robot`` None: everything) or one robot (its own sessions only)."""
-
-    robot: str | None = None
-
-    def check_robot(self, robot_id: str) -> None:
-        """403 unless this caller may act for ``robot_id``."""
-        if self.robot is not None and self.robot != robot_id:
-            raise HTTPException(status.HTTP_403_FORBIDDEN, f"robot {self.robot}'s token acts for robot "
-                                f"{self.robot} only, not {robot_id}")
-
-    def check_operator(self, what: str) -> None:
-        """403 unless this caller is the operator."""
-        if self.robot is not None:
-            raise HTTPException(status.HTTP_403_FORBIDDEN, f"{what} needs the operator's token, not robot "
-                                f"{self.robot}'s")
+async def token_check(request: Request) -> Tokens:
+    """The gateway's token check (:class:`~.tokens.Tokens`, the live view's too)."""
+    return request.app.state.tokens
 
 
-async def require_token(request: Request, settings: Settings) -> Caller:
+async def require_token(request: Request, check: Annotated[Tokens, Depends(token_check)]) -> Caller:
     """401 unless the request carries the operator's API token (when the gateway has one) or, where the gateway
-    knows the robots' tokens, a robot's, as ``Authorization: Bearer``; returns who it is."""
-    if settings.api_token is None and settings.robot_tokens is None:
+    knows the robots' tokens, a robot's not expired, as ``Authorization: Bearer``; returns who it is. A live view
+    token is not one."""
+    if not check.required:
         return Caller()
-    supplied = request.headers.get("authorization", "").removeprefix("Bearer ").strip()
-    # compared as bytes: a header with non-ASCII characters is simply a wrong token
-    if settings.api_token is not None and secrets.compare_digest(
-            supplied.encode("utf-8", "surrogateescape"), settings.api_token.encode()):
-        return Caller()
-    robot = request.app.state.robot_tokens.robot_of(supplied) if supplied and settings.robot_tokens else None
-    if robot is None:
+    caller = check.identify(request.headers.get("authorization", "").removeprefix("Bearer ").strip())
+    if caller is None:
         raise HTTPException(status.HTTP_401_UNAUTHORIZED, "missing or wrong API token (Authorization: Bearer …)")
-    return Caller(robot)
+    return caller
 
 
 Who = Annotated[Caller, Depends(require_token)]

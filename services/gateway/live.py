@@ -5,16 +5,17 @@ Samples go through a small drop-oldest queue to one worker thread, and each view
 in the server: a slow viewer loses old frames, it never holds up the bus or the other viewers.
 
 On a fleet's keys (``--tls-keys``) the live view is as guarded as the HTTP API (:func:`live_access`): TLS with the
-gateway's certificate, and a token in the URL (``?token=``) checked before the WebSocket upgrade. The operator's
-token sees every robot; a robot's token (the tokens file, read again when it changes, as the HTTP API reads it)
-sees its own channels and the others' poses, paths and transforms.
+gateway's certificate, and a token in the URL (``?token=``) checked before the WebSocket upgrade, by the HTTP API's
+own check (:class:`~.tokens.Tokens`). The token is a view token (``GET /live`` with an API token gives it: it opens
+the live view and nothing else, so it is what a Foxglove URL carries) or, for tools, an API token itself. The
+operator's sees every robot; a robot's (the tokens file, read again when it changes) sees its own channels and the
+others' poses, paths and transforms.
 """
 
 from __future__ import annotations
 
 import collections
 import logging
-import secrets
 import ssl
 import threading
 
@@ -25,27 +26,26 @@ from twohr.foxglove_live import EVERYTHING, Authorize, LiveView, Viewer, robot_v
 from twohr.identity import CERT_FILE, KEY_FILE
 from twohr.messages import ControlMsg, MessageError, decode
 
-from .tokens import RobotTokens
+from .tokens import Tokens
 
 log = logging.getLogger("twohr.gateway.live")
 
 STREAMS = ("frames", "keypoints", "dynamics", "pose", "landmarks", "path")
 
 
-def live_access(settings) -> tuple[ssl.SSLContext | None, Authorize | None]:
+def live_access(settings, tokens: Tokens | None = None) -> tuple[ssl.SSLContext | None, Authorize | None]:
     """The live view's TLS and token check for the gateway's ``settings`` (a ``GatewaySettings``): none without
-    ``tls_keys``; with them TLS, and the operator's token (``api_token``) or a robot's (``robot_tokens``)."""
+    ``tls_keys``; with them TLS, and the check the HTTP API makes (``tokens``, by default one made of the settings'
+    ``api_token`` and ``robot_tokens``), which also takes the view token of an API token."""
     if settings.tls_keys is None:
         return None, None
-    robots = RobotTokens(settings.robot_tokens) if settings.robot_tokens else None
+    check = tokens if tokens is not None else Tokens(settings.api_token, settings.robot_tokens)
 
     def authorize(token: str) -> Viewer | None:
-        operator = settings.api_token
-        # compared as bytes: a token with non-ASCII characters is simply a wrong one
-        if operator and secrets.compare_digest(token.encode("utf-8", "surrogateescape"), operator.encode()):
-            return EVERYTHING
-        robot = robots.robot_of(token) if robots is not None else None
-        return robot_viewer(robot) if robot else None
+        caller = check.identify_viewer(token)
+        if caller is None:
+            return None
+        return EVERYTHING if caller.robot is None else robot_viewer(caller.robot)
 
     return server_tls(settings.tls_keys / CERT_FILE, settings.tls_keys / KEY_FILE), authorize
 

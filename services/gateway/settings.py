@@ -5,9 +5,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, field_validator
 
 from twohr.bus import BusConfig
+from twohr.identity import api_token_problem
 from twohr.mapfile import GRANTS_FILE
 
 
@@ -17,9 +18,11 @@ class GatewaySettings(BaseModel):
     data_roots: list[Path] = Field(default_factory=lambda: [Path("data")])
     recordings: Path = Path("recordings")
     api_token: str | None = Field(default_factory=lambda: os.environ.get("TWOHR_API_TOKEN") or None,
-                                  description="if set, requests need 'Authorization: Bearer <token>'")
-    robot_tokens: Path | None = Field(None, description="the robots' API tokens (robot -> SHA-256, JSON, as twohr keys "
-                                      "writes it): a robot's token starts, stops and reads its own sessions only")
+                                  validate_default=True, description="if set, requests need 'Authorization: Bearer "
+                                  "<token>' (at least 16 characters: a blank token is refused)")
+    robot_tokens: Path | None = Field(None, description="the robots' API tokens (robot -> SHA-256 and expiry, JSON, as "
+                                      "twohr keys writes it): a robot's token starts, stops and reads its own sessions "
+                                      "only, until its certificate expires")
     bus: BusConfig = Field(default_factory=BusConfig)
     idle_timeout: float = Field(15.0, gt=0, description="a session whose source is done and that gets no pose "
                                 "for this long is finished")
@@ -48,6 +51,15 @@ class GatewaySettings(BaseModel):
                                     "writes it); None = grants.json beside robot_tokens")
     audit_log: Path | None = Field(None, description="the audit trail (JSON lines, private, append-only; GET "
                                    "/audit); None = audit.jsonl in the recordings folder")
+
+    @field_validator("api_token")
+    @classmethod
+    def _usable_token(cls, token: str | None) -> str | None:
+        """A token that is set must be one: a blank one would equal a request's missing header."""
+        problem = None if token is None else api_token_problem(token)
+        if problem is not None:
+            raise ValueError(problem)
+        return token
 
     def grants_file(self) -> Path | None:
         """Where the operator's map grants are read from (None: no robots' tokens, so no grants either)."""

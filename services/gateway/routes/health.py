@@ -12,7 +12,7 @@ from twohr.bus import query_health
 from twohr.keys import PIPELINE_SERVICES
 
 from ..admission import admitted_load
-from ..deps import Bus, Caller, Settings, Table, require_token
+from ..deps import Bus, Caller, Settings, Table, Tokens, require_token, token_check
 
 router = APIRouter()
 
@@ -24,10 +24,10 @@ class StackUp(BaseModel):
                                           "replica alive")
 
 
-async def _caller(request: Request, settings: Settings) -> Caller | None:
+async def _caller(request: Request, check: Annotated[Tokens, Depends(token_check)]) -> Caller | None:
     """Who asks, or None for a request without a token the gateway knows: liveness answers everyone."""
     try:
-        return await require_token(request, settings)
+        return await require_token(request, check)
     except HTTPException:
         return None
 

@@ -48,15 +48,11 @@ def download_map(name: str, store: Store, version: Annotated[int | None, Query(
                  ) -> FileResponse:
     """A map's file: its latest version, or a kept one."""
     try:
-        path = store.path(name)
-        if not path.is_file():
-            raise MapMissingError(f"no map named {name!r}")
-        if version is not None:
-            path = store.version_path(name, version)
+        path = store.latest_file(name) if version is None else store.version_path(name, version)
     except MapFileError as exc:
         raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
     return FileResponse(path, media_type="application/octet-stream", filename=f"{name}.v{version}.map"
-                        if version is not None else path.name)
+                        if version is not None else f"{name}.map")
 
 
 @router.post("/maps", status_code=201, response_model=MapEntry, responses=errors(401, 403, 404, 413, 422),
@@ -65,8 +61,8 @@ def download_map(name: str, store: Store, version: Annotated[int | None, Query(
 async def upload_map(request: Request, store: Store, settings: Settings, bus: Bus, who: Who,
                      name: str | None = None) -> MapEntry:
     """Keep an uploaded map file (the body), checked through first, under its name (``name``, if given, must be
-    the one in its header); a map already under that name is kept as an earlier version. The operator's only: the
-    operator is one of the new version's owners (with the owners of the version it replaces)."""
+    the one in its header); a map already under that name is kept as an earlier version. The operator's only: a new
+    map is the operator's; an existing one keeps its owners, with the operator among its contributors."""
     who.check_operator("uploading a map")
     chunks, size = [], 0
     async for chunk in request.stream():  # a chunked upload has no Content-Length for the middleware to check
@@ -75,7 +71,7 @@ async def upload_map(request: Request, store: Store, settings: Settings, bus: Bu
             raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, f"map over {settings.max_map_bytes} bytes")
         chunks.append(chunk)
     try:  # checks and fsyncs: off the loop
-        entry = await run_in_threadpool(store.save, b"".join(chunks), name, OPERATOR)
+        entry = await run_in_threadpool(store.save, b"".join(chunks), name, builder=OPERATOR)
     except MapFileError as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)[:2000]) from None
     bus.audit.record("map.upload", OPERATOR, map=entry.name, version=entry.version, detail=f"{size} bytes")

@@ -18,7 +18,7 @@ from fastapi.responses import FileResponse, PlainTextResponse
 from twohr.config import PipelineConfig, load_config
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
-from twohr.mapfile import MapFileError, MapStore, read_map
+from twohr.mapfile import MapFileError, MapMissingError, MapStore, read_map
 from twohr.mcapfile import is_finalised, partial_marker
 from twohr.models import get_spec, keyframe_network
 from twohr.paths import resolve_under_roots
@@ -51,11 +51,14 @@ def check_map(wanted: MapRequest, config: PipelineConfig, maps: Path | None) -> 
     extend a readable map built with the session's detector model (422 otherwise, one line)."""
     if maps is None:
         raise TwohrError("map: this gateway has no map store (start it with twohr up --maps DIR)")
-    path = MapStore(maps).path(wanted.name)  # a name the store can keep, in every mode
+    store = MapStore(maps)
+    store.path(wanted.name)  # a name the store can keep, in every mode
     if wanted.mode == "build":
         return
-    if not path.is_file():
-        raise TwohrError(f"map: no map named {wanted.name!r} in the map store (GET /maps lists them)")
+    try:
+        path = store.latest_file(wanted.name)
+    except MapMissingError:
+        raise TwohrError(f"map: no map named {wanted.name!r} in the map store (GET /maps lists them)") from None
     read_map(path, detector=config.detector)
 
 

@@ -196,16 +196,31 @@ async function showLiveLink() {
     const live = await (await fetch("/live")).json();
     if (live.foxglove_port) {
       const link = $("foxglove-link");
-      const update = () => {
-        // on TLS the live view needs a token in its URL: the one entered for the API
-        const token = $("token").value.trim();
-        const address = `${live.tls ? "wss" : "ws"}://${location.hostname}:${live.foxglove_port}`;
-        const ws = live.tls ? `${address}/?token=${encodeURIComponent(token)}` : address;
+      const address = `${live.tls ? "wss" : "ws"}://${location.hostname}:${live.foxglove_port}`;
+      link.title = address;
+      const point = (ws) => {
         link.href = "https://app.foxglove.dev/?ds=foxglove-websocket&ds.url=" + (live.tls ? encodeURIComponent(ws) : ws);
-        link.title = address;
       };
-      update();
-      if (live.tls) $("token").addEventListener("input", update);
+      if (!live.tls) {
+        point(address);
+      } else {
+        // on TLS the live view needs a token in its URL: the view token the gateway gives for the token entered,
+        // never the API token itself (the link goes to app.foxglove.dev)
+        let asked = 0;
+        const update = async () => {
+          const mine = ++asked;
+          let view = "";
+          if ($("token").value.trim()) {
+            try { view = (await (await api("GET", "/live")).json()).view_token || ""; } catch (e) { view = ""; }
+          }
+          if (mine !== asked) return; // a later keystroke asked again
+          point(view ? `${address}/?token=${encodeURIComponent(view)}` : `${address}/?token=TOKEN`);
+          link.title = view ? address : "enter your API token above: the link then carries its view token";
+        };
+        await update();
+        $("token").addEventListener("change", update);
+        $("token").addEventListener("input", update);
+      }
       link.classList.remove("hidden");
     }
   } catch (e) { /* no live view */ }

@@ -137,9 +137,10 @@ def test_a_version_1_map_still_loads_and_is_the_operators(tmp_path, tiny_map):
     with pytest.raises(MapAccessError, match="owned by @operator"):
         store.save(map_bytes(tiny_map, "old", 1.0), builder="a", may_replace=lambda owners: "a" in owners)
     assert store.numbers("old") == [1] and (tmp_path / "old.map").read_bytes() == old
-    # granted: its version is the next one, in format 2, owned by both; version 1 is kept byte for byte
+    # granted: its version is the next one, in format 2, still the operator's, a among its contributors; version 1
+    # is kept byte for byte
     entry = store.save(map_bytes(tiny_map, "old", 1.0), builder="a", may_replace=lambda owners: True)
-    assert (entry.version, entry.owners) == (2, [OPERATOR, "a"])
+    assert (entry.version, entry.owners, entry.contributors) == (2, [OPERATOR], ["a"])
     assert read_header(tmp_path / "old.map").version == 2
     assert store.version_path("old", 1).read_bytes() == old
     # a version-1 header that claims owners is not one twohr wrote
@@ -150,7 +151,9 @@ def test_a_version_1_map_still_loads_and_is_the_operators(tmp_path, tiny_map):
 
 def test_a_tracker_save_records_its_sessions_robot_and_needs_its_rights(bus_config, tmp_path, tiny_map, fleet):
     """The map store on the bus, as the tracker saves at a session's end (the session's id attached): the session's
-    robot becomes an owner; another robot's session may not replace the map until the operator grants it."""
+    robot owns a map it builds; another robot's session may not replace the map until the operator grants it, and
+    is recorded as a contributor, not an owner: the grant taken back, it is refused again. A session the operator
+    starts for a robot changes the map without making that robot an owner either."""
     maps, audit_file = tmp_path / "maps", tmp_path / "rec" / "audit.jsonl"
     settings = GatewaySettings(maps=maps, bus=bus_config, recordings=tmp_path / "rec",
                                robot_tokens=fleet.service_folder("gateway") / "tokens.json")
@@ -183,7 +186,17 @@ def test_a_tracker_save_records_its_sessions_robot_and_needs_its_rights(bus_conf
         fleet.grant("b", "lab")  # read by the gateway at its next save
         granted = save(client, "lab", map_bytes(tiny_map, "lab", 1.0), "sb")
         assert granted.ok is not None, granted.err.payload.to_string()
-        assert json.loads(granted.ok.payload.to_bytes())["owners"] == ["a", "b"]
+        entry = json.loads(granted.ok.payload.to_bytes())
+        assert (entry["version"], entry["owners"], entry["contributors"]) == (2, ["a"], ["b"])
+        fleet.grant("b", "lab", remove=True)  # the grant was the authority: taken back, b's next save is refused
+        ungranted = save(client, "lab", map_bytes(tiny_map, "lab", 3.0), "sb")
+        assert ungranted.err is not None and "owned by a" in ungranted.err.payload.to_string()
+        # the operator starts an extend for b: accepted, and b still owns nothing
+        by_operator = save(client, "lab", map_bytes(tiny_map, "lab", 4.0), session("sob", "b", "extend", OPERATOR))
+        assert by_operator.ok is not None, by_operator.err.payload.to_string()
+        assert MapStore(maps).owners("lab") == ["a"] and MapStore(maps).numbers("lab") == [1, 2, 3]
+        assert save(client, "lab", map_bytes(tiny_map, "lab", 5.0), "sb").err is not None
+        assert MapStore(maps).numbers("lab") == [1, 2, 3]
         # the operator's token may start a session for any robot on any map: its robot is recorded as builder
         for_c = save(client, "mine", map_bytes(tiny_map, "mine"), session("so", "c", "build", OPERATOR, "mine"))
         assert for_c.ok is not None and MapStore(maps).owners("mine") == ["c"]
@@ -196,7 +209,9 @@ def test_a_tracker_save_records_its_sessions_robot_and_needs_its_rights(bus_conf
     lines = [json.loads(line) for line in audit_file.read_text().splitlines()]
     saves = [(e["who"], e["robot"], e.get("version"), e["detail"].split(":")[0]) for e in lines
              if e["action"] == "map.save" and e["map"] == "lab"]
-    assert saves == [("a", "a", 1, "owners a"), ("b", "b", None, "refused"), ("b", "b", 2, "owners a, b")]
+    assert saves == [("a", "a", 1, "owners a"), ("b", "b", None, "refused"), ("b", "b", 2, "owners a; contributors b"),
+                     ("b", "b", None, "refused"), (OPERATOR, "b", 3, "owners a; contributors b"),
+                     ("b", "b", None, "refused")]
     assert all(isinstance(e["time"], float) and e["utc"].endswith("+00:00") for e in lines)
 
 
@@ -238,6 +253,29 @@ def test_the_audit_trail_notices_grants_and_revocations_made_while_no_stack_ran(
         ("robot.revoke", OPERATOR, "a", None), ("map.grant", OPERATOR, "b", "hall")]
     assert events[1].time >= events[0].time and "granted at" in events[2].detail
     again.poll()  # nothing changed since: nothing more
+    assert len(audit.read()) == 3
+
+
+def test_the_audit_trail_sees_a_token_replaced_and_a_replica_revoked(fleet, tmp_path):
+    """A robot revoked and added again between two looks (the same name in the tokens file, another token's digest)
+    is logged as both; a service replica of another host revoked (the router's robots.json) is logged too; a trail
+    that knew the robots by name only logs nothing for them."""
+    gateway = fleet.service_folder("gateway")
+    audit = AuditLog(tmp_path / "rec" / "audit.jsonl")
+    fleet.add_service("detector", "gpu-1", tmp_path / "replica")
+    watch = KeysWatch(audit, gateway / "tokens.json", gateway / "grants.json")
+    watch.poll()  # where the trail begins
+    fleet.revoke("a")
+    fleet.add("a", tmp_path / "a-again.bundle")
+    fleet.revoke("detector@gpu-1")
+    watch.poll()
+    assert [(e.action, e.who, e.robot) for e in audit.read()] == [
+        ("robot.revoke", OPERATOR, "a"), ("robot.add", OPERATOR, "a"), ("robot.revoke", OPERATOR, "detector@gpu-1")]
+    watch.poll()
+    assert len(audit.read()) == 3
+    # a seen file from before digests: robots by name, no replicas
+    (tmp_path / "rec" / ".audit-seen.json").write_text(json.dumps({"robots": ["a", "b"], "grants": {}}))
+    KeysWatch(audit, gateway / "tokens.json", gateway / "grants.json").poll()
     assert len(audit.read()) == 3
 
 

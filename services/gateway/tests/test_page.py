@@ -16,7 +16,7 @@ from twohr.dataset import RGBDSequence
 from twohr.mapfile import write_map
 from twohr_services.gateway.app import GatewaySettings, create_app
 
-TOKEN = "s3cret-token"
+TOKEN = "s3cret-page-token"
 
 
 @pytest.fixture
