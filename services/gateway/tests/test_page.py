@@ -3,40 +3,27 @@
 No pipeline services run here: a started session stays 'starting' until it is stopped, which is all the
 token handling needs."""
 
-import threading
-import time
 
 import httpx
 import pytest
-import uvicorn
 from playwright.sync_api import expect, sync_playwright
 
-from twohr.bus import free_port
 from twohr.dataset import RGBDSequence
 from twohr.mapfile import write_map
-from twohr_services.gateway.app import GatewaySettings, create_app
+from twohr_services.gateway.app import GatewaySettings
 
 TOKEN = "s3cret-page-token"
 
 
 @pytest.fixture
-def gateway(bus_config, dev_sequence, tmp_path, tiny_map):
+def gateway(bus_config, dev_sequence, tmp_path, tiny_map, serve_gateway):
     maps = tmp_path / "maps"
     write_map(maps / "lab.map", tiny_map("lab", RGBDSequence(dev_sequence).camera))
     (maps / "broken.map").write_bytes(b"not a map")
     settings = GatewaySettings(data_roots=[dev_sequence.parent], recordings=tmp_path, api_token=TOKEN, bus=bus_config,
                                maps=maps)
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not server.started:
-        assert time.monotonic() < deadline, "the gateway did not start"
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(10)
+    with serve_gateway(settings) as url:
+        yield url
 
 
 def test_page_sends_the_token_it_is_given(gateway, dev_sequence, tmp_path):

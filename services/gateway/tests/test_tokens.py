@@ -12,17 +12,15 @@ import json
 import os
 import subprocess
 import sys
-import threading
 import time
 
 import httpx
 import pytest
-import uvicorn
 from pydantic import ValidationError
 
 from twohr.bus import free_port
 from twohr_app.fleet import Fleet
-from twohr_services.gateway.app import GatewaySettings, create_app
+from twohr_services.gateway.app import GatewaySettings
 from twohr_services.gateway.tokens import Tokens, view_token
 
 OPERATOR = "operator-token-of-the-tokens-test"
@@ -41,20 +39,11 @@ def fleet(tmp_path):
 
 
 @pytest.fixture
-def gateway(fleet, bus_config, tmp_path):
+def gateway(fleet, bus_config, tmp_path, serve_gateway):
     settings = GatewaySettings(api_token=OPERATOR, robot_tokens=fleet[0].service_folder("gateway") / "tokens.json",
                                recordings=tmp_path / "recordings", bus=bus_config)
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not server.started:
-        assert time.monotonic() < deadline, "the gateway did not start"
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(10)
+    with serve_gateway(settings) as url:
+        yield url
 
 
 def status(gateway: str, token: str | None) -> int:
