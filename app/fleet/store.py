@@ -19,7 +19,7 @@ list.
       services/gateway/       also operator.token (a hard link to DIR/operator.token) and tokens.json: robot ->
                               SHA-256 of its API token and its certificate's expiry, robots not revoked
       services/gateway/grants.json  the operator's map grants (``twohr keys grant``): map -> robot -> when; a
-                              robot may build or extend the maps it built and those it is granted
+                              robot may build or extend the maps it owns (made first) and those it is granted
       robots/<robot>.crt      each robot's certificate, for audit
 
 A robot is given one bundle file (:class:`twohr.identity.Bundle`): its certificate with the robot id as common
