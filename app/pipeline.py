@@ -132,6 +132,8 @@ class RunResult:
     """loop closing's counts and closed loops (None: loop closing was off)"""
     chosen: dict[str, float] = field(default_factory=dict)
     """settings chosen at warm-up (:attr:`~.tracker.stages.Stages.chosen`)"""
+    shed_jobs: int = 0
+    """keyframe jobs the schedule's queue dropped as stale"""
 
     @property
     def tracked_percent(self) -> float:
@@ -177,4 +179,5 @@ def run_sequence(sequence, config: PipelineConfig, start: int = 0, stop: int | N
     online = online_trajectory(results)
     refined = schedule.trajectory() if results else online
     return RunResult(refined, online, stats, list(sequence.skipped), wall, schedule.keyframe_log, refine_s,
-                     schedule.map, schedule.loop_log if config.loop_closing.vocabulary else None, stages.chosen)
+                     schedule.map, schedule.loop_log if config.loop_closing.vocabulary else None, stages.chosen,
+                     schedule.shed_jobs)

@@ -194,15 +194,19 @@ class TrackerConfig(Section):
                                           "about 1); 0 = off")
     smoothing_angular_acceleration: float = Field(5.0, ge=0, description="the same for rotation (rad/s^2; 0 = no "
                                                   "floor, the measured angular acceleration alone)")
-    keyframe_max_interval: int = Field(10, ge=1, description="ask for a keyframe at least every this many frames")
-    flow_keyframe_min_inliers: int = Field(150, ge=6, description="ask for a keyframe when fewer tracks than this "
-                                           "are inliers of the pose")
-    # keyframes and map
-    keyframe_min_inlier_ratio: float = Field(0.6, ge=0, le=1, description="new keyframe when inliers fall below "
-                                             "this fraction of those at the latest keyframe")
-    keyframe_max_translation: float = Field(0.10, gt=0, description="new keyframe when no keyframe lies within "
-                                            "this distance (m) and keyframe_max_rotation_deg of the pose")
-    keyframe_max_rotation_deg: float = Field(10.0, gt=0, description="see keyframe_max_translation (deg)")
+    # keyframes and map: the keyframe policy (services/tracker/keyframe_policy.py, docs/schedules.md)
+    keyframe_tracked_ratio: float = Field(0.75, gt=0, le=1, description="a tracking frame asks for a keyframe when "
+                                          "its inlier tracks, or its close ones, fall below this share of those the "
+                                          "latest keyframe gave it (ORB-SLAM3's ratio for RGB-D); a waiting keyframe "
+                                          "job is dropped when a newer one still tracks this share of its landmarks")
+    keyframe_close_depth_m: float = Field(3.0, gt=0, description="depth of a close point (m; ORB-SLAM3's 40 "
+                                          "baselines of a Kinect-class sensor, about 3 m): near points pin "
+                                          "translation best, and can leave the view while far ones stay")
+    keyframe_max_interval_s: float = Field(1.0, gt=0, description="a tracking frame also asks for a keyframe job "
+                                           "when the latest one is this old, and a weak frame waits in the keyframe "
+                                           "queue behind a busy mapping worker only then (or when tracking is very "
+                                           "weak); the job adds no keyframe where the map holds the view already, so "
+                                           "a still camera adds none")
     keyframe_corners: int = Field(300, ge=1, description="a tracked keyframe (pipeline.keyframes) seeds up to this "
                                   "many new landmarks at Shi-Tomasi corners with depth, outside the dynamic mask; "
                                   "they have no descriptor until the 2HR detection of a keyframe that sees them")
@@ -230,12 +234,10 @@ class TrackerConfig(Section):
                                     "(not the first, nor one in the BA window) whose landmarks are at least this "
                                     "share seen by three other keyframes is culled: its observations and keypoints "
                                     "are dropped (its pose stays, for the frames kept relative to it); 0 = off")
-    keyframe_revisit_min_inliers: int = Field(100, ge=0, description="a frame in a place that older keyframes "
-                                              "already cover (within keyframe_max_translation and "
-                                              "keyframe_max_rotation_deg, outside the BA window) becomes a keyframe "
-                                              "only when it found fewer inliers than this against the map: a camera "
-                                              "that stays in a mapped place, or comes back to one, does not grow the "
-                                              "map; 0 = always a keyframe when asked")
+    landmark_culling: bool = Field(True, description="two keyframes after a landmark is made, retire it if no "
+                                   "keyframe but its own observes it (ORB-SLAM3's map-point culling for RGB-D): it "
+                                   "constrains no pose, and a revisit's keyframes become redundant only without such "
+                                   "landmarks")
     # relocalisation
     relocalisation: bool = Field(True, description="when local-map tracking fails, try RANSAC PnP against "
                                  "earlier keyframes")
@@ -267,12 +269,10 @@ class RuntimeConfig(Section):
     max_keyframe_lag: int = Field(8, ge=0, description="replay from disk: a frame waits for the mapping worker "
                                   "when its keyframe job is more than this many frames old, so a replay faster than "
                                   "the camera sees the map as a live camera would (live streams never wait)")
-    keyframe_duty: float = Field(0.5, gt=0, le=1, description="keyframes mode: the keyframe jobs take at most "
-                                 "this share of the camera's time: after a job of t ms, the next one waits "
-                                 "t * (1 / keyframe_duty - 1) ms of camera time while the camera tracks (never while "
-                                 "it is lost). Sparser jobs on a slow CPU, as many as the tracks ask for on a fast "
-                                 "one; 1 = a job whenever the tracks ask and the worker is free. Not with "
-                                 "synchronous (it times the jobs, and synchronous runs are deterministic)")
+    keyframe_queue: int = Field(3, ge=1, le=16, description="keyframes mode: keyframe jobs that may wait for a "
+                                "busy mapping worker (ORB-SLAM3's 3); a newer job drops a waiting one it makes "
+                                "redundant (tracker.keyframe_tracked_ratio), and a full queue drops its oldest, "
+                                "never the newest: a short CPU sheds stale keyframe work, not density")
     keyframes: Literal["auto", "detected", "tracked"] = Field(
         "detected", description="keyframes mode: how keyframes are made while the camera tracks. detected = the 2HR "
         "detector and descriptor matching on every keyframe (the paper's design); tracked = from the optical-flow "

@@ -39,6 +39,11 @@ class SyntheticSpec:
     texture_px: int = 768
     distortion: tuple[float, ...] = ()
     """OpenCV lens distortion (k1 k2 p1 p2 k3) the images are rendered with; () = a pinhole camera"""
+    motion: str = "loop"
+    """``loop``: a hand-held loop (:func:`camera_path`); ``still``: the camera holds still; ``pan``: it turns
+    ``pan_deg`` to the left and back, ``sweeps`` times (a sweep back revisits what the one before mapped)"""
+    pan_deg: float = 40.0
+    sweeps: int = 1
 
     @property
     def camera(self) -> CameraIntrinsics:
@@ -65,8 +70,19 @@ def _texture(rng: np.random.Generator, size: int) -> np.ndarray:
 
 
 def camera_path(spec: SyntheticSpec) -> Trajectory:
-    """A smooth hand-held-like path: a loop in x-y with gentle yaw and pitch, looking down +z."""
+    """A smooth hand-held-like path: a loop in x-y with gentle yaw and pitch, looking down +z (or still, or panning:
+    ``spec.motion``)."""
     t = np.arange(spec.frames) / spec.fps
+    if spec.motion in ("still", "pan"):
+        poses = np.tile(np.eye(4), (spec.frames, 1, 1))
+        if spec.motion == "pan":  # yaw 0 -> pan_deg -> 0 ... at a steady rate, sweeps legs in all
+            legs = spec.sweeps * (np.arange(spec.frames) / max(spec.frames - 1, 1))
+            yaw = np.radians(spec.pan_deg) * np.where(np.floor(legs) % 2 == 0, legs % 1, 1 - legs % 1)
+            yaw[-1] = np.radians(spec.pan_deg) * (spec.sweeps % 2)
+            poses[:, :3, :3] = so3_exp_batch(np.column_stack([np.zeros_like(yaw), yaw, np.zeros_like(yaw)]))
+        return Trajectory(spec.start_stamp + t, poses)
+    if spec.motion != "loop":
+        raise ValueError(f"unknown synthetic motion {spec.motion!r}: loop, still or pan")
     phase = 2 * np.pi * t / max(t[-1], 1e-6) if spec.frames > 1 else np.zeros(1)
     r = spec.path_radius
     poses = np.tile(np.eye(4), (len(phase), 1, 1))

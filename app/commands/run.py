@@ -61,7 +61,7 @@ def write_run(out: Path, sequence, config, result) -> dict:
     if result.keyframe_log:
         log = result.keyframe_log
         summary["keyframe_jobs"] = {
-            **keyframe_job_latency(log), "keyframes": sum(job.keyframe for job in log),
+            **keyframe_job_latency(log), "keyframes": sum(job.keyframe for job in log), "shed": result.shed_jobs,
             **{f"{key}_median": round(float(_median([getattr(job, key) for job in log])), 2)
                for key in ("ms_detector", "ms_yolo", "ms_mapping", "lag_frames")},
             "by_kind": {kind: {**keyframe_job_latency(jobs), "keyframes": sum(job.keyframe for job in jobs),
@@ -70,6 +70,8 @@ def write_run(out: Path, sequence, config, result) -> dict:
                         for kind in sorted({job.kind for job in log})
                         for jobs in [[job for job in log if job.kind == kind]]},
         }
+    if result.map is not None:
+        summary["map"] = result.map.working_set()
     if result.loops is not None:
         summary["loops"] = result.loops.as_dict()
         if sequence.has_ground_truth():

@@ -31,6 +31,7 @@ class EveryFrameSchedule:
         self.record = AnchoredTrajectory(config.tracker)
         self.keyframe_log: list[KeyframeLog] = []  # no keyframe jobs apart from the frames
         self.loop_log = LoopLog()  # no loop closing in this schedule
+        self.shed_jobs = 0  # no keyframe queue in this schedule
         self.mask: np.ndarray | None = None
         """the dynamic mask the latest frame was tracked with, for live views"""
 

@@ -8,8 +8,8 @@ Per frame (:meth:`FrameTracker.track`):
    it flows back to where it started (forward-backward check) and lies outside the dynamic mask;
 3. RANSAC PnP and a robust refinement (reprojection + inverse depth, motion prior) against the landmarks'
    3-D positions; a pose that jumps implausibly far from the prediction is rejected and the frame coasts;
-4. :meth:`FrameTracker.wants_keyframe` asks for a keyframe when the tracks thin out, the camera leaves
-   the keyframes behind, tracking is lost, or at least every ``keyframe_max_interval`` frames.
+4. :meth:`FrameTracker.keyframe_evidence` says what the frame shows of the map for the keyframe policy
+   (:mod:`.keyframe_policy`): its inlier tracks against those of its reference keyframe, and its close points.
 
 Keyframes are built off this path (the keyframe job: :class:`~.tracking.Tracker` on 2HR keypoints, descriptor
 matching and bundle adjustment, in the mapping worker); each one comes back as a :class:`MapUpdate` whose
@@ -30,11 +30,12 @@ from twohr.dataset import CameraIntrinsics
 from twohr.features import masked
 from twohr.geometry import backproject, invert_pose, project, transform_points
 
+from .keyframe_policy import VERY_WEAK, Evidence, close_points
 from .loops import LoopQuery
 from .map import MapSnapshot
 from .motion import MotionModel
 from .pose import estimate_pose, sample_depth
-from .trajectory import TrackResult, near_any_keyframe
+from .trajectory import TrackResult
 
 
 @dataclass
@@ -170,7 +171,12 @@ class FrameTracker:
         self.track_xy = np.zeros((0, 2), np.float32)
         self.track_landmark = np.zeros(0, np.int64)
         self.previous: np.ndarray | None = None  # the previous frame's grayscale image
-        self.frames_since_keyframe = 0
+        self.keyframe_stamp: float | None = None
+        """camera time of the latest keyframe (or job that re-seeded the tracks)"""
+        self.reference_inliers = (0, 0)
+        """(inlier tracks, close ones) at the latest keyframe job's own frame: the keyframe policy's reference"""
+        self._carried = 1.0  # the share of its frame's inlier tracks still tracked when the latest job came back
+        self._inliers_at: dict[float, np.ndarray] = {}  # the latest frames' inlier landmarks, by stamp
         self._recent_keyframes: list[RecentKeyframe] = []  # to find lost landmarks again
         self._frame_number = 0
         self.reacquisition = {"tried": 0, "found": 0}
@@ -209,7 +215,12 @@ class FrameTracker:
             result = self._track_flow(stamp, gray, depth, mask, predicted)
         self.motion.advance(stamp, result.pose)
         self.previous = gray
-        self.frames_since_keyframe += 1
+        if result.status == "tracking" and self.reference_inliers[0] == 0:
+            # the first frame tracked since a keyframe job came back; the tracks lost while the job ran (its frame's
+            # inlier tracks not tracked any more: self._carried) count against the reference, which is scaled back
+            # to the job's own frame, so that a slow mapping worker does not thin the keyframes
+            close = close_points(result.observed_depth, self.conf)
+            self.reference_inliers = (round(result.num_inliers / self._carried), round(close / self._carried))
         self._frame_number += 1
         result.timings = {"total": (time.perf_counter() - start) * 1000}
         result.num_landmarks = len(self.track_landmark)
@@ -245,6 +256,9 @@ class FrameTracker:
                                reason=f"{why}; pose coasts on the motion model "
                                f"({self.motion.lost_frames} frame(s) untracked)", **counts)
         self.track_xy, self.track_landmark = xy[inliers], landmark[inliers]
+        self._inliers_at[stamp] = self.track_landmark
+        if len(self._inliers_at) > 64:  # a keyframe job comes back within a few frames
+            del self._inliers_at[next(iter(self._inliers_at))]
         pose = invert_pose(T_cw)
         self.motion.tracked(stamp, pose)
         num_inliers = int(inliers.sum())
@@ -292,17 +306,13 @@ class FrameTracker:
         projected = project(transform_points(T_cw, self.landmarks[landmark]), self.K)
         return np.where(np.isfinite(projected), projected, fallback)
 
-    def wants_keyframe(self, result: TrackResult) -> bool:
-        """True when the map should grow at this frame (see the module docstring)."""
-        conf = self.conf
+    def keyframe_evidence(self, result: TrackResult) -> Evidence | None:
+        """What a tracking frame says of the map for the keyframe policy (None: not tracking, or no map yet; such
+        a frame always asks for a keyframe job, which starts the map or relocalises)."""
         if not self.initialised or result.status != "tracking":
-            return True
-        if self.frames_since_keyframe >= conf.keyframe_max_interval:
-            return True
-        if result.num_inliers < conf.flow_keyframe_min_inliers:
-            return True
-        return not near_any_keyframe(result.pose, self.keyframe_poses, conf.keyframe_max_translation,
-                                     conf.keyframe_max_rotation_deg)
+            return None
+        since = np.inf if self.keyframe_stamp is None else result.stamp - self.keyframe_stamp
+        return Evidence.of(result.num_inliers, result.observed_depth, self.reference_inliers, since, self.conf)
 
     # ------------------------------------------------------------------ keyframes
 
@@ -335,11 +345,15 @@ class FrameTracker:
         new_map = found or (update.keyframe_id >= 0 and update.result.status in ("init", "reinitialised"))
         if new_map:
             self.track_xy, self.track_landmark = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
-        if update.keyframe_id >= 0 or update.result.tracked:  # the job re-seeded the tracks, keyframe or not
-            self.frames_since_keyframe = 0
         if update.result.tracked:
             self.motion.correct(update.result.pose, update.stamp, new_map)
         seeds = self.usable[update.seeds_landmark] & ~np.isin(update.seeds_landmark, self.track_landmark)
+        if update.keyframe_id >= 0 or update.result.tracked:  # a keyframe job, keyframe or not
+            self.keyframe_stamp = update.stamp
+            self.reference_inliers = (0, 0)  # the next tracked frame measures it
+            then = self._inliers_at.get(update.stamp)  # the job's frame's inlier tracks: how many are left now
+            self._carried = 1.0 if then is None or len(then) == 0 else max(
+                VERY_WEAK, float(np.isin(then, self.track_landmark).mean()))
         xy, landmark = update.seeds_xy[seeds].astype(np.float32), update.seeds_landmark[seeds]
         if update.gray is not None and self.previous is not None and update.gray is not self.previous:
             # the keyframe is some frames old: carry its observations to the latest frame

@@ -30,6 +30,7 @@ from twohr.trajectory import Trajectory
 from twohr.workers import Worker
 
 from .flow import FrameTracker, MapUpdate
+from .keyframe_policy import KeyframeQueue, may_queue, weakness
 from .loops import Loop, LoopLog, LoopQuery, LoopVerdict, verify
 from .map import Map, MapSnapshot
 from .mapper import Detected, KeyframeJob, Mapper
@@ -83,13 +84,18 @@ class KeyframePipeline:
         self._number = -1  # of the latest frame
         self._job_number = 0  # of the latest keyframe job
         self._anchor = -1  # the latest keyframe taken: new frames' poses are kept relative to it
-        self._stamp = 0.0  # of the latest frame (camera time)
-        self._rest_until = -np.inf  # camera time before which a tracking camera asks for no keyframe job
+        self.queue: KeyframeQueue[KeyframeJob] = KeyframeQueue(runtime.keyframe_queue, config.tracker)
+        """keyframe jobs waiting for the busy mapping worker (:mod:`.keyframe_policy`)"""
 
     def _dynamic_mask(self, numbered: tuple[int, Frame]) -> tuple[int, np.ndarray, int]:
         """YOLO worker: the dynamic mask of one frame (the frames after it reuse it, see :meth:`_mask`)."""
         number, frame = numbered
         return (number, *self.stages.dynamic_mask(frame))
+
+    @property
+    def shed_jobs(self) -> int:
+        """Keyframe jobs the queue dropped as stale (:class:`~.keyframe_policy.KeyframeQueue`)."""
+        return self.queue.shed
 
     @property
     def loop_log(self) -> LoopLog:
@@ -139,9 +145,6 @@ class KeyframePipeline:
             return
         if update.timings and update.timings["detector"] > 0:
             self._detector_ms = [*self._detector_ms, update.timings["detector"]][-5:]
-        if update.kind in ("2hr", "tracked") and update.timings and not self.config.pipeline.synchronous:
-            job_s = (update.timings["detector"] + update.timings["yolo"] + update.timings["mapping"]) / 1000
-            self._rest_until = self._stamp + job_s * (1 / self.config.pipeline.keyframe_duty - 1)
         if update.kind == "tracked" and update.keyframe_id >= 0 and self._job_frame is not None:
             self._to_detect = (update.keyframe_id, self._job_frame, update.mask)  # the latest one wins
         if update.loop_query is not None and self._loop is None:
@@ -203,9 +206,6 @@ class KeyframePipeline:
         """Track one frame; hand it to the mapping worker when the map should grow and the worker is free."""
         t0 = time.perf_counter()
         self._number += 1
-        if frame.stamp < self._stamp:  # the camera's clock went back (a driver restarted): no rest owed in it
-            self._rest_until = -np.inf
-        self._stamp = frame.stamp
         update = self._collect(self.mapping)
         ms_waited = 0.0
         if update is None and not self.live and self.mapping.busy and (
@@ -225,14 +225,15 @@ class KeyframePipeline:
             self.record.add(frame.stamp, result.pose, result.tracked, self._anchor, self.frames.keyframe_poses,
                             FrameObservations.of(result))
         ms_detector = 0.0
-        # a tracking camera lets the keyframe worker rest (pipeline.keyframe_duty); a lost one asks at once
-        wants = self.frames.wants_keyframe(result) and not (result.status == "tracking"
-                                                            and frame.stamp < self._rest_until)
+        # the keyframe policy: a weak frame asks for a keyframe; a lost one (no evidence) asks at once
+        evidence = self.frames.keyframe_evidence(result)
+        wants = evidence is None or weakness(evidence, self.config.tracker) is not None
         tracks = None
         if result.status == "tracking" and self.tracked_keyframes:
             tracks = (self.frames.track_xy.copy(), self.frames.track_landmark.copy())
         # new corners need the frame's own dynamic mask: people move in the frames an older one lags
-        job = KeyframeJob(frame, result.pose, tracks, mask if mask_age == 0 else None, self.frames.latest_keyframe)
+        job = KeyframeJob(frame, result.pose, tracks, mask if mask_age == 0 else None, self.frames.latest_keyframe,
+                          self._number)
         if not self.frames.initialised:
             # no map yet: this frame waits for its keyframe, there is nothing to track against
             t_wait = time.perf_counter()
@@ -247,6 +248,7 @@ class KeyframePipeline:
                 self.record.add(frame.stamp, result.pose, True, self._anchor, self.frames.keyframe_poses)
             ms_detector = (time.perf_counter() - t_wait) * 1000
             wants = False
+            self.queue.clear()
         ms_detector += ms_waited
         self._detect_keyframes()
         self._close_loops(frame)
@@ -258,9 +260,12 @@ class KeyframePipeline:
                 if self.mapping.submit(self._detected):
                     self._detected = None
                     self._job_number = self._number
-            elif wants and self.mapping.submit(job):
-                self._job_number = self._number
-                self._job_frame = frame
+            else:
+                if wants:
+                    self.queue.push(job, self._seen(result))
+                self._submit_waiting()
+        elif wants and (evidence is None or may_queue(evidence, self.config.tracker)):
+            self.queue.push(job, self._seen(result))
         if result.observed_xy is None:
             result.observed_xy = self.frames.track_xy  # the map points optical flow followed into this frame
         ms_total = (time.perf_counter() - t0) * 1000
@@ -274,6 +279,17 @@ class KeyframePipeline:
         )
         return result, stats
 
+    def _seen(self, result: TrackResult) -> np.ndarray | None:
+        """The landmarks a frame tracks, by which the keyframe queue judges redundancy (None: not tracking)."""
+        return self.frames.track_landmark.copy() if result.status == "tracking" else None
+
+    def _submit_waiting(self) -> None:
+        """Start the idle mapping worker on the oldest waiting keyframe job."""
+        job = self.queue.pop()
+        if job is not None and self.mapping.submit(job):
+            self._job_number = job.number
+            self._job_frame = job.frame
+
     def map_snapshot(self, since: int = -1) -> MapSnapshot | None:
         """The map as of the latest keyframe job taken, or None while its version is still ``since``."""
         snapshot = self.frames.snapshot
@@ -283,6 +299,9 @@ class KeyframePipeline:
         """Let the workers finish their jobs (the mapping worker's bundle adjustment refines the trajectory; a
         detection still running joins the map), then stop."""
         self._take(self._collect(self.mapping, wait=True))
+        while len(self.queue):  # the keyframes still waiting are the map's too
+            self._submit_waiting()
+            self._take(self._collect(self.mapping, wait=True))
         done = self._collect(self.detecting, wait=True)
         for detected in (self._detected, done):
             if detected is not None and self.mapping.submit(detected):

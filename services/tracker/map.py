@@ -127,6 +127,8 @@ class Map:
         """(K, 4, 4) camera-to-world poses of the keyframes, as bundle adjustment has refined them"""
         self.corrections = 0
         """loops closed: each moved the whole map"""
+        self._unconfirmed: list[tuple[int, np.ndarray]] = []
+        """(keyframe count when made, landmark ids) of new landmarks not yet judged by :meth:`retire_unconfirmed`"""
 
     def __bool__(self) -> bool:
         return bool(self.keyframes)
@@ -226,6 +228,37 @@ class Map:
                                          np.zeros(0, np.int64), culled=True)
             culled.append(i)
         return culled
+
+    def made_landmarks(self, ids: np.ndarray) -> None:
+        """Note landmarks just made, for :meth:`retire_unconfirmed` to judge two keyframes later."""
+        if len(ids):
+            self._unconfirmed.append((len(self.keyframes), np.asarray(ids, np.int64)))
+
+    def retire_unconfirmed(self) -> np.ndarray:
+        """Retire the landmarks made two or more keyframes ago that no keyframe but one observes: no later view
+        found them again, so they constrain no pose and only hold the map's keyframes apart (ORB-SLAM3's map-point
+        culling for RGB-D, which lets :meth:`cull_redundant` find the keyframes a revisit made redundant). Returns
+        the retired ids."""
+        due = [ids for made, ids in self._unconfirmed if len(self.keyframes) - made >= 2]
+        self._unconfirmed = [(made, ids) for made, ids in self._unconfirmed if len(self.keyframes) - made < 2]
+        if not due:
+            return np.zeros(0, np.int64)
+        ids = np.concatenate(due)
+        observers = np.bincount(np.concatenate([kf.landmark_ids[kf.landmark_ids >= 0] for kf in self.keyframes]),
+                                minlength=len(self.landmarks))
+        lonely = ids[(observers[ids] < 2) & ~self.landmarks.bad[ids]]
+        self.landmarks.bad[lonely] = True
+        return lonely
+
+    def working_set(self) -> dict[str, int]:
+        """How much of the map tracking still works with: keyframes inserted, culled and live, and landmarks made,
+        and those live keyframes observe (culled keyframes keep only their pose, for the frames kept against it)."""
+        live = [kf for kf in self.keyframes if not kf.culled]
+        observed = np.unique(np.concatenate([kf.landmark_ids for kf in live])) if live else np.zeros(0, np.int64)
+        observed = observed[observed >= 0]
+        return {"keyframes": len(self.keyframes), "culled": len(self.keyframes) - len(live),
+                "live_keyframes": len(live), "landmarks": len(self.landmarks),
+                "live_landmarks": int((~self.landmarks.bad[observed]).sum())}
 
     def usable_landmarks(self, keyframe_indices: np.ndarray, described: bool = False) -> np.ndarray:
         """Sorted ids of the landmarks that keyframes ``keyframe_indices`` observe, retired ones left out (and those

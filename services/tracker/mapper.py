@@ -41,6 +41,8 @@ class KeyframeJob:
     """the dynamic mask the per-frame path used for this frame (None: none fresh enough)"""
     reference: tuple[np.ndarray, int] | None = None
     """(grayscale image, keyframe id) of the latest keyframe: new corners must be static against it"""
+    number: int = 0
+    """the schedule's count of the frame (frame indices may start again)"""
 
 
 @dataclass

@@ -16,11 +16,12 @@ from scipy.spatial import cKDTree
 from twohr.features import Keypoints
 from twohr.geometry import backproject, transform_points
 
+from .keyframe_policy import close_points
 from .local_map import LocalMapSearch
 from .map import Keyframe
 from .motion import MotionModel
 from .pose import MatchFn, PoseEstimate, sample_depth
-from .trajectory import TrackResult, near_any_keyframe
+from .trajectory import TrackResult
 
 
 class LocalMapping:
@@ -35,8 +36,8 @@ class LocalMapping:
         self.map = search.map
         self.conf = search.conf
         self.K = search.K
-        self.inliers_at_keyframe = 0
-        """inliers of the frame at the latest keyframe: tracking asks for a keyframe when they fall well below"""
+        self.at_keyframe = (0, 0)
+        """(landmarks observed, close ones) at the latest keyframe: the keyframe policy's reference"""
 
     def start(self, stamp: float, pose: np.ndarray, keypoints: Keypoints, xy: np.ndarray, z: np.ndarray) -> Keyframe:
         """The first keyframe of a map (or of a new map part after a long loss): every keypoint with depth becomes
@@ -49,7 +50,6 @@ class LocalMapping:
         landmarks), then local bundle adjustment; returns the keyframe's pose as adjusted."""
         t0 = time.perf_counter()
         keyframe = self._add_keyframe(stamp, pose, keypoints, xy, z, estimate.keypoint_landmarks, estimate.suspect)
-        self.inliers_at_keyframe = max(estimate.num_inliers, int((keyframe.landmark_ids >= 0).sum()))
         timings["keyframe"] = (time.perf_counter() - t0) * 1000.0
         return self._adjust_after_keyframe(keyframe.id, pose, timings)
 
@@ -57,8 +57,7 @@ class LocalMapping:
                              tracked_landmarks: np.ndarray, corners_xy: np.ndarray, depth: np.ndarray) -> TrackResult:
         """A keyframe without a network: the per-frame path's pose and inlier tracks (landmark observations found
         by optical flow) make it, and ``corners_xy`` with depth seed new landmarks, without descriptors until a
-        2HR detection of a keyframe describes them (:meth:`describe_keyframe`). Local bundle adjustment follows.
-        No keyframe where older keyframes already cover the place (see ``keyframe_revisit_min_inliers``)."""
+        2HR detection of a keyframe describes them (:meth:`describe_keyframe`). Local bundle adjustment follows."""
         conf = self.conf
         start = time.perf_counter()
         tracked_xy = np.asarray(tracked_xy, np.float64).reshape(-1, 2)
@@ -73,17 +72,17 @@ class LocalMapping:
                       num_inliers=num_tracked)
         self.motion.tracked(stamp, pose)
         self.motion.advance(stamp, pose)
-        if self.covered(pose, num_tracked):
-            return TrackResult(stamp, pose, "tracking", reason=f"{num_tracked} tracks in a place older keyframes "
-                               "cover: no keyframe", observed_xy=tracked_xy, observed_landmarks=tracked_landmarks,
-                               **counts)
+        covering = self.covering_keyframe(pose, tracked_landmarks)
+        if covering is not None:
+            return TrackResult(stamp, pose, "tracking", reason=f"{num_tracked} tracks; keyframe {covering} holds this "
+                               "view already: no keyframe", observed_xy=tracked_xy,
+                               observed_landmarks=tracked_landmarks, **counts)
         # the keyframe keeps its tracks, and the corners with depth, which become landmarks without descriptors
         keep = np.arange(len(xy)) < num_tracked
         keep |= z > 0
         landmark_ids = np.concatenate([tracked_landmarks, np.full(len(corners_xy), -1, np.int64)])[keep]
         no_suspects = np.zeros(len(landmark_ids), bool)
         keyframe = self._add_keyframe(stamp, pose, None, xy[keep], z[keep], landmark_ids, no_suspects)
-        self.inliers_at_keyframe = len(landmark_ids)
         timings = {"keyframe": (time.perf_counter() - start) * 1000.0}
         pose = self._adjust_after_keyframe(keyframe.id, pose, timings)
         observed = keyframe.landmark_ids >= 0
@@ -142,6 +141,7 @@ class LocalMapping:
             new_xy.append(xy[fresh])
             new_z.append(z[fresh])
             new_ids.append(landmarks.add(points_w, keypoints.descriptors[fresh]))
+            self.map.made_landmarks(new_ids[-1])
         if new_ids:
             keyframe.xy = np.concatenate([keyframe.xy, *new_xy])
             keyframe.depth = np.concatenate([keyframe.depth, *new_z])
@@ -153,16 +153,18 @@ class LocalMapping:
         seen = keyframe.landmark_ids >= 0
         return keyframe.xy[seen], keyframe.landmark_ids[seen]
 
-    def covered(self, pose: np.ndarray, num_inliers: int) -> bool:
-        """True when older keyframes (outside the BA window, not culled) already cover ``pose`` and the frame
-        tracked well against them: a keyframe here would only grow the map (``keyframe_revisit_min_inliers``)."""
-        conf, world = self.conf, self.map
-        if conf.keyframe_revisit_min_inliers == 0 or num_inliers < conf.keyframe_revisit_min_inliers:
-            return False
-        older = np.arange(max(0, len(world.keyframes) - conf.ba_window_keyframes))
-        older = older[[not world.keyframes[i].culled for i in older]]
-        return near_any_keyframe(pose, world.keyframe_poses[older], conf.keyframe_max_translation,
-                                 conf.keyframe_max_rotation_deg)
+    def covering_keyframe(self, pose: np.ndarray, tracked: np.ndarray) -> int | None:
+        """A keyframe of the local map at ``pose`` of whose usable landmarks the frame tracks (``tracked``: landmark
+        ids) at least ``keyframe_tracked_ratio``: the map holds this view already, and a keyframe here would add
+        nothing but memory (a camera that comes back to a place it mapped). None when no keyframe does."""
+        world = self.map
+        for index in world.local_keyframes(pose, self.conf.local_map_keyframes):
+            observed = world.keyframes[index].landmark_ids
+            observed = observed[observed >= 0]
+            observed = observed[~world.landmarks.bad[observed]]
+            if len(observed) and np.isin(observed, tracked).mean() >= self.conf.keyframe_tracked_ratio:
+                return int(index)
+        return None
 
     def _add_keyframe(self, stamp: float, pose: np.ndarray, keypoints: Keypoints | None, xy: np.ndarray,
                       z: np.ndarray, keypoint_landmarks: np.ndarray, suspect: np.ndarray) -> Keyframe:
@@ -175,9 +177,13 @@ class LocalMapping:
             landmark_ids[new] = self.map.landmarks.add(points_w, None if keypoints is None else
                                                        keypoints.descriptors[new])
         keyframe = self.map.add_keyframe(stamp, pose, xy, z, landmark_ids)
-        if self.inliers_at_keyframe == 0:
-            self.inliers_at_keyframe = int(new.sum())
+        self.map.made_landmarks(landmark_ids[new])
+        self._reference(keyframe)
         return keyframe
+
+    def _reference(self, keyframe: Keyframe) -> None:
+        observed = keyframe.landmark_ids >= 0
+        self.at_keyframe = (int(observed.sum()), close_points(keyframe.depth[observed], self.conf))
 
     def _adjust_after_keyframe(self, keyframe_id: int, pose: np.ndarray, timings: dict[str, float]) -> np.ndarray:
         """Local bundle adjustment after a new keyframe, then culling of redundant local keyframes; returns the
@@ -189,5 +195,7 @@ class LocalMapping:
             timings["bundle_adjustment"] = (time.perf_counter() - t0) * 1000.0
             pose = self.map.keyframe_poses[keyframe_id].copy()
             self.motion.good_pose = pose
+        if conf.landmark_culling:
+            self.map.retire_unconfirmed()
         self.map.cull_redundant(self.map.local_keyframes(pose, conf.local_map_keyframes))
         return pose

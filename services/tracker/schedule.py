@@ -30,6 +30,9 @@ class Schedule(Protocol):
     """the dynamic mask the latest frame was tracked with"""
     loop_log: LoopLog
     """loops detected, accepted, rejected and closed (none where loop closing is off)"""
+    shed_jobs: int
+    """keyframe jobs dropped from the queue because a newer one made them redundant (none where keyframes are not
+    built apart from the frames)"""
 
     def process(self, frame: Frame) -> tuple[TrackResult, FrameStats]:
         """The pose of one frame (online: final when returned), and what each stage did with it."""

@@ -273,8 +273,11 @@ class TrackerService(Service):
                           stamp=header.stamp, final=True, frame_id=track.map_name)
         self.publish(keys.key(header.robot_id, "path"), encode(message, path_arrays(refined)))
         latency = keyframe_job_latency(track.schedule.keyframe_log)
-        self.report(header, "keyframe_jobs", f"{latency['count']} keyframe jobs",
-                    **{key: round(value) for key, value in latency.items()})
+        working = track.schedule.map.working_set()
+        self.report(header, "keyframe_jobs", f"{latency['count']} keyframe jobs, {working['live_keyframes']} of "
+                    f"{working['keyframes']} keyframes in the working set",
+                    **{key: round(value) for key, value in latency.items()}, shed=track.schedule.shed_jobs,
+                    **{f"map_{key}": value for key, value in working.items()})
         if config is not None and config.loop_closing.vocabulary:
             loops = track.schedule.loop_log
             self.report(header, "loops", f"{loops.closed} loops closed", detected=loops.detected,

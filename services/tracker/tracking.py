@@ -32,13 +32,14 @@ from twohr.dataset import CameraIntrinsics
 from twohr.features import Keypoints
 from twohr.geometry import invert_pose
 
+from .keyframe_policy import Evidence, weakness
 from .local_map import LocalMapSearch, TrackerInputError
 from .map import Map
 from .mapping import LocalMapping
 from .motion import MotionModel
-from .pose import MatchFn, sample_depth
+from .pose import MatchFn, PoseEstimate, sample_depth
 from .relocalisation import Relocaliser
-from .trajectory import TrackResult, near_any_keyframe
+from .trajectory import TrackResult
 
 __all__ = ["Tracker", "TrackerInputError"]
 
@@ -176,11 +177,16 @@ class Tracker:
         self.motion.tracked(stamp, pose)
         # a keyframe needs depth: its new landmarks come from back-projected keypoints
         is_keyframe = num_depth >= conf.init_min_points and (
-            force_keyframe or self._needs_keyframe(pose, estimate.num_inliers, status)) and not (
-            self.local_mapping.covered(pose, estimate.num_inliers))
+            force_keyframe or self._needs_keyframe(estimate, z, status))
+        matched = estimate.keypoint_landmarks[estimate.keypoint_landmarks >= 0]
+        covering = self.local_mapping.covering_keyframe(pose, matched) if is_keyframe and status == "tracking" else None
+        if covering is not None:  # the map holds this view already: the frame re-seeds the tracks, adds nothing
+            is_keyframe = False
         if is_keyframe:
             pose = self.local_mapping.insert(stamp, pose, keypoints, xy, z, estimate, timings)
         reason = estimate.reason if num_depth else f"{estimate.reason} (no depth: tracked from 2-D matches only)"
+        if covering is not None:
+            reason += f"; keyframe {covering} holds this view already: no keyframe"
         observed = self.keyframes[-1].landmark_ids if is_keyframe else estimate.keypoint_landmarks
         return TrackResult(stamp, pose, status, num_matches=estimate.num_matches, num_inliers=estimate.num_inliers,
                            is_keyframe=is_keyframe, reason=reason, observed_xy=xy[observed >= 0],
@@ -194,14 +200,14 @@ class Tracker:
 
     # ------------------------------------------------------------------ the keyframe decision
 
-    def _needs_keyframe(self, pose: np.ndarray, num_inliers: int, status: str) -> bool:
-        conf = self.conf
+    def _needs_keyframe(self, estimate: PoseEstimate, z: np.ndarray, status: str) -> bool:
+        """The keyframe policy (:mod:`.keyframe_policy`) on a frame tracked from its own keypoints: its inliers
+        against those at the latest keyframe, and its close points."""
         if status != "tracking":
             return True
-        if num_inliers < conf.keyframe_min_inlier_ratio * self.local_mapping.inliers_at_keyframe:
-            return True
-        return not near_any_keyframe(pose, self.map.keyframe_poses, conf.keyframe_max_translation,
-                                     conf.keyframe_max_rotation_deg)
+        matched = estimate.keypoint_landmarks >= 0
+        evidence = Evidence.of(estimate.num_inliers, z[matched], self.local_mapping.at_keyframe, 0.0, self.conf)
+        return weakness(evidence, self.conf) is not None
 
 
 def _ms(start: float) -> float:

@@ -68,17 +68,6 @@ class TrackResult:
         return self.status not in UNPOSED_STATUSES
 
 
-def near_any_keyframe(pose: np.ndarray, keyframe_poses: np.ndarray, max_translation: float,
-                      max_rotation_deg: float) -> bool:
-    """True when some keyframe lies within ``max_translation`` metres and ``max_rotation_deg`` of ``pose``."""
-    if len(keyframe_poses) == 0:
-        return False
-    rel = np.einsum("ij,njk->nik", invert_pose(pose), keyframe_poses)
-    moved = np.linalg.norm(rel[:, :3, 3], axis=1)
-    turned = np.degrees(np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
-    return bool(((moved < max_translation) & (turned < max_rotation_deg)).any())
-
-
 def reattach_to_keyframes(stamps: Sequence[float], anchors: Sequence[int], relative: np.ndarray,
                           keyframe_poses: np.ndarray) -> Trajectory:
     """Frames' poses from their pose relative to an anchor keyframe (-1 = none: the pose itself) and the

@@ -69,7 +69,7 @@ def test_the_pose_graph_spreads_a_loop_correction_along_the_path():
 
 
 STRESS = {  # a local map of one keyframe: revisits are not re-found by tracking, so only loop closing joins them
-    "tracker.local_map_keyframes": 1, "tracker.keyframe_revisit_min_inliers": 0, "pipeline.synchronous": True,
+    "tracker.local_map_keyframes": 1, "pipeline.synchronous": True,
     # 0.625: a scale the latency budget picks on a CPU without AMX; before the view-change gate kept a margin below
     # "the same place", one loop here was accepted 0.315 m apart
     "yolo.enabled": False, "detector.latency_budget_ms": None, "detector.input_scale": 0.625}

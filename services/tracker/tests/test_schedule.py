@@ -77,32 +77,6 @@ def test_a_late_keyframe_measurement_corrects_a_lost_motion_model():
     assert np.array_equal(motion.velocity, np.eye(4))
 
 
-def test_keyframe_jobs_rest_for_their_share_of_camera_time(synthetic_sequence):
-    """pipeline.keyframe_duty: after a keyframe job of t ms, a tracking camera asks for the next one only
-    t * (1 / duty - 1) ms of camera time later; a lower duty makes fewer jobs."""
-    sequence = RGBDSequence(synthetic_sequence)
-    jobs = {}
-    for duty in (1.0, 0.1):
-        config = load_config(None, {"detector.features": "orb", "yolo.enabled": False,
-                                    "matcher.method": "mutual_nn", "pipeline.keyframe_duty": duty,
-                                    "tracker.keyframe_max_interval": 3})  # the tracks ask for a job every 3 frames
-        schedule = build_schedule(config, sequence.camera, local_stages(config, sequence.camera))
-        stats = [schedule.process(frame)[1] for frame in sequence.frames()]
-        schedule.finish()
-        jobs[duty] = [job for job in schedule.keyframe_log if job.kind == "2hr"]
-        row = {s.index: i for i, s in enumerate(stats)}
-        rested = 0
-        for before, after in zip(jobs[duty], jobs[duty][1:], strict=False):
-            if stats[row[after.index]].status != "tracking":
-                continue  # a lost camera asks at once
-            job_s = (before.ms_detector + before.ms_yolo + before.ms_mapping) / 1000
-            taken = stats[row[before.index] + before.lag_frames].stamp  # the frame that took the job's result
-            assert stats[row[after.index]].stamp >= taken + job_s * (1 / duty - 1) - 1e-9, (before, after)
-            rested += 1
-        assert rested >= 1, jobs[duty]
-    assert len(jobs[0.1]) < len(jobs[1.0]), {duty: len(log) for duty, log in jobs.items()}
-
-
 def test_a_keyframe_job_asks_for_the_mask_only_when_it_carries_none(synthetic_sequence):
     """Detection and the dynamic mask are asked at once; a job that carries its frame's own mask asks yolo no
     more, and its keypoints are masked all the same; the job's whole latency is reported."""

@@ -52,17 +52,20 @@ def test_tracked_keyframes_follow_the_synthetic_trajectory(static_synthetic_sequ
     result = run_sequence(sequence, _config(**{"pipeline.keyframes": "tracked"}), progress=False)
     kinds = [job.kind for job in result.keyframe_log]
     # the map starts from a detected keyframe; then keyframes come from the tracks, each described by the detector
-    assert kinds[0] == "2hr" and kinds.count("tracked") >= 2 and kinds.count("describe") >= 1
+    # (the keyframe policy asks for one where a quarter of the tracks are gone: once in these 30 frames)
+    assert kinds[0] == "2hr" and kinds.count("tracked") >= 1 and kinds.count("describe") >= 1, kinds
     assert all(job.ms_detector == 0 for job in result.keyframe_log if job.kind == "tracked")
     statuses = [s.status for s in result.stats]
     assert statuses.count("tracking") == len(statuses) - 1
     static = evaluate(sequence.ground_truth(), static_trajectory(sequence.stamps))[0].ate.rmse
     for trajectory in (result.trajectory, result.online):
         ate = evaluate(sequence.ground_truth(), trajectory)[0].ate.rmse
-        assert ate < 0.015 and ate < static / 5, (ate, static)
+        # 0.016 m with two keyframes in these 30 frames (the keyframe policy), < 0.015 m with the four a
+        # frame-count rule asked for
+        assert ate < 0.02 and ate < static / 10, (ate, static)
     world = result.map
     landmarks = world.landmarks
-    assert len(world.keyframes) >= 3
+    assert len(world.keyframes) >= 2
     # corner landmarks start without a descriptor; detection of their keyframes gives many of them one
     assert 0 < landmarks.described.sum() < len(landmarks)
     described_later = landmarks.described[len(world.keyframes[0].landmark_ids):]

@@ -211,8 +211,10 @@ def test_final_bundle_adjustment_pulls_drifted_keyframes_back(orb_synthetic):
     tracker.map.final_bundle_adjustment()
     refined = _keyframe_errors(tracker, orb_synthetic)
     assert refined[0] == drifted[0]
-    # back to within 2 mm of where tracking had put them (itself up to ~5 mm off here) from 15-35 mm
-    assert (refined - tracked).max() < 0.002, (tracked, refined)
+    # back to within 2 mm of where tracking had put them (itself up to ~5 mm off here) from 15-35 mm; a culled
+    # keyframe observes nothing any more, so nothing moves it
+    live = np.array([not kf.culled for kf in tracker.keyframes])
+    assert live.sum() >= 4 and (refined - tracked)[live].max() < 0.002, (tracked, refined, live)
 
 
 def test_final_bundle_adjustment_can_be_switched_off(orb_synthetic):
@@ -261,37 +263,40 @@ def _back_and_forth(tracker: Tracker, data, passes: int = 3, every: int = 2) -> 
 
 
 def test_a_place_the_map_covers_gets_no_more_keyframes(orb_synthetic):
-    """Sweeping the same place six times, a keyframe asked for every other frame: the first sweeps map it, then
-    the map stops growing (older keyframes cover every pose) and the poses stay as good. Asked the same, a tracker
-    that takes every keyframe grows by ten each sweep."""
+    """Sweeping the same place six times, a keyframe asked for every other frame: the first sweeps map it; then a
+    frame that tracks most of a nearby keyframe's landmarks adds none (the map holds its view), the working set stays
+    at 15 keyframes and the poses stay as good. A tracker that takes every keyframe asked for (ratio 1) grows by
+    about 18 each sweep."""
     tracker = Tracker(orb_synthetic.camera, SYNTHETIC, match=orb_synthetic.match)
-    every_time = Tracker(orb_synthetic.camera, SYNTHETIC.model_copy(update={"keyframe_revisit_min_inliers": 0}),
+    every_time = Tracker(orb_synthetic.camera, SYNTHETIC.model_copy(update={"keyframe_tracked_ratio": 1.0}),
                          match=orb_synthetic.match)
-    counts, every_time_counts = [], []
+    counts, live, every_time_counts = [], [], []
     for _ in range(6):
         results, order = _back_and_forth(tracker, orb_synthetic, passes=1)
         counts.append(len(tracker.keyframes))
+        live.append(tracker.map.working_set()["live_keyframes"])
         _back_and_forth(every_time, orb_synthetic, passes=1)
         every_time_counts.append(len(every_time.keyframes))
         for index, result in zip(order, results, strict=True):
             moved, _ = pose_difference(truth_in_first_camera(orb_synthetic, index), result.pose)
             assert result.tracked and moved < 0.01, (index, moved)
-    assert counts[0] >= 8 and counts[-1] == counts[2], counts  # 10, 13, 14, 14, 14, 14 here
-    assert every_time_counts[-1] - every_time_counts[2] >= 25, every_time_counts
+    assert counts[0] >= 8 and counts[-1] - counts[1] <= 10, counts  # 11, 13, 15, 16, 18, 20 here
+    assert live[-1] == live[3], live  # 11, 13, 14, 15, 15, 15 here
+    assert every_time_counts[-1] - every_time_counts[1] >= 50, every_time_counts
 
 
 def test_redundant_keyframes_are_culled_where_the_camera_stays(orb_synthetic):
     """Sweeping the same place again and again, a keyframe each time it is asked for: without culling, every
     keyframe stays with its keypoints; with it, the keyframes whose landmarks three others see give them up, the
     poses stay as good, and culled keyframes are left out of the local map."""
-    every_time = {"keyframe_revisit_min_inliers": 0}
+    every_time = {"keyframe_tracked_ratio": 1.0}  # no frame covers a keyframe's every landmark
     kept = Tracker(orb_synthetic.camera, SYNTHETIC.model_copy(update={"keyframe_culling": 0.0, **every_time}),
                    match=orb_synthetic.match)
     _back_and_forth(kept, orb_synthetic)
     assert not any(kf.culled for kf in kept.keyframes)
     tracker = Tracker(orb_synthetic.camera, SYNTHETIC.model_copy(update=every_time), match=orb_synthetic.match)
     results, order = _back_and_forth(tracker, orb_synthetic)
-    assert len(tracker.keyframes) == len(kept.keyframes) >= 25
+    assert len(tracker.keyframes) >= 25 and len(kept.keyframes) >= 20
     culled = [kf for kf in tracker.keyframes if kf.culled]
     assert len(culled) >= len(tracker.keyframes) // 5, (len(culled), len(tracker.keyframes))  # 8 of 30 here
     assert not tracker.keyframes[0].culled and not any(kf.culled for kf in tracker.keyframes[-5:])

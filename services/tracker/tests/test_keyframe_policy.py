@@ -1,0 +1,149 @@
+"""The keyframe policy: keyframes by the map's own evidence (tracked ratio, close points, time), a queue that sheds
+stale jobs and never the newest, and culling that keeps a camera going round in one place at one working set."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twohr.config import TrackerConfig, load_config
+from twohr.dataset import RGBDSequence
+from twohr_app.pipeline import local_stages
+from twohr_services.tracker.keyframe_policy import Evidence, KeyframeQueue, may_queue, redundant, weakness
+from twohr_services.tracker.schedule import build_schedule
+
+CONF = TrackerConfig()
+
+
+def test_a_frame_is_weak_below_the_ratio_of_its_reference_in_all_or_close_points():
+    ratio = CONF.keyframe_tracked_ratio
+    assert weakness(Evidence(100, 100, 50, 50, 0.1), CONF) is None
+    assert weakness(Evidence(int(ratio * 100), 100, 50, 50, 0.1), CONF) is None  # at the ratio: still enough
+    assert "of the reference keyframe's 100" in weakness(Evidence(int(ratio * 100) - 1, 100, 50, 50, 0.1), CONF)
+    assert "nearer than" in weakness(Evidence(95, 100, 30, 50, 0.1), CONF)  # the near points left the view
+    assert weakness(Evidence(95, 100, 0, 0, 0.1), CONF) is None  # nothing near to lose
+    depth = np.array([0.0, 1.0, 2.9, 3.1, 7.0])
+    assert Evidence.of(5, depth, (5, 2), 0.2, CONF).close == 2
+
+
+def test_time_only_lets_a_weak_frame_wait_behind_a_busy_worker():
+    weak = Evidence(60, 100, 60, 60, 0.2)
+    assert not may_queue(weak, CONF)
+    assert "1.0 s old" in weakness(Evidence(100, 100, 60, 60, CONF.keyframe_max_interval_s), CONF)
+    assert may_queue(Evidence(60, 100, 60, 60, CONF.keyframe_max_interval_s), CONF)
+    assert may_queue(Evidence(20, 100, 20, 60, 0.2), CONF)  # very weak: at once
+
+
+def test_the_queue_sheds_what_a_newer_job_makes_redundant_and_never_the_newest():
+    queue: KeyframeQueue[str] = KeyframeQueue(3, CONF)
+    view_a, view_b = np.arange(100), np.arange(1000, 1100)
+    queue.push("a1", view_a)
+    queue.push("a2", view_a[10:])  # still tracks 90 % of a1's landmarks: a1 is stale
+    assert len(queue) == 1 and queue.shed == 1
+    queue.push("b", view_b)  # another view (a fast pan): both wait
+    queue.push("lost1", None)
+    assert len(queue) == 3 and queue.shed == 1
+    queue.push("lost2", None)  # the newest look for the camera wins; the views before the loss stay
+    assert len(queue) == 3 and queue.shed == 2
+    queue.push("c", np.arange(2000, 2100))  # tracking again: the lost job is stale
+    assert [queue.pop() for _ in range(3)] == ["a2", "b", "c"] and queue.pop() is None
+    full: KeyframeQueue[int] = KeyframeQueue(2, CONF)
+    for n in range(5):  # five different views: the oldest go, the newest always stays
+        full.push(n, np.arange(n * 100, n * 100 + 100))
+    assert [full.pop(), full.pop()] == [3, 4] and full.shed == 3
+    assert redundant(np.zeros(0, np.int64), view_a, CONF)  # a job that tracked nothing holds no view
+
+
+def _run(tmp_path_factory, name: str, spec_update: dict, settings: dict | None = None, every: int = 0):
+    """Run the keyframes schedule (synchronous, ORB) over a synthetic room without movers; returns the schedule,
+    each frame's keyframe evidence and, every ``every`` frames, the map's working set."""
+    from twohr.synthetic import SyntheticSpec, generate
+
+    spec = SyntheticSpec(occluders=0, seed=3, **spec_update)
+    sequence = RGBDSequence(generate(tmp_path_factory.mktemp("policy") / name, spec))
+    config = load_config(None, {"detector.features": "orb", "yolo.enabled": False, "matcher.method": "mutual_nn",
+                                "pipeline.synchronous": True, "tracker.depth_noise": 0.005, **(settings or {})})
+    schedule = build_schedule(config, sequence.camera, local_stages(config, sequence.camera))
+    evidence, sets = [], []
+    for frame in sequence.frames():
+        result, _ = schedule.process(frame)
+        evidence.append(schedule.frames.keyframe_evidence(result))
+        if every and frame.index % every == every - 1:
+            sets.append(schedule.map.working_set())
+    schedule.finish()
+    return schedule, evidence, sets
+
+
+def test_a_still_camera_adds_no_keyframes(tmp_path_factory):
+    schedule, evidence, _ = _run(tmp_path_factory, "still", {"frames": 75, "motion": "still"})
+    # the first map; then a job every keyframe_max_interval_s (1 s), which finds the view held: no keyframe
+    assert [(job.index, job.keyframe) for job in schedule.keyframe_log] == [(0, True), (30, False), (60, False)]
+    assert all(e is not None and weakness(e, CONF) is None for n, e in enumerate(evidence[1:], 1) if n not in (30, 60))
+    assert len(schedule.map.keyframes) == 1
+
+
+@pytest.fixture(scope="module")
+def pans(tmp_path_factory):
+    return {ratio: _run(tmp_path_factory, f"pan{ratio}", {"frames": 60, "motion": "pan", "pan_deg": 60},
+                        {"tracker.keyframe_tracked_ratio": ratio}) for ratio in (0.75, 0.5)}
+
+
+def test_a_pan_adds_a_keyframe_where_its_tracks_fall_below_the_ratio(pans):
+    schedule, evidence, _ = pans[0.75]
+    jobs = [job.index for job in schedule.keyframe_log]
+    assert len(jobs) >= 4 and all(job.keyframe for job in schedule.keyframe_log), jobs  # 0, 17, 28, 39, 42, 52 here
+    for index in jobs[1:]:  # each at the first weak frame since the keyframe before it
+        asked = evidence[index]
+        assert asked.inliers < 0.75 * asked.reference or asked.close < 0.75 * asked.reference_close, (index, asked)
+        assert weakness(evidence[index - 1], CONF) is None, (index, evidence[index - 1])
+    fewer = [job.index for job in pans[0.5][0].keyframe_log]
+    assert len(fewer) < len(jobs), (fewer, jobs)  # a lower ratio waits for weaker tracks
+
+
+def test_a_camera_going_round_one_place_stops_growing_its_working_set(tmp_path_factory):
+    """Twelve sweeps of the same 60 degrees: the first ones map it; once unconfirmed landmarks are retired and
+    redundant keyframes culled, the working set stays as it is for the last third (12 keyframes, about 2,650
+    landmarks here). Without landmark culling the revisits' keyframes stay apart from the older ones: twice the
+    keyframes, and twice the working set (39 and 26 here)."""
+    spec = {"frames": 360, "motion": "pan", "pan_deg": 60, "sweeps": 12}
+    culled, _, sets = _run(tmp_path_factory, "sweeps", spec, every=30)
+    live = [s["live_keyframes"] for s in sets]
+    assert live[-1] <= live[7] + 1, live  # 12 or 13 from sweep 8 on here
+    assert max(s["live_landmarks"] for s in sets[8:]) < 1.1 * sets[7]["live_landmarks"], sets
+    assert sets[-1]["culled"] >= 4 and live[-1] < sets[-1]["keyframes"], sets[-1]
+    _, _, kept = _run(tmp_path_factory, "sweeps_kept", spec, {"tracker.landmark_culling": False}, every=30)
+    assert kept[-1]["live_keyframes"] > 1.5 * live[-1], (kept[-1], sets[-1])
+    assert kept[-1]["keyframes"] > 1.5 * sets[-1]["keyframes"], (kept[-1], sets[-1])
+    for k in range(len(culled.map.keyframes)):  # a culled keyframe keeps its pose, for the frames kept against it
+        assert np.isfinite(culled.map.keyframe_poses[k]).all()
+
+
+def test_a_slow_mapping_worker_delays_keyframes_rather_than_refusing_them(tmp_path_factory, pans):
+    """A live camera at 30 Hz whose keyframe jobs take 5 frames each (the detector made slow, as on a short CPU):
+    the weak frames wait in the queue, stale ones are shed, and the pan gets about the keyframes a mapper that is
+    never busy gives it (6 here)."""
+    import time
+
+    from twohr.synthetic import SyntheticSpec, generate
+    from twohr_services.tracker.stages import Stages
+
+    sequence = RGBDSequence(generate(tmp_path_factory.mktemp("policy") / "pan_live", SyntheticSpec(
+        occluders=0, seed=3, frames=60, motion="pan", pan_deg=60)))
+    config = load_config(None, {"detector.features": "orb", "yolo.enabled": False, "matcher.method": "mutual_nn",
+                                "tracker.depth_noise": 0.005})
+    local = local_stages(config, sequence.camera)
+
+    def slow_detect(frame):
+        time.sleep(5 / 30)
+        return local.detect(frame)
+
+    schedule = build_schedule(config, sequence.camera, Stages(slow_detect, None, local.match), live=True)
+    start = time.perf_counter()
+    for n, frame in enumerate(sequence.frames()):
+        time.sleep(max(0.0, start + n / 30 - time.perf_counter()))  # the camera's pace
+        schedule.process(frame)
+    schedule.finish()
+    made = sum(job.keyframe for job in schedule.keyframe_log)
+    never_busy = sum(job.keyframe for job in pans[0.75][0].keyframe_log)
+    assert made >= never_busy - 1, (made, never_busy, [job.index for job in schedule.keyframe_log])
+    assert max(job.lag_frames for job in schedule.keyframe_log) >= 5  # it was busy: the jobs came back late
