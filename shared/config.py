@@ -50,10 +50,12 @@ class DetectorConfig(Section):
                                "0.75 = 480x360 for a VGA camera: keyframes cost 0.6x, at no measured loss of accuracy; "
                                "the largest scale latency_budget_ms may choose")
     latency_budget_ms: float | None = Field(
-        200.0, gt=0, description="choose the input scale on the first image of each size: the largest of "
+        None, gt=0, description="choose the input scale on the first image of each size: the largest of "
         "input_scale, input_scale - 1/8, ... down to min_input_scale whose latency (timed at min_input_scale, scaled "
-        "by the pixel count) fits this budget, so that a slow CPU keeps its keyframe jobs short (200 ms: a keyframe "
-        "job within about max_keyframe_lag frames at 30 Hz); None = always input_scale")
+        "by the pixel count) fits this budget (ms); None (the default) = always input_scale. Off by default: a "
+        "smaller scale gives fewer keypoints and a different map (on the dev frames and their variants 0.5 cost up to "
+        "9 % ATE, docs/benchmarks.md), and a slow CPU is better served by keyframe jobs that come later at the "
+        "larger scale, the keyframe queue shedding the stale ones")
     min_input_scale: float = Field(0.5, gt=0, le=2, description="the smallest input scale latency_budget_ms may "
                                    "choose (on the dev frames, ATE grew by a third at 0.375)")
     backend: Literal["auto", "tensorrt", "cuda", "openvino-gpu", "openvino", "onnxruntime"] = Field(
