@@ -15,8 +15,9 @@ As ORB-SLAM3's ``Tracking::NeedNewKeyFrame``, for RGB-D:
   ``keyframe_tracked_ratio`` of its landmarks) it adds none. A camera that holds still, or comes back to a place the
   map holds, adds no keyframes: density follows the scene, not the CPU.
 
-Culling of redundant keyframes is the map's (:meth:`~.map.Map.cull_redundant`). Plain values in, plain values out:
-the schedules call it.
+Culling is the map's: landmarks no other keyframe found again (:meth:`~.map.Map.retire_unconfirmed`), then keyframes
+the others make redundant (:meth:`~.map.Map.cull_redundant`). Plain values in, plain values out: the schedules call
+this module.
 """
 
 from __future__ import annotations

@@ -297,9 +297,13 @@ class KeyframePipeline:
 
     def finish(self) -> None:
         """Let the workers finish their jobs (the mapping worker's bundle adjustment refines the trajectory; a
-        detection still running joins the map), then stop."""
+        detection still running joins the map; a replay's waiting keyframe jobs are mapped, a live camera's shed),
+        then stop."""
         self._take(self._collect(self.mapping, wait=True))
-        while len(self.queue):  # the keyframes still waiting are the map's too
+        if self.live:  # the camera is gone, and the stages behind the bus may have closed its session: shed them
+            self.queue.shed += len(self.queue)
+            self.queue.clear()
+        while len(self.queue):  # a replay's keyframes still waiting are the map's too
             self._submit_waiting()
             self._take(self._collect(self.mapping, wait=True))
         done = self._collect(self.detecting, wait=True)
