@@ -12,19 +12,33 @@
 from __future__ import annotations
 
 import argparse
+import os
+import shutil
 import signal
 import tempfile
 import threading
 from pathlib import Path
 
+CLOSE_TIMEOUT_S = 5.0
 
-def _serve(router, what: str) -> int:
+
+def _serve(router, what: str, private: Path | None = None) -> int:
+    """Serve until SIGINT or SIGTERM, then close the router (``private``: a folder of secrets to remove even when
+    the close hangs)."""
     print(f"zenoh router {what}", flush=True)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     stop.wait()
-    router.close()
+    # Zenoh's close can wait on a link still in its handshake: a router asked to stop stops within CLOSE_TIMEOUT_S
+    closing = threading.Thread(target=router.close, name="twohr-router-close", daemon=True)
+    closing.start()
+    closing.join(CLOSE_TIMEOUT_S)
+    if closing.is_alive():
+        print(f"zenoh router did not close within {CLOSE_TIMEOUT_S:.0f} s; exiting without it", flush=True)
+        if private is not None:
+            shutil.rmtree(private, ignore_errors=True)
+        os._exit(0)
     return 0
 
 
@@ -59,7 +73,8 @@ def _fleet_router(args: argparse.Namespace) -> int:
         # the robot's own processes, with the robot's bundle
         users = write_users(Path(private) / USERS_FILE, {identity.name: identity.password.get_secret_value()})
         router = start_router(listen, RouterSecurity(users_file=users), connect=[upstream], identity=identity)
-        return _serve(router, f"of robot {identity.name} listening on {', '.join(listen)}, linked to {upstream}")
+        return _serve(router, f"of robot {identity.name} listening on {', '.join(listen)}, linked to {upstream}",
+                      Path(private))
 
 
 def _router(args: argparse.Namespace) -> int:
