@@ -40,23 +40,32 @@ def _linked(sequence: Path, target: Path) -> Path:
     return target
 
 
+def _rewrite_lists(sequence: Path, target: Path, retime) -> None:
+    """Write each list of ``sequence`` into ``target`` as ``retime(rows, stamp)`` orders and re-stamps its rows
+    (``stamp(row, column, value)`` writes ``value`` into a stamp column at the original's precision)."""
+    for name in LISTS:
+        if not (sequence / name).is_file():
+            continue
+        header, rows = _rows(sequence / name)
+        columns = (0, 2) if name == "associations.txt" else (0,)
+
+        def stamp(row: list[str], to, columns: tuple[int, ...] = columns) -> list[str]:
+            row = list(row)
+            for column in columns:
+                row[column] = f"{to(float(row[column])):.{len(row[column].partition('.')[2])}f}"
+            return row
+
+        (target / name).write_text("\n".join([*header, *(" ".join(row) for row in retime(rows, stamp))]) + "\n")
+
+
 def backwards(sequence: Path, out: Path) -> Path:
     """Write the backwards variant of ``sequence`` into ``out / (<name>_backwards)`` and return that folder."""
     sequence = sequence.resolve()
     stamps = [float(r[0]) for r in _rows(sequence / "rgb.txt")[1]]
     mirror = min(stamps) + max(stamps)
     target = _linked(sequence, out / f"{sequence.name}_backwards")
-    for name in LISTS:
-        if not (sequence / name).is_file():
-            continue
-        header, rows = _rows(sequence / name)
-        stamp_columns = (0, 2) if name == "associations.txt" else (0,)
-        for row in rows:
-            for column in stamp_columns:
-                decimals = len(row[column].partition(".")[2])
-                row[column] = f"{mirror - float(row[column]):.{decimals}f}"
-        rows.sort(key=lambda row: float(row[0]))
-        (target / name).write_text("\n".join([*header, *(" ".join(row) for row in rows)]) + "\n")
+    _rewrite_lists(sequence, target, lambda rows, stamp: sorted(
+        (stamp(row, lambda t: mirror - t) for row in rows), key=lambda row: float(row[0])))
     return target
 
 
@@ -69,20 +78,8 @@ def repeated(sequence: Path, out: Path, times: int) -> Path:
     spacing = (stamps[-1] - stamps[0]) / max(1, len(stamps) - 1)
     period = stamps[-1] - stamps[0] + spacing
     target = _linked(sequence, out / f"{sequence.name}_x{times}")
-    for name in LISTS:
-        if not (sequence / name).is_file():
-            continue
-        header, rows = _rows(sequence / name)
-        stamp_columns = (0, 2) if name == "associations.txt" else (0,)
-        passes = []
-        for k in range(times):
-            for row in rows:
-                row = list(row)
-                for column in stamp_columns:
-                    decimals = len(row[column].partition(".")[2])
-                    row[column] = f"{float(row[column]) + k * period:.{decimals}f}"
-                passes.append(row)
-        (target / name).write_text("\n".join([*header, *(" ".join(row) for row in passes)]) + "\n")
+    _rewrite_lists(sequence, target, lambda rows, stamp: [
+        stamp(row, lambda t, k=k: t + k * period) for k in range(times) for row in rows])
     return target
 
 

@@ -211,8 +211,7 @@ class Map:
         share = self.conf.keyframe_culling
         if share <= 0 or len(self.keyframes) <= self.conf.ba_window_keyframes + 1:
             return []
-        observers = np.bincount(np.concatenate([kf.landmark_ids[kf.landmark_ids >= 0] for kf in self.keyframes]),
-                                minlength=len(self.landmarks))
+        observers = self.observers()
         newest_protected = len(self.keyframes) - self.conf.ba_window_keyframes
         culled = []
         for i in sorted(int(c) for c in candidates):
@@ -229,6 +228,12 @@ class Map:
             culled.append(i)
         return culled
 
+    def observers(self) -> np.ndarray:
+        """(L,) how many keyframes observe each landmark."""
+        return np.bincount(np.concatenate([np.zeros(0, np.int64), *(kf.landmark_ids[kf.landmark_ids >= 0]
+                                                                   for kf in self.keyframes)]),
+                           minlength=len(self.landmarks))
+
     def made_landmarks(self, ids: np.ndarray) -> None:
         """Note landmarks just made, for :meth:`retire_unconfirmed` to judge two keyframes later."""
         if len(ids):
@@ -244,8 +249,7 @@ class Map:
         if not due:
             return np.zeros(0, np.int64)
         ids = np.concatenate(due)
-        observers = np.bincount(np.concatenate([kf.landmark_ids[kf.landmark_ids >= 0] for kf in self.keyframes]),
-                                minlength=len(self.landmarks))
+        observers = self.observers()
         lonely = ids[(observers[ids] < 2) & ~self.landmarks.bad[ids]]
         self.landmarks.bad[lonely] = True
         return lonely
