@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import collections
 import os
+import subprocess
+import threading
 from pathlib import Path
 
 import pytest
@@ -14,6 +17,19 @@ REPO = Path(__file__).resolve().parent
 SHARED = REPO.parent / "shared"
 DEV_SEQUENCE = Path(os.path.normpath(REPO / DEV_SEQUENCE_PATH))  # the commands' default, made absolute
 MODEL_MIRROR = SHARED / "models"
+
+
+def read_until(proc: subprocess.Popen, prefix: str) -> list[str]:
+    """The lines ``proc`` prints up to and including the first that starts with ``prefix`` (all it printed, if
+    it exits first); what it prints after that is read and dropped in the background, because a pipe nobody reads
+    fills (64 KiB: a few hundred of uvicorn's access lines) and then the process's next print blocks it."""
+    lines = []
+    for line in proc.stdout:
+        lines.append(line)
+        if line.startswith(prefix):
+            break
+    threading.Thread(target=collections.deque, args=(proc.stdout, 0), name="drain", daemon=True).start()
+    return lines
 
 
 @pytest.fixture(scope="session")

@@ -29,6 +29,7 @@ import pytest
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
 from websockets.sync.client import connect
 
+from conftest import read_until
 from twohr.bus import free_port
 from twohr.dataset import RGBDSequence
 from twohr.foxglove_live import EVERYTHING, VIEWERS_PER_ROBOT, FoxgloveClient, LiveView, robot_viewer, sees_as_robot
@@ -84,13 +85,9 @@ def keyed_stack(tmp_path_factory, dev_sequence):
          "--port", str(port), "--foxglove-port", str(fox), "--data-root", str(dev_sequence.parent),
          "--recordings", str(tmp / "recordings"), "--max-robots", "2"],
         stdout=subprocess.PIPE, stderr=log, text=True, env=os.environ | {"TWOHR_API_TOKEN": operator})
-    lines = []
     try:
-        for line in proc.stdout:
-            lines.append(line)
-            if line.startswith("live view:"):
-                break
-        else:
+        lines = read_until(proc, "live view:")
+        if not lines[-1:] or not lines[-1].startswith("live view:"):
             pytest.fail("twohr up did not come up:\n" + "".join(lines) + (tmp / "up.log").read_text()[-3000:])
         yield {"tmp": tmp, "keys": keys, "operator": operator, "gateway": f"https://127.0.0.1:{port}",
                "fox": fox, "printed": "".join(lines), "tokens": {r: bundle_token(tmp / f"{r}.bundle") for r in "ab"}}

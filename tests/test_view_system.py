@@ -19,6 +19,7 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from playwright.sync_api import expect, sync_playwright
 
+from conftest import read_until
 from twohr.bus import free_port
 from twohr_services.recorder.core import recorded_trajectory
 
@@ -34,14 +35,10 @@ def stack(dev_sequence, tmp_path_factory):
     proc = subprocess.Popen([sys.executable, "-m", "twohr_app", "up", "--router", router, "--port", str(port),
                              "--data-root", str(dev_sequence.parent), "--foxglove-port", str(fox), "--recordings",
                              str(recordings)], stdout=subprocess.PIPE, text=True)
-    lines = []
-    for line in proc.stdout:
-        lines.append(line)
-        if line.startswith("live view:"):
-            break
-    else:
+    lines = read_until(proc, "live view:")
+    if not lines[-1:] or not lines[-1].startswith("live view:"):
         pytest.fail("twohr up did not come up:\n" + "".join(lines))
-    assert f"ds.url=ws://127.0.0.1:{fox}" in line
+    assert f"ds.url=ws://127.0.0.1:{fox}" in lines[-1]
     yield {"url": f"http://127.0.0.1:{port}", "foxglove": f"ws://127.0.0.1:{fox}", "fox_port": fox}
     proc.send_signal(2)  # Ctrl-C
     try:
