@@ -26,7 +26,7 @@ from twohr_services.tracker.loops import LoopLog
 from twohr_services.tracker.map import Map
 from twohr_services.tracker.schedule import Schedule, build_schedule
 from twohr_services.tracker.stages import FrameStats, KeyframeLog, Stages
-from twohr_services.tracker.trajectory import TRACKED_STATUSES, TrackResult, online_trajectory
+from twohr_services.tracker.trajectory import TRACKED_STATUSES, TrackResult
 from twohr_services.yolo.masks import DynamicMasker
 
 
@@ -157,14 +157,15 @@ def run_sequence(sequence, config: PipelineConfig, start: int = 0, stop: int | N
     else:
         stages = cached_stages(config, front_cache)
     schedule = build_schedule(config, sequence.camera, stages, world=world)
-    results, stats = [], []
+    posed, stats = [], []  # (stamp, pose) of each posed frame: a long replay keeps no frame's arrays
     stop = len(sequence) if stop is None else min(stop, len(sequence))
     t0 = time.perf_counter()
     bar = tqdm(total=len(range(start, stop, step)), disable=not progress, unit="frame", desc=sequence.name,
                dynamic_ncols=True)
     for frame in prefetch(sequence.frames(start, stop, step), config.pipeline.prefetch):
         result, row = schedule.process(frame)
-        results.append(result)
+        if result.posed:
+            posed.append((result.stamp, result.pose))
         stats.append(row)
         if on_frame is not None:
             on_frame(frame, result, row, schedule)
@@ -176,8 +177,9 @@ def run_sequence(sequence, config: PipelineConfig, start: int = 0, stop: int | N
     wall = time.perf_counter() - t0
     schedule.refine()  # after the frames: a live camera would be done too
     refine_s = time.perf_counter() - t0 - wall
-    online = online_trajectory(results)
-    refined = schedule.trajectory() if results else online
+    online = Trajectory(np.array([stamp for stamp, _ in posed]),
+                        np.array([pose for _, pose in posed]).reshape(-1, 4, 4))
+    refined = schedule.trajectory() if stats else online
     return RunResult(refined, online, stats, list(sequence.skipped), wall, schedule.keyframe_log, refine_s,
                      schedule.map, schedule.loop_log if config.loop_closing.vocabulary else None, stages.chosen,
                      schedule.shed_jobs)

@@ -240,6 +240,9 @@ class TrackerConfig(Section):
                                    "keyframe but its own observes it (ORB-SLAM3's map-point culling for RGB-D): it "
                                    "constrains no pose, and a revisit's keyframes become redundant only without such "
                                    "landmarks")
+    reuse_landmark_rows: bool = Field(True, description="new landmarks fill the rows of retired ones that neither "
+                                      "the map nor the per-frame path refers to any more (its tracks, the frames kept "
+                                      "for refine_frames): a long session in one place keeps its memory flat")
     # relocalisation
     relocalisation: bool = Field(True, description="when local-map tracking fails, try RANSAC PnP against "
                                  "earlier keyframes")

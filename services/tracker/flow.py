@@ -65,6 +65,9 @@ class MapUpdate:
     """place-recognition candidates of the job's keyframe, for the loop worker to verify"""
     fused: np.ndarray | None = None
     """(M, 2) landmark ids a closed loop fused: (retired duplicate, the landmark that replaces it)"""
+    idle_rows: np.ndarray | None = None
+    """landmark rows the map no longer refers to (:meth:`~.map.Map.idle_rows`), for the per-frame path to give back
+    those it does not hold"""
 
 
 @dataclass
@@ -268,6 +271,11 @@ class FrameTracker:
         return TrackResult(stamp, pose, "tracking", num_inliers=num_inliers, reason=reason,
                            observed_xy=self.track_xy, observed_landmarks=self.track_landmark,
                            observed_depth=z[inliers], **counts)
+
+    def held_landmarks(self) -> list[np.ndarray]:
+        """The landmark ids this tracker refers to: its tracks, the latest frames' inliers and the recent
+        keyframes' observations (a map row it holds must not be filled again)."""
+        return [self.track_landmark, *self._inliers_at.values(), *(k.landmark for k in self._recent_keyframes)]
 
     def _reacquire(self, gray: np.ndarray, T_guess: np.ndarray, tracked: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Find landmarks of the latest keyframes again that the flow has lost (a person walked past them):

@@ -119,6 +119,10 @@ class KeyframeQueue(Generic[Job]):
         self.shed += len(self._waiting) + 1 - len(kept)
         self._waiting = kept
 
+    def landmarks(self) -> list[np.ndarray]:
+        """The landmarks the waiting jobs' frames track."""
+        return [seen for _, seen in self._waiting if seen is not None]
+
     def pop(self) -> Job | None:
         """The oldest waiting job (None: none waits)."""
         return self._waiting.pop(0)[0] if self._waiting else None

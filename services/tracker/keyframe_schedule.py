@@ -150,6 +150,8 @@ class KeyframePipeline:
         if update.loop_query is not None and self._loop is None:
             self._loop_query = update.loop_query  # the latest keyframe's wins
         self.frames.apply(update)
+        if update.idle_rows is not None and len(update.idle_rows):
+            self._give_back(update.idle_rows)
         if update.keyframe_id >= 0:
             self._anchor = update.keyframe_id
             self.record.attach_to_keyframe(update.stamp, update.keyframe_id, update.result.tracked,
@@ -159,6 +161,18 @@ class KeyframePipeline:
                                              int(t["keypoints"]), int(t["kept"]), t["detector"], t["yolo"],
                                              t["mapping"], self._number - self._job_number, update.kind,
                                              t.get("job", 0.0)))
+
+    def _give_back(self, idle: np.ndarray) -> None:
+        """Give the mapping worker back the idle landmark rows that nothing on this side refers to: not the tracks,
+        not the frames kept for refinement, not a waiting job. Called while the mapping worker is idle; while a loop
+        is being verified or waits to close, none (its landmark pairs were found before the rows went idle)."""
+        if self._loop is not None or self._loop_query is not None or self.closing.busy:
+            return
+        held = np.zeros(len(self.frames.landmarks), bool)
+        for ids in (*self.frames.held_landmarks(), *self.queue.landmarks(), self.record.held_landmarks()):
+            held[ids[ids < len(held)]] = True
+        idle = idle[idle < len(held)]
+        self.mapper.release(idle[~held[idle]])
 
     @property
     def tracked_keyframes(self) -> bool:

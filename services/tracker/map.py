@@ -19,6 +19,10 @@ from twohr.mapfile import MapArrays
 
 from .bundle_adjustment import bundle_adjust
 
+#: a retired landmark's row is offered for reuse this many keyframes after it was first seen idle: a job that
+#: started before it was retired (a 2HR keyframe, a description) has come back by then
+REUSE_AFTER_KEYFRAMES = 2
+
 
 @dataclass
 class Keyframe:
@@ -39,7 +43,9 @@ class Landmarks:
     """3-D landmarks in growable arrays: world positions, one descriptor each, and vote counts.
 
     A landmark seeded from a corner on a tracked keyframe has no descriptor until a 2HR detection of a keyframe
-    that observes it gives it one (``described``); until then only optical flow and bundle adjustment use it."""
+    that observes it gives it one (``described``); until then only optical flow and bundle adjustment use it.
+    The rows of retired landmarks that nothing refers to any more are filled again by new ones (:attr:`free`,
+    :meth:`Map.reuse_rows`), so a camera that keeps coming back to the same places keeps its arrays bounded."""
 
     def __init__(self) -> None:
         self.positions = np.zeros((0, 3))
@@ -48,6 +54,12 @@ class Landmarks:
         self.accepted = np.zeros(0, np.int64)
         self.rejected = np.zeros(0, np.int64)
         self.bad = np.zeros(0, bool)
+        self.free = np.zeros(0, np.int64)
+        """rows of retired landmarks that :meth:`add` fills before it grows the arrays"""
+        self.made = 0
+        """landmarks ever added (rows filled again count again)"""
+        self.born = np.zeros(0, np.int64)
+        """(L,) each landmark's place in the order landmarks were made (a row filled again is younger than its id)"""
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -57,22 +69,41 @@ class Landmarks:
         return int((~self.bad).sum())
 
     def add(self, positions: np.ndarray, descriptors: np.ndarray | None = None) -> np.ndarray:
-        """Append landmarks (``descriptors`` None: not described yet, needs landmarks with descriptors before it);
-        returns their ids."""
-        start = len(self)
+        """Add landmarks, in free rows first (``descriptors`` None: not described yet, needs landmarks with
+        descriptors before it); returns their ids."""
+        count = len(positions)
         described = descriptors is not None
         if descriptors is None:
             if self.descriptors is None:
                 raise ValueError("the first landmarks of a map need descriptors")
-            descriptors = np.zeros((len(positions), self.descriptors.shape[1]), self.descriptors.dtype)
-        self.positions = np.concatenate([self.positions, positions])
-        self.descriptors = descriptors.copy() if self.descriptors is None else np.concatenate(
-            [self.descriptors, descriptors])
-        self.described = np.concatenate([self.described, np.full(len(positions), described)])
-        self.accepted = np.concatenate([self.accepted, np.zeros(len(positions), np.int64)])
-        self.rejected = np.concatenate([self.rejected, np.zeros(len(positions), np.int64)])
-        self.bad = np.concatenate([self.bad, np.zeros(len(positions), bool)])
-        return np.arange(start, len(self))
+            descriptors = np.zeros((count, self.descriptors.shape[1]), self.descriptors.dtype)
+        reused, self.free = self.free[:count], self.free[count:]
+        start, grow = len(self), count - len(reused)
+        self.positions = np.concatenate([self.positions, np.zeros((grow, 3))])
+        self.descriptors = (np.zeros((grow, descriptors.shape[1]), descriptors.dtype) if self.descriptors is None
+                            else np.concatenate([self.descriptors, np.zeros((grow, self.descriptors.shape[1]),
+                                                                            self.descriptors.dtype)]))
+        self.described = np.concatenate([self.described, np.zeros(grow, bool)])
+        self.accepted = np.concatenate([self.accepted, np.zeros(grow, np.int64)])
+        self.rejected = np.concatenate([self.rejected, np.zeros(grow, np.int64)])
+        self.bad = np.concatenate([self.bad, np.zeros(grow, bool)])
+        self.born = np.concatenate([self.born, np.zeros(grow, np.int64)])
+        ids = np.concatenate([reused, np.arange(start, start + grow)])
+        self.positions[ids] = positions
+        self.descriptors[ids] = descriptors
+        self.described[ids] = described
+        self.accepted[ids] = 0
+        self.rejected[ids] = 0
+        self.bad[ids] = False
+        self.born[ids] = self.made + np.arange(count)
+        self.made += count
+        return ids
+
+    def most_accepted(self, ids: np.ndarray) -> np.ndarray:
+        """``ids`` ordered by their accepted matches, most first; among equals the older first (so that filled rows
+        do not change which landmarks come first)."""
+        ids = np.asarray(ids, np.int64)
+        return ids[np.lexsort((self.born[ids], -self.accepted[ids]))]
 
     def describe(self, ids: np.ndarray, descriptors: np.ndarray) -> None:
         """Give landmarks ``ids`` their descriptors (from a 2HR keypoint observing them)."""
@@ -129,6 +160,8 @@ class Map:
         """loops closed: each moved the whole map"""
         self._unconfirmed: list[tuple[int, np.ndarray]] = []
         """(keyframe count when made, landmark ids) of new landmarks not yet judged by :meth:`retire_unconfirmed`"""
+        self._idle_since = np.zeros(0, np.int64)
+        """(L,) the keyframe count when each landmark was first seen retired and unobserved (-1: it is not)"""
 
     def __bool__(self) -> bool:
         return bool(self.keyframes)
@@ -181,6 +214,8 @@ class Map:
         landmarks.accepted = arrays.landmark_accepted.astype(np.int64)
         landmarks.rejected = arrays.landmark_rejected.astype(np.int64)
         landmarks.bad = arrays.landmark_bad.astype(bool)
+        landmarks.made = len(landmarks)
+        landmarks.born = np.arange(len(landmarks))
         first = arrays.keyframe_first
         for k in range(len(arrays.keyframe_stamps)):
             part = slice(first[k], first[k + 1])
@@ -254,15 +289,43 @@ class Map:
         self.landmarks.bad[lonely] = True
         return lonely
 
+    def idle_rows(self) -> np.ndarray:
+        """Rows of landmarks retired, observed by no keyframe and awaiting no judgement for at least
+        :data:`REUSE_AFTER_KEYFRAMES` keyframes, not free yet: no map structure refers to them. The per-frame
+        path, which may still hold some (its tracks, the frames kept for refinement), gives the others back
+        (:meth:`reuse_rows`)."""
+        return np.flatnonzero(self._idle())
+
+    def reuse_rows(self, ids: np.ndarray) -> None:
+        """Let new landmarks fill rows ``ids`` (from :meth:`idle_rows`, which nothing else holds any more); each is
+        checked again, so a row that is no longer idle is left alone."""
+        ids = np.unique(np.asarray(ids, np.int64))
+        ids = ids[(ids >= 0) & (ids < len(self.landmarks))]
+        ids = ids[self._idle()[ids]]
+        self.landmarks.free = np.concatenate([self.landmarks.free, ids])
+
+    def _idle(self) -> np.ndarray:
+        landmarks = self.landmarks
+        idle = landmarks.bad & (self.observers() == 0)
+        idle[landmarks.free] = False
+        for _, ids in self._unconfirmed:
+            idle[ids] = False
+        since = np.concatenate([self._idle_since[:len(idle)], np.full(len(idle) - len(self._idle_since), -1)])
+        since[~idle] = -1
+        since[idle & (since < 0)] = len(self.keyframes)
+        self._idle_since = since
+        return idle & (len(self.keyframes) - since >= REUSE_AFTER_KEYFRAMES)
+
     def working_set(self) -> dict[str, int]:
         """How much of the map tracking still works with: keyframes inserted, culled and live, and landmarks made,
-        and those live keyframes observe (culled keyframes keep only their pose, for the frames kept against it)."""
+        those live keyframes observe, and the rows the landmarks take (culled keyframes keep only their pose, for the
+        frames kept against it; retired landmarks' rows are filled again)."""
         live = [kf for kf in self.keyframes if not kf.culled]
         observed = np.unique(np.concatenate([kf.landmark_ids for kf in live])) if live else np.zeros(0, np.int64)
         observed = observed[observed >= 0]
         return {"keyframes": len(self.keyframes), "culled": len(self.keyframes) - len(live),
-                "live_keyframes": len(live), "landmarks": len(self.landmarks),
-                "live_landmarks": int((~self.landmarks.bad[observed]).sum())}
+                "live_keyframes": len(live), "landmarks": self.landmarks.made,
+                "live_landmarks": int((~self.landmarks.bad[observed]).sum()), "landmark_rows": len(self.landmarks)}
 
     def usable_landmarks(self, keyframe_indices: np.ndarray, described: bool = False) -> np.ndarray:
         """Sorted ids of the landmarks that keyframes ``keyframe_indices`` observe, retired ones left out (and those

@@ -74,6 +74,7 @@ class Mapper:
         """asks for a keyframe's dynamic mask while the detector runs"""
         self.loops = None
         self.loop_log = LoopLog()
+        self._released: list[np.ndarray] = []  # map rows the per-frame path gave back, for the next job to free
         if config.loop_closing.vocabulary is not None:
             vocabulary = Vocabulary.load(vocabulary_path(config.loop_closing.vocabulary))
             self.loops = LoopClosing(world, vocabulary, config.loop_closing)
@@ -87,8 +88,15 @@ class Mapper:
         """The map came with the session (loaded from a file): no pose before the camera is found in it."""
         return self.tracker.given_map
 
+    def release(self, rows: np.ndarray) -> None:
+        """The per-frame path holds none of these landmark rows (offered in a :class:`~.flow.MapUpdate`'s
+        ``idle_rows``): the next job lets new landmarks fill them. Called from the per-frame path's thread."""
+        self._released.append(rows)
+
     def __call__(self, job: KeyframeJob | Detected | Loop) -> MapUpdate:
         t0 = time.perf_counter()
+        while self._released:
+            self.map.reuse_rows(self._released.pop(0))
         if isinstance(job, Detected):
             update = self.describe(job)
         elif isinstance(job, Loop):
@@ -97,6 +105,8 @@ class Mapper:
             update = self._tracked_keyframe(job)
         else:
             update = self._detected_keyframe(job)
+        if self.conf.reuse_landmark_rows and update.kind != "loop" and self.tracker.localised:
+            update.idle_rows = self.map.idle_rows()
         update.timings["job"] = (time.perf_counter() - t0) * 1000
         return update
 

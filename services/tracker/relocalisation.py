@@ -86,7 +86,7 @@ class Relocaliser:
             # the camera came back somewhere far from where it was lost (a robot carried, a replay played again):
             # the whole map's landmarks at once
             ids = np.flatnonzero(~landmarks.bad & landmarks.described)
-            ids = ids[np.argsort(-landmarks.accepted[ids], kind="stable")[:conf.relocalisation_max_landmarks]]
+            ids = landmarks.most_accepted(ids)[:conf.relocalisation_max_landmarks]
             whole_map = self._attempt(keypoints, xy, ids, "the whole map", match)
             if whole_map is not None and (best is None or whole_map.num_inliers > best.num_inliers):
                 best = whole_map

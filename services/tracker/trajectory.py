@@ -8,7 +8,7 @@ frame; both schedules keep their frames in one.
 from __future__ import annotations
 
 from array import array
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -140,12 +140,6 @@ def smoothed(trajectory: Trajectory, conf: TrackerConfig) -> Trajectory:
     return smooth_trajectory(trajectory, conf.smoothing_acceleration, conf.smoothing_angular_acceleration)
 
 
-def online_trajectory(results: Iterable[TrackResult]) -> Trajectory:
-    """The poses as they were estimated, frame by frame (what the tracker publishes live)."""
-    results = [r for r in results if r.posed]
-    return Trajectory(np.array([r.stamp for r in results]), np.array([r.pose for r in results]).reshape(-1, 4, 4))
-
-
 class AnchoredTrajectory:
     """Every frame's pose, kept relative to an anchor keyframe so that the keyframes' refinements reach it.
 
@@ -163,9 +157,21 @@ class AnchoredTrajectory:
         self.observed: dict[int, FrameObservations] = {}
         """frame number -> what its pose was measured from, for the latest ``refine_frames`` frames tracked by flow
         (oldest first; keyframes leave it, bundle adjustment refines their poses)"""
+        self._holding = np.zeros(0, np.int32)  # landmark id -> how many frames in `observed` refer to it
 
     def __len__(self) -> int:
         return len(self.stamps)
+
+    def held_landmarks(self) -> np.ndarray:
+        """The landmark ids the frames kept for refinement refer to (their map rows must not be filled again)."""
+        return np.flatnonzero(self._holding)
+
+    def _hold(self, observed: FrameObservations, step: int) -> None:
+        ids = observed.landmark[observed.landmark >= 0]
+        if len(ids) and ids.max() >= len(self._holding):
+            self._holding = np.concatenate([self._holding, np.zeros(max(int(ids.max()) + 1, 2 * len(self._holding))
+                                                                    - len(self._holding), np.int32)])
+        np.add.at(self._holding, ids, step)
 
     def relative(self, start: int = 0) -> np.ndarray:
         """(N, 4, 4) the poses relative to their anchors, of frame ``start`` on."""
@@ -180,8 +186,9 @@ class AnchoredTrajectory:
         ``keyframe_poses`` has it now, and what it was measured from (see ``refine_frames``)."""
         if observed is not None and self.conf.refine_frames > 0:
             self.observed[len(self.stamps)] = observed
+            self._hold(observed, 1)
             if len(self.observed) > self.conf.refine_frames:
-                del self.observed[next(iter(self.observed))]
+                self._hold(self.observed.pop(next(iter(self.observed))), -1)
         self.stamps.append(stamp)
         self.anchors.append(anchor)
         relative = pose if anchor < 0 else invert_pose(keyframe_poses[anchor]) @ pose
@@ -203,7 +210,9 @@ class AnchoredTrajectory:
                     self.anchors[i + 1:] = array("q", [keyframe_id] * (len(self.stamps) - i - 1))
                 self.anchors[i] = keyframe_id
                 relative[i] = np.eye(4)[:3]
-                self.observed.pop(i, None)
+                released = self.observed.pop(i, None)
+                if released is not None:
+                    self._hold(released, -1)
                 self.measured[i] = measured
                 del relative  # the arrays cannot grow while a view of them is alive
                 return

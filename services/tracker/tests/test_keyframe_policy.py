@@ -8,6 +8,9 @@ import pytest
 
 from twohr.config import TrackerConfig, load_config
 from twohr.dataset import RGBDSequence
+from twohr.evaluation import associate_trajectories
+from twohr.geometry import invert_pose
+from twohr.trajectory import Trajectory
 from twohr_app.pipeline import local_stages
 from twohr_services.tracker.keyframe_policy import Evidence, KeyframeQueue, may_queue, redundant, weakness
 from twohr_services.tracker.schedule import build_schedule
@@ -56,7 +59,8 @@ def test_the_queue_sheds_what_a_newer_job_makes_redundant_and_never_the_newest()
 
 def _run(tmp_path_factory, name: str, spec_update: dict, settings: dict | None = None, every: int = 0):
     """Run the keyframes schedule (synchronous, ORB) over a synthetic room without movers; returns the schedule,
-    each frame's keyframe evidence and, every ``every`` frames, the map's working set."""
+    each frame's keyframe evidence, every ``every`` frames the map's working set, and the refined trajectory's
+    error (m, :func:`_error_from_first`)."""
     from twohr.synthetic import SyntheticSpec, generate
 
     spec = SyntheticSpec(occluders=0, seed=3, **spec_update)
@@ -71,11 +75,20 @@ def _run(tmp_path_factory, name: str, spec_update: dict, settings: dict | None =
         if every and frame.index % every == every - 1:
             sets.append(schedule.map.working_set())
     schedule.finish()
-    return schedule, evidence, sets
+    return schedule, evidence, sets, _error_from_first(sequence.ground_truth(), schedule.trajectory())
+
+
+def _error_from_first(gt: Trajectory, est: Trajectory) -> float:
+    """RMS position error (m) of the poses relative to the first frame's: a camera that only turns gives Umeyama
+    alignment nothing to align, so each trajectory is taken from its own first pose."""
+    gt, est = associate_trajectories(gt, est, 0.02)
+    relative = [invert_pose(invert_pose(gt.poses[0]) @ g) @ invert_pose(est.poses[0]) @ e
+                for g, e in zip(gt.poses, est.poses, strict=True)]
+    return float(np.sqrt(np.mean([np.sum(r[:3, 3] ** 2) for r in relative])))
 
 
 def test_a_still_camera_adds_no_keyframes(tmp_path_factory):
-    schedule, evidence, _ = _run(tmp_path_factory, "still", {"frames": 75, "motion": "still"})
+    schedule, evidence, _, _ = _run(tmp_path_factory, "still", {"frames": 75, "motion": "still"})
     # the first map; then a job every keyframe_max_interval_s (1 s), which finds the view held: no keyframe
     assert [(job.index, job.keyframe) for job in schedule.keyframe_log] == [(0, True), (30, False), (60, False)]
     assert all(e is not None and weakness(e, CONF) is None for n, e in enumerate(evidence[1:], 1) if n not in (30, 60))
@@ -89,7 +102,7 @@ def pans(tmp_path_factory):
 
 
 def test_a_pan_adds_a_keyframe_where_its_tracks_fall_below_the_ratio(pans):
-    schedule, evidence, _ = pans[0.75]
+    schedule, evidence, _, _ = pans[0.75]
     jobs = [job.index for job in schedule.keyframe_log]
     assert len(jobs) >= 4 and all(job.keyframe for job in schedule.keyframe_log), jobs  # 0, 17, 28, 39, 42, 52 here
     for index in jobs[1:]:  # each at the first weak frame since the keyframe before it
@@ -100,22 +113,52 @@ def test_a_pan_adds_a_keyframe_where_its_tracks_fall_below_the_ratio(pans):
     assert len(fewer) < len(jobs), (fewer, jobs)  # a lower ratio waits for weaker tracks
 
 
-def test_a_camera_going_round_one_place_stops_growing_its_working_set(tmp_path_factory):
+SWEEPS = {"frames": 360, "motion": "pan", "pan_deg": 60, "sweeps": 12}
+
+
+@pytest.fixture(scope="module")
+def sweeps(tmp_path_factory):
+    """Twelve sweeps of the same 60 degrees, the working set every 30 frames (a sweep)."""
+    return _run(tmp_path_factory, "sweeps", SWEEPS, every=30)
+
+
+def test_a_camera_going_round_one_place_stops_growing_its_working_set(tmp_path_factory, sweeps):
     """Twelve sweeps of the same 60 degrees: the first ones map it; once unconfirmed landmarks are retired and
     redundant keyframes culled, the working set stays as it is for the last third (12 keyframes, about 2,650
     landmarks here). Without landmark culling the revisits' keyframes stay apart from the older ones: twice the
     keyframes, and twice the working set (39 and 26 here)."""
-    spec = {"frames": 360, "motion": "pan", "pan_deg": 60, "sweeps": 12}
-    culled, _, sets = _run(tmp_path_factory, "sweeps", spec, every=30)
+    culled, _, sets, _ = sweeps
     live = [s["live_keyframes"] for s in sets]
     assert live[-1] <= live[7] + 1, live  # 12 or 13 from sweep 8 on here
     assert max(s["live_landmarks"] for s in sets[8:]) < 1.1 * sets[7]["live_landmarks"], sets
     assert sets[-1]["culled"] >= 4 and live[-1] < sets[-1]["keyframes"], sets[-1]
-    _, _, kept = _run(tmp_path_factory, "sweeps_kept", spec, {"tracker.landmark_culling": False}, every=30)
+    _, _, kept, _ = _run(tmp_path_factory, "sweeps_kept", SWEEPS, {"tracker.landmark_culling": False}, every=30)
     assert kept[-1]["live_keyframes"] > 1.5 * live[-1], (kept[-1], sets[-1])
     assert kept[-1]["keyframes"] > 1.5 * sets[-1]["keyframes"], (kept[-1], sets[-1])
     for k in range(len(culled.map.keyframes)):  # a culled keyframe keeps its pose, for the frames kept against it
         assert np.isfinite(culled.map.keyframe_poses[k]).all()
+
+
+def test_new_landmarks_fill_the_rows_of_retired_ones_and_the_map_stays_as_accurate(tmp_path_factory, sweeps):
+    """The same twelve sweeps: the rows of retired landmarks that nothing refers to any more are filled again, so
+    the landmark arrays stop growing while landmarks are still made (ROWS_HERE); no keyframe observes a free row
+    nor does a frame kept for refinement, and the refined trajectory is as accurate as with every row kept."""
+    reused, _, sets, ate = sweeps
+    rows, made = [s["landmark_rows"] for s in sets], [s["landmarks"] for s in sets]
+    print("rows", rows, "made", made, "ate", ate)
+    assert made[-1] - made[7] >= 100, made  # the last third still makes landmarks (332 here) ...
+    assert rows[-1] - rows[7] <= 0.5 * (made[-1] - made[7]), (rows, made)  # ... mostly in rows retired ones left
+    world = reused.map
+    free = world.landmarks.free
+    assert len(free) == len(np.unique(free)) and world.landmarks.bad[free].all()
+    observed = np.concatenate([kf.landmark_ids for kf in world.keyframes])
+    assert not np.isin(observed[observed >= 0], free).any()
+    assert not np.isin(reused.record.held_landmarks(), free).any()
+    _, _, every_row, ate_every_row = _run(tmp_path_factory, "sweeps_rows", SWEEPS,
+                                          {"tracker.reuse_landmark_rows": False}, every=30)
+    print("every row kept: rows", [s["landmark_rows"] for s in every_row], "ate", ate_every_row)
+    assert every_row[-1]["landmark_rows"] == every_row[-1]["landmarks"] > rows[-1], (every_row[-1], sets[-1])
+    assert ate <= 1.2 * ate_every_row + 0.001, (ate, ate_every_row)
 
 
 def test_a_slow_mapping_worker_delays_keyframes_rather_than_refusing_them(tmp_path_factory, pans):
@@ -147,3 +190,21 @@ def test_a_slow_mapping_worker_delays_keyframes_rather_than_refusing_them(tmp_pa
     never_busy = sum(job.keyframe for job in pans[0.75][0].keyframe_log)
     assert made >= never_busy - 1, (made, never_busy, [job.index for job in schedule.keyframe_log])
     assert max(job.lag_frames for job in schedule.keyframe_log) >= 5  # it was busy: the jobs came back late
+
+
+def test_a_freed_row_takes_a_new_landmark_whole_and_keeps_the_order_landmarks_were_made():
+    from twohr_services.tracker.map import Landmarks
+
+    landmarks = Landmarks()
+    first = landmarks.add(np.arange(9.0).reshape(3, 3), np.ones((3, 4), np.float32))
+    landmarks.accepted[:] = [5, 0, 0]
+    landmarks.rejected[1] = 4
+    landmarks.bad[1] = True
+    landmarks.free = np.array([1])
+    again = landmarks.add(np.full((2, 3), 7.0))  # one into the free row, one appended; no descriptors yet
+    assert first.tolist() == [0, 1, 2] and again.tolist() == [1, 3] and len(landmarks) == 4 and landmarks.made == 5
+    assert (landmarks.positions[1] == 7).all() and not landmarks.bad[1] and not landmarks.described[1]
+    assert landmarks.accepted[1] == landmarks.rejected[1] == 0 and (landmarks.descriptors[1] == 0).all()
+    assert landmarks.born.tolist() == [0, 3, 2, 4] and len(landmarks.free) == 0
+    # most accepted first; among equals the older one (row 2, made before row 1 was filled again)
+    assert landmarks.most_accepted(np.array([3, 1, 2, 0])).tolist() == [0, 2, 1, 3]
