@@ -371,17 +371,18 @@ def _wait_ready(system: System, bus, names: list[str], started: dict[str, set[st
         client.close()
 
 
-def check_replicas(replicas: dict[str, int]) -> dict[str, int]:
-    """``replicas`` checked: only the network services run as several processes, each at least once; a
-    :class:`~twohr.errors.ConfigError` in one line otherwise."""
+def check_replicas(replicas: dict[str, int], trackers: bool = True) -> dict[str, int]:
+    """``replicas`` checked: only the network services and (``trackers``) the tracker run as several processes,
+    each at least once; a :class:`~twohr.errors.ConfigError` in one line otherwise."""
     from twohr.errors import ConfigError
     from twohr.keys import NETWORK_SERVICES
 
+    allowed = (*NETWORK_SERVICES, "tracker") if trackers else NETWORK_SERVICES
     for name, count in replicas.items():
-        if name not in NETWORK_SERVICES:
-            why = ("keeps every session's map in one process" if name == "tracker" else
+        if name not in allowed:
+            why = ("runs in the stack, not joined to it" if name == "tracker" else
                    "is not a network service" if name in PIPELINE_SERVICES else "is no service")
-            raise ConfigError(f"replicas of {name!r}: {name} {why}; replicas are for {', '.join(NETWORK_SERVICES)}")
+            raise ConfigError(f"replicas of {name!r}: {name} {why}; replicas are for {', '.join(allowed)}")
         if count < 1:
             raise ConfigError(f"{name}={count}: a service needs at least one replica (leave it out of --only "
                               "instead)")

@@ -205,12 +205,30 @@ def query_health(session: zenoh.Session, service: str, timeout: float = 1.0) -> 
     answers = replica_health(session, service, timeout)
     if not answers:
         return None
-    merged = {k: v for k, v in answers[0].items() if k not in ("replica", "host")}
+    return merged_health(answers) | {"replicas": answers}
+
+
+def merged_health(answers: list[dict]) -> dict:
+    """Replicas' health answers as one: counts summed, nested counters merged the same way, lists joined without
+    repeats; anything else (and each replica's name, host and pid) is the first answer's."""
+
+    def merge(into: dict, other: dict) -> dict:
+        for k, v in other.items():
+            mine = into.get(k)
+            if isinstance(v, int) and not isinstance(v, bool) and isinstance(mine, int) and not isinstance(mine, bool):
+                into[k] = mine + v
+            elif isinstance(v, dict) and isinstance(mine, dict):
+                into[k] = merge(dict(mine), v)
+            elif isinstance(v, list) and isinstance(mine, list):
+                into[k] = mine + [item for item in v if item not in mine]
+            elif k not in into:
+                into[k] = v
+        return into
+
+    merged = {k: v for k, v in answers[0].items() if k not in ("replica", "host", "pid")}
     for answer in answers[1:]:
-        for k, v in answer.items():
-            if isinstance(v, int) and not isinstance(v, bool) and isinstance(merged.get(k), int):
-                merged[k] += v
-    return merged | {"replicas": answers}
+        merge(merged, {k: v for k, v in answer.items() if k not in ("replica", "host", "pid")})
+    return merged
 
 
 def wait_for_services(session: zenoh.Session, names: list[str], timeout: float = 30.0,

@@ -203,6 +203,8 @@ class ControlMsg(Message):
     map_name: str = Field("", description="the map the session builds, localizes in or extends ('' = none)")
     map_mode: Literal["", "build", "localize", "extend"] = ""
     config: PipelineConfig = Field(default_factory=PipelineConfig)
+    tracker: str = Field("", description="the tracker replica that serves the session, as the gateway placed it "
+                         "('' = every tracker that gets it: a stack with one)")
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

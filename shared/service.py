@@ -207,7 +207,7 @@ class Service:
         self.log.info("%s warm in %.2f s", what, time.perf_counter() - t0)
 
     def health(self) -> dict:
-        return {"service": self.name, "replica": self.replica, "host": socket.gethostname(),
+        return {"service": self.name, "replica": self.replica, "host": socket.gethostname(), "pid": os.getpid(),
                 "queue": len(self.inbox), **self.counters.as_dict()}
 
     def declare_replica_queryable(self, query: str) -> zenoh.Queryable:
@@ -238,8 +238,15 @@ class Service:
             raise UnknownSession(session_id)
         return config
 
+    def takes(self, control: ControlMsg) -> bool:
+        """Whether this replica serves the session ``control`` starts or stops (every one does, unless a service
+        serves only the sessions placed on it)."""
+        return True
+
     def _handle_control(self, payload: bytes) -> None:
         control, _ = decode(payload, ControlMsg)
+        if not self.takes(control):
+            return
         if control.command == "start":
             try:
                 self.on_session_start(control)

@@ -1,7 +1,9 @@
-"""Replicas in a running stack: ``twohr up --replicas detector=2`` shares the keyframe jobs of a live session between
-two detector processes; one killed with SIGKILL mid-session loses no job (the one in flight goes to the other) and
-comes back as the same replica once its supervisor restarts it; ``twohr health`` lists both with their host.
-Bad ``--replicas`` and ``--join`` input is one clear line each."""
+"""Replicas in a running stack: ``twohr up --replicas detector=2,tracker=2`` shares the keyframe jobs of a live session
+between two detector processes; one killed with SIGKILL mid-session loses no job (the one in flight goes to the
+other) and comes back as the same replica once its supervisor restarts it; ``twohr health`` lists both with their
+host and process id. Two robots at once each get a tracker of their own, which names the robot it serves, and only
+that one tracks its frames; a tracker killed fails its own robot's session and not the other's. Bad ``--replicas``
+and ``--join`` input is one clear line each."""
 
 from __future__ import annotations
 
@@ -26,7 +28,7 @@ TWOHR = Path(sys.executable).with_name("twohr")
 def stack(tmp_path_factory, dev_sequence):
     router, port = f"tcp/127.0.0.1:{free_port()}", free_port()
     system = start_system(router, [str(dev_sequence.parent)], str(tmp_path_factory.mktemp("recordings")),
-                          "127.0.0.1", port, timeout=180, replicas={"detector": 2})
+                          "127.0.0.1", port, timeout=180, replicas={"detector": 2, "tracker": 2})
     session = open_session(system.bus("gateway"))
     yield {"system": system, "url": f"http://127.0.0.1:{port}", "router": router, "bus": session}
     session.close()
@@ -35,6 +37,11 @@ def stack(tmp_path_factory, dev_sequence):
 
 def detector_jobs(stack) -> dict:
     return query_health(stack["bus"], "tracker", timeout=2.0)["jobs"]["detector"]
+
+
+def tracker_child(replica: str) -> str:
+    """The supervisor's child name (``tracker``, ``tracker-2``) of a tracker replica this test process started."""
+    return replica.split(f"-{os.getpid()}-", 1)[1]
 
 
 def wait_until(condition, timeout: float, what: str):
@@ -65,6 +72,10 @@ def test_two_detector_replicas_share_the_jobs_and_one_killed_loses_none(stack, d
         time.sleep(4.0)  # keyframes go on, on the other replica
         info = http.get(f"/sessions/{sid}").json()
         assert info["state"] == "running", info
+        # the tracker the gateway placed the session on names the robot it serves, the other none
+        serving = [r for r in query_health(stack["bus"], "tracker", timeout=2.0)["replicas"] if r["robots"]]
+        assert [(r["replica"], r["robots"]) for r in serving] == [(info["tracker"], [info["robot_id"]])], serving
+        assert serving[0]["pid"] == stack["system"].group.pid(tracker_child(info["tracker"]))
         stopped = http.delete(f"/sessions/{sid}")
         assert stopped.status_code == 200, stopped.text
         info = wait_until(lambda: (i := http.get(f"/sessions/{sid}").json())["state"] not in ("running", "starting")
@@ -82,13 +93,74 @@ def test_two_detector_replicas_share_the_jobs_and_one_killed_loses_none(stack, d
                             | {"TWOHR_ZENOH_USER": "client"})
     lines = [line for line in health.stdout.splitlines() if line.startswith("detector")]
     assert health.returncode == 0 and len(lines) == 2, health.stdout + health.stderr
-    assert all(f" on {os.uname().nodename}: " in line for line in lines), lines
+    pids = [stack["system"].group.pid(name) for name in ("detector", "detector-2")]
+    assert sorted(int(line.split(" pid ")[1].split(":")[0]) for line in lines) == sorted(pids), (lines, pids)
+    assert all(f" on {os.uname().nodename} pid " in line for line in lines), lines
+
+
+def test_two_robots_at_once_each_get_a_tracker_of_their_own(stack, dev_sequence):
+    frames = 60
+    before = {r["replica"]: r["received"] for r in replica_health_of(stack, "tracker")}
+    with httpx.Client(base_url=stack["url"], timeout=30) as http:
+        sessions = {}
+        for robot, start in (("left", 0), ("right", 280)):
+            created = http.post("/sessions", json={"sequence": dev_sequence.name, "robot_id": robot, "rate": 1.0,
+                                                   "start": start, "max_frames": frames, "record": False,
+                                                   "config": FAST})
+            assert created.status_code == 201, created.text
+            sessions[robot] = created.json()
+        placed = {robot: info["tracker"] for robot, info in sessions.items()}
+        assert sorted(placed.values()) == sorted(before) and len(set(placed.values())) == 2, (placed, before)
+
+        def both_served():
+            serving = {r["replica"]: r["robots"] for r in replica_health_of(stack, "tracker")}
+            return serving if all(serving.get(placed[robot]) == [robot] for robot in placed) else None
+
+        wait_until(both_served, 60, "each tracker serving its robot")
+        done = {robot: wait_until(lambda s=info["id"]: (i := http.get(f"/sessions/{s}").json())["state"]
+                                  not in ("running", "starting") and i, 120, f"{robot}'s session to end")
+                for robot, info in sessions.items()}
+    for info in done.values():
+        assert info["state"] == "finished" and info["frames"] >= frames // 2, info
+    # only its own tracker takes in a robot's frames: each received its robot's (and the controls of both
+    # sessions), none of the other's (64 and 64 here; 124 each if both took every frame)
+    after = {r["replica"]: r["received"] for r in replica_health_of(stack, "tracker")}
+    received = {replica: after[replica] - before[replica] for replica in before}
+    for robot, replica in placed.items():
+        assert done[robot]["frames"] <= received[replica] < frames + frames // 2, (received, done)
+
+
+def test_a_tracker_that_dies_fails_its_sessions_alone(stack, dev_sequence):
+    with httpx.Client(base_url=stack["url"], timeout=30) as http:
+        sessions = {}
+        for robot, start in (("doomed", 0), ("spared", 280)):
+            created = http.post("/sessions", json={"sequence": dev_sequence.name, "robot_id": robot, "rate": 1.0,
+                                                   "start": start, "max_frames": 150, "record": False,
+                                                   "config": FAST})
+            assert created.status_code == 201, created.text
+            sessions[robot] = created.json()
+        wait_until(lambda: all(http.get(f"/sessions/{info['id']}").json()["frames"] >= 10
+                               for info in sessions.values()), 60, "both robots' first poses")
+        os.kill(stack["system"].group.pid(tracker_child(sessions["doomed"]["tracker"])), signal.SIGKILL)
+        doomed = wait_until(lambda: (i := http.get(f"/sessions/{sessions['doomed']['id']}").json())["state"]
+                            == "failed" and i, 10, "the doomed robot's session to fail")
+        assert "its tracker" in doomed["detail"] and sessions["doomed"]["tracker"] in doomed["detail"], doomed
+        spared = wait_until(lambda: (i := http.get(f"/sessions/{sessions['spared']['id']}").json())["state"]
+                            not in ("running", "starting") and i, 120, "the spared robot's session to end")
+    assert spared["state"] == "finished" and spared["frames"] >= 75, spared
+    # the killed tracker comes back (its supervisor restarts it), for the tests after this one
+    wait_until(lambda: len(replica_health_of(stack, "tracker")) == 2, 60, "the killed tracker's return")
+
+
+def replica_health_of(stack, service: str) -> list[dict]:
+    return query_health(stack["bus"], service, timeout=2.0)["replicas"]
 
 
 @pytest.mark.parametrize("argv, message", [
     (["up", "--replicas", "detector=0"], "detector=0: a service needs at least one replica"),
     (["up", "--replicas", "planner=2"], "replicas of 'planner': planner is no service"),
-    (["up", "--replicas", "tracker=2"], "tracker keeps every session's map in one process"),
+    (["up", "--replicas", "tracker=0"], "tracker=0: a service needs at least one replica"),
+    (["up", "--join", "tcp/127.0.0.1:9", "--only", "tracker", "--insecure"], "tracker runs in the stack"),
     (["up", "--replicas", "detector"], "write SERVICE=COUNT"),
     (["up", "--join", "tcp/127.0.0.1:9"], "--join needs --only"),
     (["up", "--join", "tcp/127.0.0.1:9", "--only", "detector"], "give the fleet's keys"),

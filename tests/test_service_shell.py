@@ -5,7 +5,7 @@ import threading
 import time
 
 from twohr import keys
-from twohr.bus import open_session, query_health, wait_for_services
+from twohr.bus import merged_health, open_session, query_health, wait_for_services
 from twohr.messages import PoseMsg, decode, encode
 from twohr.service import Counters, Inbox, Service, declare_publisher
 
@@ -192,3 +192,16 @@ def test_a_fair_inbox_serves_the_robots_in_turn():
         plain.put(("twohr/a/frames", i))
     plain.put(("twohr/b/frames", 0))
     assert [plain.get(0.1)[0] for _ in range(4)][-1] == "twohr/b/frames"  # FIFO: b waits behind all of a's
+
+
+def test_replicas_answers_merge_counts_nested_counters_and_lists():
+    answers = [
+        {"service": "tracker", "replica": "h-1-tracker", "host": "h", "pid": 11, "processed": 5, "robots": ["a"],
+         "ready": True, "jobs": {"detector": {"answered": {"r1": 3}, "lost": 0, "alive": ["r1", "r2"]}}},
+        {"service": "tracker", "replica": "h-1-tracker-2", "host": "g", "pid": 12, "processed": 7, "robots": ["b"],
+         "ready": True, "jobs": {"detector": {"answered": {"r1": 1, "r2": 4}, "lost": 2, "alive": ["r2", "r1"]}}},
+    ]
+    assert merged_health(answers) == {
+        "service": "tracker", "processed": 12, "robots": ["a", "b"], "ready": True,
+        "jobs": {"detector": {"answered": {"r1": 4, "r2": 4}, "lost": 2, "alive": ["r1", "r2"]}}}
+    assert answers[0]["jobs"]["detector"]["answered"] == {"r1": 3}  # the replicas' own answers are left as they were

@@ -36,9 +36,9 @@ def _health(args: argparse.Namespace) -> int:
 
 
 def _replica_line(health: dict) -> str:
-    counters = " ".join(f"{k}={json.dumps(v, separators=(',', ':')) if isinstance(v, dict) else v}"
-                        for k, v in health.items() if k not in ("service", "replica", "host"))
-    return f"{health.get('replica', '?')} on {health.get('host', '?')}: {counters}"
+    counters = " ".join(f"{k}={json.dumps(v, separators=(',', ':')) if isinstance(v, (dict, list)) else v}"
+                        for k, v in health.items() if k not in ("service", "replica", "host", "pid"))
+    return f"{health.get('replica', '?')} on {health.get('host', '?')} pid {health.get('pid', '?')}: {counters}"
 
 
 def register(sub: argparse._SubParsersAction) -> None:

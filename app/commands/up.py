@@ -16,7 +16,9 @@ certificates name (``keys init --host``, ``keys add-host``; ``0.0.0.0`` serves t
 token is ``DIR/operator.token``. Listening beyond loopback without TLS is refused unless ``--insecure``.
 
 Replicas: ``--replicas detector=2`` runs two detector processes; the tracker sends each keyframe job to one of
-them (the least busy) and, if that one dies, again to another. ``twohr up --join tls/STACK:7447 --only
+them (the least busy) and, if that one dies, again to another. ``--replicas tracker=2`` runs two trackers; the
+gateway gives each session to one, the one whose sessions ask least of it, and a tracker that dies fails its
+sessions alone. ``twohr up --join tls/STACK:7447 --only
 detector,yolo --keys DIR`` runs replicas on another host that join a running stack's router, each with its own
 service certificate (DIR holds ``services/<role>/`` for each: ``twohr keys add-service KEYS ROLE HOST --out DIR``
 gives that host certificates of its own, ``ROLE@HOST``, revoked as a robot is); ``twohr health`` lists every
@@ -79,7 +81,7 @@ def _join(args: argparse.Namespace) -> int:
     if not only:
         raise ConfigError("--join needs --only SERVICE[,SERVICE]: the network services to run here (detector, yolo, "
                           "matcher)")
-    counts = check_replicas({name: 1 for name in only} | parse_replicas(args.replicas))
+    counts = check_replicas({name: 1 for name in only} | parse_replicas(args.replicas), trackers=False)
     if extra := sorted(set(counts) - set(only)):
         raise ConfigError(f"--replicas names {', '.join(extra)}, which --only does not run here")
     if not args.keys and not args.insecure:
@@ -261,7 +263,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="keep the raw keypoint descriptors in every recording (large)")
     p.add_argument("--replicas", action="append", metavar="SERVICE=N", help="run N processes of a network service "
                    "(detector, yolo, matcher; repeatable or comma-separated, e.g. detector=2,yolo=2); each keyframe "
-                   "job goes to one, the least busy, and again to another if it dies")
+                   "job goes to one, the least busy, and again to another if it dies. tracker=N runs N trackers: each "
+                   "session goes to one, the least loaded")
     p.add_argument("--max-robots", default="auto", metavar="N", help="robots the stack admits at 30 Hz; past it "
                    "POST /sessions gets 503 with Retry-After (a session at \"rate\" 15 counts half); auto "
                    "(default) = from this host's cores, as measured by twohr bench --live --robots N")

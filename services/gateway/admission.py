@@ -59,6 +59,18 @@ def admitted_load(table: SessionTable) -> float:
     return sum(session_load(session.request) for session in table.active())
 
 
+def least_loaded_tracker(trackers: set[str], table: SessionTable) -> str:
+    """The tracker replica a new session goes to: of ``trackers`` (the live ones), the one whose active sessions
+    ask least of it (ties to the first by name); '' with fewer than two, where every tracker takes every session."""
+    if len(trackers) < 2:
+        return ""
+    loads = dict.fromkeys(trackers, 0.0)
+    for session in table.active():
+        if session.tracker in loads:
+            loads[session.tracker] += session_load(session.request)
+    return min(sorted(loads), key=lambda replica: loads[replica])
+
+
 def admit(request: SessionRequest, table: SessionTable, capacity: float | None) -> None:
     """Raise 503 (with ``Retry-After``) when ``request`` would take the active sessions past ``capacity`` robots
     (None: no limit)."""

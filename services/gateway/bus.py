@@ -186,7 +186,7 @@ class GatewayBus:
                              max_frames=req.max_frames, record=req.record, record_descriptors=req.record_descriptors,
                              record_frames=req.record_frames, start=req.start,
                              map_name=req.map.name if req.map else "", map_mode=req.map.mode if req.map else "",
-                             config=config or PipelineConfig())
+                             config=config or PipelineConfig(), tracker=session.tracker)
         key = keys.key(req.robot_id, keys.CONTROL)
         if key not in self._publishers:
             self._publishers[key] = declare_publisher(self.session, key)
@@ -263,6 +263,8 @@ class GatewayBus:
         # an optional service (the ros2 bridge) is not part of a session's pipeline
         if not replicas and name in PIPELINE_SERVICES:
             self._gone.setdefault(name, time.monotonic())
+        elif name == "tracker":  # the sessions placed on this one have lost their tracker
+            self._gone.setdefault(f"tracker {replica}", time.monotonic())
 
     def _fail_for_gone_services(self) -> None:
         """Fail the active sessions once a pipeline service's token has stayed away for ``liveliness_grace`` while
@@ -277,11 +279,15 @@ class GatewayBus:
         if self._linked_since is None:
             self._linked_since = now
         for name, since in list(self._gone.items()):
-            if self.alive.get(name) or since < self._linked_since:
+            service, _, replica = name.partition(" ")  # "tracker <replica>": one tracker of several
+            back = replica in self.alive.get(service, set()) if replica else self.alive.get(name)
+            if back or since < self._linked_since:
                 del self._gone[name]
             elif now - since >= self.settings.liveliness_grace:
                 del self._gone[name]
-                for session in self.table.fail_active(f"the {name} service stopped during the session"):
+                failed = (self.table.fail_active(f"its tracker {replica} stopped during the session", replica)
+                          if replica else self.table.fail_active(f"the {name} service stopped during the session"))
+                for session in failed:
                     self._fail(session)
 
     def _finish(self, session: Session) -> None:

@@ -113,6 +113,8 @@ class SessionInfo(BaseModel):
     recording: str | None = None
     map: MapRequest | None = None
     start: int = 0
+    tracker: str = Field("", description="the tracker replica serving the session, where the stack runs several "
+                         "('' = the stack's one tracker)")
 
 
 class PoseRecord:
@@ -175,6 +177,8 @@ class Session:
     unposed: int = 0
     """frames the tracker answered with no pose (still looking for the camera in the session's map)"""
     unposed_at: float | None = None
+    tracker: str = ""
+    """the tracker replica serving it ('' = every tracker: a stack with one)"""
 
     def trajectory(self) -> Trajectory:
         """The poses as published (online), ordered by frame."""
@@ -265,10 +269,11 @@ class SessionTable:
                 session.source_done_at = time.time()
         return None
 
-    def fail_active(self, reason: str) -> list[Session]:
-        """Fail every active session (a service they need went away); returns them."""
+    def fail_active(self, reason: str, tracker: str | None = None) -> list[Session]:
+        """Fail every active session (a service they need went away), or those placed on ``tracker``; returns
+        them."""
         with self.lock:
-            failed = [s for s in self.sessions.values() if s.state in ACTIVE]
+            failed = [s for s in self.sessions.values() if s.state in ACTIVE and tracker in (None, s.tracker)]
             for s in failed:
                 s.state, s.detail = "failed", reason
         return failed

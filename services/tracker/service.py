@@ -206,6 +206,8 @@ class TrackerService(Service):
         # robots take turns: on an overloaded stack each gets the same share of the per-frame thread
         super().__init__(bus, queue_size=64, policy="backpressure", fair=True)
         self.tracks: dict[str, SessionTrack] = {}
+        self.serving: dict[str, str] = {}  # session -> robot, of the sessions this replica serves
+        self.elsewhere: dict[str, str] = {}  # session -> robot, of the sessions placed on other tracker replicas
         self.paced: dict[str, bool] = {}
         self.maps: dict[str, ControlMsg] = {}  # sessions with a map, by id: their start (name, mode)
         self.loaded: dict[str, MapFile] = {}  # the maps fetched for them, until their first frame builds the Map
@@ -219,8 +221,10 @@ class TrackerService(Service):
         self.replicas = {name: Replicas(self.session, name) for name in keys.NETWORK_SERVICES}
 
     def health(self) -> dict:
-        """The shell's counters, and the keyframe jobs each network replica answered, sent again and lost."""
-        return super().health() | {"jobs": {name: r.stats() for name, r in self.replicas.items()}}
+        """The shell's counters, the robots whose sessions this tracker serves, and the keyframe jobs each network
+        replica answered, sent again and lost."""
+        robots = sorted(set(list(self.serving.values())))
+        return super().health() | {"robots": robots, "jobs": {name: r.stats() for name, r in self.replicas.items()}}
 
     def subscriptions(self) -> list[str]:
         return [keys.all_robots("frames")]
@@ -240,6 +244,7 @@ class TrackerService(Service):
     def on_session_stop(self, session_id: str) -> None:
         """The session ended: it is handed to the finishing thread (:meth:`_finish`); its frames still coming are
         ignored from now on, as its config goes with this stop."""
+        self.serving.pop(session_id, None)
         self.paced.pop(session_id, None)
         self.loaded.pop(session_id, None)
         self.fair.forget(session_id)
@@ -437,7 +442,27 @@ class TrackerService(Service):
                        elapsed_ms={"detector": stats.ms_detector, "yolo": stats.ms_yolo, "tracker": stats.ms_tracker})
         self.publish(keys.key(header.robot_id, "pose"), encode(pose))
 
+    def takes(self, control: ControlMsg) -> bool:
+        """A session placed on another tracker replica is that one's: its robot's frames are not even queued here
+        while it runs (:meth:`_on_sample`)."""
+        if control.tracker in ("", self.replica):
+            return True
+        if control.command == "start":
+            self.elsewhere[control.session_id] = control.robot_id
+        else:
+            self.elsewhere.pop(control.session_id, None)
+        return False
+
+    def _on_sample(self, sample) -> None:
+        key = str(sample.key_expr)
+        if key.endswith("/frames") and self.elsewhere:
+            robot = keys.parse(key)[0]
+            if robot in self.elsewhere.values() and robot not in self.serving.values():
+                return  # a robot another tracker serves
+        super()._on_sample(sample)
+
     def on_session_start(self, control: ControlMsg) -> None:
+        self.serving[control.session_id] = control.robot_id
         stale = self.tracks.pop(control.session_id, None)  # a start repeated: begin again
         if stale is not None:
             stale.schedule.close()

@@ -24,7 +24,7 @@ from twohr.models import get_spec, keyframe_network
 from twohr.paths import resolve_under_roots
 from twohr.trajectory import tum_text
 
-from ..admission import admit
+from ..admission import admit, least_loaded_tracker
 from ..deps import Bus, Caller, Settings, Table, Who, errors, require_token
 from ..ownership import Grants, identity
 from ..sessions import ACTIVE, MapRequest, PoseOut, Session, SessionInfo, SessionRequest, SessionTable
@@ -117,7 +117,7 @@ def session_info(session: Session, recordings: Path) -> SessionInfo:
         health=session.health, health_detail=session.health_detail,
         record=session.request.record,
         recording=f"/sessions/{session.id}/recording" if recording.is_file() else None,
-        map=session.request.map, start=session.request.start,
+        map=session.request.map, start=session.request.start, tracker=session.tracker,
     )
 
 
@@ -148,7 +148,8 @@ def create_session(request: SessionRequest, settings: Settings, bus: Bus, table:
         if table.active_for_robot(request.robot_id):
             raise HTTPException(status.HTTP_409_CONFLICT, f"robot {request.robot_id} already runs a session")
         admit(request, table, settings.max_robots)
-        session = Session(id=uuid.uuid4().hex[:12], request=request, folder=folder, started_by=identity(who.robot))
+        session = Session(id=uuid.uuid4().hex[:12], request=request, folder=folder, started_by=identity(who.robot),
+                          tracker=least_loaded_tracker(set(bus.alive.get("tracker", ())), table))
         table.add(session)
     bus.send_control(session, "start", config)
     bus.audit.record("session.start", session.started_by, robot=request.robot_id, session=session.id,
