@@ -105,9 +105,9 @@ def server_tls(cert: Path, key: Path) -> ssl.SSLContext:
     """A TLS 1.3 server context with a certificate and its key (PEM); one line if they cannot be used."""
     context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
     context.minimum_version = ssl.TLSVersion.TLSv1_3
-    # no session tickets: a viewer does not resume sessions, and with the tickets sent after the handshake one
-    # connection in a few stalled before its upgrade request was read (tests/test_live_view_security.py: 2 in 6
-    # runs of the module; none in 11 without them)
+    # no session tickets: a viewer does not resume sessions, and with the tickets sent after the handshake a
+    # connection now and then stalled before its upgrade request was read (tests/test_live_view_security.py failed
+    # 2 of 6 runs with them, none of 11 runs of it or its in-process tests without)
     context.num_tickets = 0
     try:
         context.load_cert_chain(cert, key)
