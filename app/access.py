@@ -19,7 +19,7 @@ from __future__ import annotations
 from pydantic import BaseModel, Field
 
 from twohr.bus import endpoint_host, is_loopback_host
-from twohr.keys import ALIVE_PREFIX, HEALTH_PREFIX, MAPS_PREFIX, PREFIX, RAW_CAMERA, key
+from twohr.keys import ALIVE_PREFIX, HEALTH_PREFIX, MAPS_PREFIX, PREFIX, RAW_CAMERA, key, snapshot_key
 
 #: rmw_zenoh's liveliness space (``twohr_services.ros2.rmw.ADMIN_SPACE``)
 ADMIN_SPACE_ROS2 = "@ros2_lv"
@@ -94,8 +94,8 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
                     ask=[f"{MAPS_PREFIX}/*"], watch_liveliness=True)
     return {
         # every stream: the session table follows poses and statuses, the live view shows the rest
-        "gateway": Grants(publish=_robots("control"), subscribe=[f"{PREFIX}/*/*"],
-                          serve=[f"{MAPS_PREFIX}/*", f"{MAPS_PREFIX}/*/save"], watch_liveliness=True),
+        "gateway": Grants(publish=_robots("control"), subscribe=[f"{PREFIX}/*/*", snapshot_key()],
+                          serve=[f"{MAPS_PREFIX}/*", f"{MAPS_PREFIX}/*/save", snapshot_key()], watch_liveliness=True),
         "source": Grants(publish=_robots("frames", "status"),
                          subscribe=_robots("control", "pose", "status", "camera")),
         # the networks answer the tracker's queries only (each answer is published for recordings and views)
@@ -105,11 +105,11 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
                        serve=_robots("rpc/dynamics/*")),
         "matcher": Grants(publish=_robots("matches", "status"), subscribe=_robots("control"),
                           serve=_robots("rpc/match/*")),
-        "tracker": Grants(publish=_robots("pose", "path", "status", "landmarks"),
-                          subscribe=_robots("control", "frames"),
+        "tracker": Grants(publish=_robots("pose", "path", "status", "landmarks") + [snapshot_key()],
+                          subscribe=_robots("control", "frames", "pose"),
                           # each keyframe job to one replica of a network service, followed by its liveliness
                           ask=_robots("rpc/detect/*", "rpc/dynamics/*", "rpc/match/*") + [
-                              f"{MAPS_PREFIX}/*", f"{MAPS_PREFIX}/*/save"], watch_liveliness=True),
+                              f"{MAPS_PREFIX}/*", f"{MAPS_PREFIX}/*/save", snapshot_key()], watch_liveliness=True),
         "recorder": Grants(publish=_robots("status"), subscribe=[f"{PREFIX}/*/*"]),
         "ros2": Grants(publish=_robots("camera") + ros2,
                        subscribe=_robots("pose", "path", "status", "landmarks") + ros2),

@@ -13,6 +13,7 @@ role, passwords in a private folder that is removed at exit) and enforces each r
 
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import signal
@@ -306,9 +307,9 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
     gateway's Foxglove live view on ``host`` (with ``keys`` on TLS, and a viewer needs a token);
     ``ros2_domain`` starts the ros2 service, which speaks ROS 2 over rmw_zenoh in that domain. ``maps``: the map
     store's folder (the gateway serves it, and keeps its audit trail there: :func:`audit_file`). ``replicas``: how
-    many processes of each network service to run (:func:`check_replicas`; default one each). ``max_robots``: the
-    gateway's admission limit (None: none). ``map_versions``: versions of each map the store keeps (None: the
-    gateway's default, 10)."""
+    many processes of each network service to run (:func:`check_replicas`; default one each, and one tracker
+    per admitted robot: :func:`trackers_for`). ``max_robots``: the gateway's admission limit (None: none).
+    ``map_versions``: versions of each map the store keeps (None: the gateway's default, 10)."""
 
     if keys is not None:
         fleet = Fleet(keys)
@@ -321,11 +322,12 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
     base_env = _child_env(router, log_level)
     try:
         roots = [arg for root in data_roots for arg in ("--data-root", root)]
-        counts = {name: 1 for name in PIPELINE_SERVICES} | check_replicas(replicas or {})
+        counts = {name: 1 for name in PIPELINE_SERVICES} | trackers_for(max_robots) | check_replicas(replicas or {})
         started = {}
         for name in PIPELINE_SERVICES:
             extra = {"source": roots, "recorder": ["--recordings", recordings] + (
-                ["--record-descriptors"] if record_descriptors else [])}.get(name, [])
+                ["--record-descriptors"] if record_descriptors else []),
+                "tracker": ["--shared-cores"] if counts["tracker"] > 1 else []}.get(name, [])
             started[name] = start_replicas(system.group, name, counts[name], extra, base_env | access.env(name))
         gateway_args = ["twohr_services.gateway", "--host", host, "--port", str(port), "--recordings", recordings,
                         *roots, "--foxglove-port", str(foxglove_port or 0),
@@ -369,6 +371,12 @@ def _wait_ready(system: System, bus, names: list[str], started: dict[str, set[st
         system.replicas = started
     finally:
         client.close()
+
+
+def trackers_for(max_robots: float | None) -> dict[str, int]:
+    """``{"tracker": N}``: one tracker for each robot the stack admits (a half robot, at 15 Hz, still needs one),
+    so that no robot's per-frame work waits on another's; empty without a limit (one tracker)."""
+    return {"tracker": max(1, math.ceil(max_robots - 1e-9))} if max_robots else {}
 
 
 def check_replicas(replicas: dict[str, int], trackers: bool = True) -> dict[str, int]:

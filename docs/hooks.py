@@ -160,6 +160,9 @@ def key_rows(keys) -> list[tuple[str, str, str, str]]:
              (f"{keys.ALIVE_PREFIX}/<service>/<replica>", keys.alive_key("*"), "token", keys.ALIVE_PREFIX),
              (keys.map_key("<name>"), keys.map_key("lab"), "query", keys.MAPS_PREFIX),
              (keys.map_key("<name>", save=True), keys.map_key("lab", save=True), "query", f"{keys.MAPS_PREFIX}/save")]
+    # a snapshot is put by the tracker and kept by the gateway, which answers it to the tracker a session moves to
+    rows += [(keys.snapshot_key("<robot>"), keys.snapshot_key("robot1"), kind, keys.SNAPSHOT)
+             for kind in ("data", "query")]
     named = {name for *_, name in rows}
     defined = {value for name, value in vars(keys).items() if isinstance(value, str) and (
         name.endswith(("_QUERY", "_PREFIX")) and name != "PREFIX" or name in ("CONTROL", "RAW_CAMERA"))}

@@ -24,6 +24,9 @@ HEALTH_PREFIX = f"{PREFIX}/_health"
 #: every service process holds a liveliness token ``twohr/_alive/<name>/<replica>`` while it is connected
 ALIVE_PREFIX = f"{PREFIX}/_alive"
 
+#: a robot's map snapshot (:func:`snapshot_key`): a key of its own depth, which ``twohr/*/*`` (the recorder, the
+#: live view) does not match
+SNAPSHOT = "map/snapshot"
 #: the map store answers ``twohr/maps/<name>`` with a map file's bytes, and keeps the bytes a query on
 #: ``twohr/maps/<name>/save`` carries as the map's next version
 MAPS_PREFIX = f"{PREFIX}/maps"
@@ -49,6 +52,8 @@ CARRIES = {
     HEALTH_PREFIX: "query: a service process's counters, its replica name and host",
     ALIVE_PREFIX: "liveliness token, held while the process is connected",
     MAPS_PREFIX: "query: a map file's bytes from the gateway's map store",
+    SNAPSHOT: "a map file's bytes: the tracker's latest copy of the session's map, every few seconds (the gateway "
+              "keeps it, and answers a query on it for the tracker a session moves to when its own died)",
     f"{MAPS_PREFIX}/save": "query carrying a map file: the map store keeps it as the map's next version",
 }
 
@@ -73,6 +78,12 @@ def parse_map_key(key_expr: str, save: bool = False) -> str:
     if str(key_expr) != map_key(name, save) or not name or "*" in name:
         raise ValueError(f"{key_expr}: name one map, {map_key('<name>', save)}")
     return name
+
+
+def snapshot_key(robot_id: str = "*") -> str:
+    """The key of a robot's map snapshot (``*``: of every robot): the tracker's latest copy of the session's map,
+    which the gateway keeps outside the tracker's process and hands to the tracker a session moves to."""
+    return f"{PREFIX}/{robot_id}/{SNAPSHOT}"
 
 
 def alive_key(service: str, replica: str = "*") -> str:

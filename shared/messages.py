@@ -189,10 +189,12 @@ class StatusMsg(Message):
 
 
 class ControlMsg(Message):
-    """Start or stop a session; ``config`` is the full validated pipeline configuration."""
+    """Start, stop or move a session; ``config`` is the full validated pipeline configuration. ``move``: the
+    session's tracker died, and ``tracker`` now serves it, from the robot's latest map snapshot (the other services
+    go on as they were)."""
 
     schema_name: ClassVar[str] = "twohr.Control"
-    command: Literal["start", "stop"]
+    command: Literal["start", "stop", "move"]
     sequence: str = ""
     rate: float = Field(0.0, ge=0, description="playback speed: 1 = real time, 0 = as fast as the pipeline keeps up")
     max_frames: int | None = Field(None, ge=1)

@@ -3,6 +3,7 @@ fairly between robots when it cannot serve them all at their cameras' rates."""
 
 from __future__ import annotations
 
+import collections
 import time
 
 
@@ -96,3 +97,62 @@ class FairShare:
         if self.share_hz is None or session_id not in live or len(live) < 2:
             return None
         return min(1.0 / live[session_id][0], self.share_hz)
+
+
+class PeerShare:
+    """Fair shares between trackers on the same cores, each serving its own robots. Every tracker sees every
+    robot's frames and poses go by. A robot it serves that is posed a larger fraction of its frames than the
+    worst-served robot of the others is capped at that robot's fraction plus ``margin`` (of its own camera's rate,
+    as evenly spaced frames), which frees the cores for that one; the worst-served robot is never capped, so shares
+    only go up from there, and as its fraction rises, the cap rises with it. Fractions are over the latest
+    ``window_s``, of robots posed for at least ``settle_s`` (a session's start, its first map, counts for none); a
+    robot with no frame in the window no longer counts."""
+
+    def __init__(self, window_s: float = 6.0, margin: float = 0.05, settle_s: float = 1.0) -> None:
+        self.window_s, self.margin, self.settle_s = window_s, margin, settle_s
+        self.seen: dict[str, tuple[collections.deque[float], collections.deque[float]]] = {}
+        """robot -> times (monotonic s) of its latest frames, and of its latest poses"""
+        self.first_posed: dict[str, float] = {}  # robot -> when it was first posed since it was last seen
+
+    def _add(self, robot: str, which: int, now: float | None) -> None:
+        self.seen.setdefault(robot, (collections.deque(), collections.deque()))[which].append(
+            time.monotonic() if now is None else now)
+
+    def framed(self, robot: str, now: float | None = None) -> None:
+        """A frame of ``robot`` went by."""
+        self._add(robot, 0, now)
+
+    def posed(self, robot: str, now: float | None = None) -> None:
+        """A pose of ``robot`` went by."""
+        now = time.monotonic() if now is None else now
+        self.first_posed.setdefault(robot, now)
+        self._add(robot, 1, now)
+
+    def rates(self, now: float | None = None) -> dict[str, tuple[float, float]]:
+        """``robot -> (frames per second, posed fraction)`` of each robot with frames in the latest window, posed
+        for at least ``settle_s``."""
+        now = time.monotonic() if now is None else now
+        rates = {}
+        for robot, (frames, poses) in list(self.seen.items()):
+            for times in (frames, poses):
+                while times and now - times[0] > self.window_s:
+                    times.popleft()
+            if frames and now - self.first_posed.get(robot, now) >= self.settle_s:
+                rates[robot] = (len(frames) / self.window_s, min(1.0, len(poses) / len(frames)))
+            elif not frames and not poses:
+                del self.seen[robot]
+                self.first_posed.pop(robot, None)
+        return rates
+
+    def cap(self, robot: str, served: set[str], now: float | None = None) -> float | None:
+        """The rate ``robot`` (one of ``served``, the robots of this tracker) may have tracked now, or None: no
+        other robot is served worse."""
+        rates = self.rates(now)
+        others = [fraction for other, (_, fraction) in rates.items() if other not in served]
+        if robot not in rates or not others:
+            return None
+        camera_hz, own = rates[robot]
+        worst = min(others)
+        if own <= worst or worst + self.margin >= 1.0:  # served no better than the others: no cap
+            return None
+        return max(1.0, (worst + self.margin) * camera_hz)

@@ -163,6 +163,9 @@ class Service:
     name = "service"
     #: subscribe to control messages and keep ``session_configs`` (the pipeline stages do)
     follows_sessions = False
+    #: a session moved to this replica (``ControlMsg`` ``move``: its own died) is started here again, with
+    #: ``on_session_start``; other services go on with it as they were
+    follows_moves = False
     #: the CPU priority it takes when run as a program (see :data:`PER_FRAME_NICE`)
     priority: ServicePriority = "normal"
 
@@ -247,7 +250,9 @@ class Service:
         control, _ = decode(payload, ControlMsg)
         if not self.takes(control):
             return
-        if control.command == "start":
+        if control.command == "move" and not self.follows_moves:
+            return
+        if control.command in ("start", "move"):
             try:
                 self.on_session_start(control)
             except Exception as exc:

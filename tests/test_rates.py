@@ -1,8 +1,9 @@
-"""Frame rates: thinning a camera to a lower rate, and fair shares of an overloaded per-frame thread."""
+"""Frame rates: thinning a camera to a lower rate, fair shares of an overloaded per-frame thread, and of the cores
+between trackers."""
 
 from __future__ import annotations
 
-from twohr.rates import FairShare, RateThinning
+from twohr.rates import FairShare, PeerShare, RateThinning
 
 
 def test_thinning_keeps_evenly_spaced_frames_and_restarts_with_the_camera():
@@ -51,3 +52,38 @@ def test_an_overloaded_thread_is_shared_equally_and_only_when_overloaded():
     feed(share, ["a", "b"], 10.0, capacity_hz=36)
     share.saw("a", 19.9, now=19.9)
     assert share.rate("a", now=20.0) is None  # b went quiet: a has the thread again
+
+
+def test_trackers_on_shared_cores_cap_only_the_better_served_robot():
+    """Two robots at 30 Hz, each on its own tracker: ``a`` posed 24 of every 30 frames, ``b`` 15. Only ``a``'s
+    tracker caps its robot, at ``b``'s fraction plus the margin (0.55 of 30 Hz); ``b`` is never capped; equal
+    fractions cap nobody; a robot gone quiet for the window no longer counts, and one posed for less than the
+    settling time (a session's start) does not count yet."""
+    peers = PeerShare(window_s=3.0, margin=0.05, settle_s=3.0)
+    for i in range(90):  # 3 s of both cameras
+        t = i / 30
+        for robot, posed_every in (("a", 30 / 24), ("b", 2)):
+            peers.framed(robot, now=t)
+            if i % posed_every < 1:
+                peers.posed(robot, now=t)
+    assert peers.rates(now=89 / 30) == {}  # both posed for less than the window yet
+    for i in range(90, 180):
+        t = i / 30
+        for robot, posed_every in (("a", 30 / 24), ("b", 2)):
+            peers.framed(robot, now=t)
+            if i % posed_every < 1:
+                peers.posed(robot, now=t)
+    now = 179 / 30
+    fractions = {robot: round(fraction, 1) for robot, (_, fraction) in peers.rates(now=now).items()}
+    assert fractions == {"a": 0.8, "b": 0.5}, fractions  # 73 and 45 poses of the 91 frames in the window
+    assert abs(peers.cap("a", {"a"}, now=now) - 0.55 * 30) < 0.5
+    assert peers.cap("b", {"b"}, now=now) is None
+    assert peers.cap("a", {"a", "b"}, now=now) is None  # one tracker serving both: its FairShare's work
+    assert peers.cap("a", {"a"}, now=now + 3.5) is None  # nothing seen for longer than the window
+    even = PeerShare(window_s=1.0, settle_s=1.0)
+    for t in (0.0, 0.5, 1.0):
+        for robot in ("a", "b"):
+            even.framed(robot, now=t)
+            even.posed(robot, now=t)
+    assert len(even.rates(now=1.0)) == 2
+    assert even.cap("a", {"a"}, now=1.0) is None and even.cap("b", {"b"}, now=1.0) is None

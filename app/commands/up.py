@@ -263,11 +263,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="keep the raw keypoint descriptors in every recording (large)")
     p.add_argument("--replicas", action="append", metavar="SERVICE=N", help="run N processes of a network service "
                    "(detector, yolo, matcher; repeatable or comma-separated, e.g. detector=2,yolo=2); each keyframe "
-                   "job goes to one, the least busy, and again to another if it dies. tracker=N runs N trackers: each "
-                   "session goes to one, the least loaded")
-    p.add_argument("--max-robots", default="auto", metavar="N", help="robots the stack admits at 30 Hz; past it "
-                   "POST /sessions gets 503 with Retry-After (a session at \"rate\" 15 counts half); auto "
-                   "(default) = from this host's cores, as measured by twohr bench --live --robots N")
+                   "job goes to one, the least busy, and again to another if it dies. tracker=N runs N trackers "
+                   "(default: one per --max-robots): each session goes to one, the least loaded, and to another, with "
+                   "its map, if it dies")
+    p.add_argument("--max-robots", default="auto", metavar="N", help="robots the stack admits at 30 Hz, each on a "
+                   "tracker of its own (N trackers run); past it POST /sessions gets 503 with Retry-After (a session "
+                   "at \"rate\" 15 counts half); auto (default) = from this host's cores, as measured by twohr bench "
+                   "--live --robots N")
     p.add_argument("--join", default=None, metavar="ENDPOINT", help="run no stack: start replicas of the --only "
                    "services on this host, joined to the running stack's router at ENDPOINT (tls/HOST:7447 with "
                    "--keys)")

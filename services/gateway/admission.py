@@ -59,10 +59,11 @@ def admitted_load(table: SessionTable) -> float:
     return sum(session_load(session.request) for session in table.active())
 
 
-def least_loaded_tracker(trackers: set[str], table: SessionTable) -> str:
+def least_loaded_tracker(trackers: set[str], table: SessionTable, always: bool = False) -> str:
     """The tracker replica a new session goes to: of ``trackers`` (the live ones), the one whose active sessions
-    ask least of it (ties to the first by name); '' with fewer than two, where every tracker takes every session."""
-    if len(trackers) < 2:
+    ask least of it (ties to the first by name); '' with none, or with one unless ``always``, where every tracker
+    takes every session."""
+    if len(trackers) < (1 if always else 2):
         return ""
     loads = dict.fromkeys(trackers, 0.0)
     for session in table.active():

@@ -34,8 +34,8 @@ log = logging.getLogger("twohr.gateway")
 #: the identity of what the stack does by itself: a session that finished or failed
 STACK = "@stack"
 #: the audit events, by what happened
-Action = Literal["session.start", "session.stop", "session.finish", "session.fail", "map.save", "map.upload",
-                 "map.rollback", "map.delete", "map.grant", "map.ungrant", "robot.add", "robot.revoke"]
+Action = Literal["session.start", "session.stop", "session.finish", "session.fail", "session.move", "map.save",
+                 "map.upload", "map.rollback", "map.delete", "map.grant", "map.ungrant", "robot.add", "robot.revoke"]
 SEEN_FILE = ".audit-seen.json"
 #: the router's list of the robots and replicas not revoked, in its key folder
 ROUTER_LIST = "robots.json"

@@ -23,6 +23,7 @@ from twohr.mapfile import OPERATOR, MapAccessError, MapFileError, MapMissingErro
 from twohr.messages import ControlMsg, MessageError, PathMsg, PoseMsg, StatusMsg, decode, encode, path_trajectory
 from twohr.service import declare_publisher
 
+from .admission import least_loaded_tracker
 from .audit import STACK, AuditLog
 from .live import BusLiveView, live_access
 from .ownership import Grants
@@ -66,6 +67,9 @@ class GatewayBus:
             self.session.declare_subscriber(keys.all_robots("pose"), self._decoded(PoseMsg, self.table.on_pose)),
             self.session.declare_subscriber(keys.all_robots("status"), self._decoded(StatusMsg, self._on_status)),
             self.session.declare_subscriber(keys.all_robots("path"), self._on_path),
+            # each session's latest map snapshot, kept here for the tracker it moves to when its own dies
+            self.session.declare_subscriber(keys.snapshot_key(), self._on_snapshot),
+            self.session.declare_queryable(keys.snapshot_key(), self._serve_snapshot),
             self.session.liveliness().declare_subscriber(keys.alive_key("*"), self._on_liveliness,
                                                          history=True)]
         if self.settings.maps is not None:  # the map store: read by trackers and clients, written by trackers
@@ -176,17 +180,20 @@ class GatewayBus:
         return [name for name in PIPELINE_SERVICES if not self.alive.get(name)]
 
     def send_control(self, session: Session, command: str, config: PipelineConfig | None = None) -> None:
-        """Publish a start or stop of ``session`` on ``twohr/<robot>/control``. After a stop, the tracker sends the
-        refined trajectory of a session that has poses: it is waited for up to ``refine_timeout``."""
+        """Publish a start, stop or move of ``session`` on ``twohr/<robot>/control`` (with ``config``, or the
+        session's). After a stop, the tracker sends the refined trajectory of a session that has poses: it is waited
+        for up to ``refine_timeout``."""
         req = session.request
-        if command == "stop" and session.poses:
-            session.refined_due = time.time() + self.settings.refine_timeout
+        if command == "stop":
+            session.snapshot = None
+            if session.poses:
+                session.refined_due = time.time() + self.settings.refine_timeout
         control = ControlMsg(session_id=session.id, robot_id=req.robot_id, frame_index=-1, stamp=time.time(),
                              command=command, sequence=str(session.folder or ""), rate=req.rate,
                              max_frames=req.max_frames, record=req.record, record_descriptors=req.record_descriptors,
                              record_frames=req.record_frames, start=req.start,
                              map_name=req.map.name if req.map else "", map_mode=req.map.mode if req.map else "",
-                             config=config or PipelineConfig(), tracker=session.tracker)
+                             config=config or session.config or PipelineConfig(), tracker=session.tracker)
         key = keys.key(req.robot_id, keys.CONTROL)
         if key not in self._publishers:
             self._publishers[key] = declare_publisher(self.session, key)
@@ -222,6 +229,50 @@ class GatewayBus:
         session = self.table.on_path(message, trajectory)
         if session is not None:
             self._score(session)
+
+    def _snapshot_session(self, key_expr, attachment) -> Session | None:
+        """The active session a snapshot key and its attachment (the session's id) name, or None."""
+        try:
+            robot = str(key_expr).split("/")[1]
+            session_id = attachment.to_bytes().decode(errors="replace") if attachment is not None else ""
+        except IndexError:
+            return None
+        session = self.table.active_for_robot(robot)
+        return session if session is not None and session.id == session_id else None
+
+    def _on_snapshot(self, sample) -> None:
+        """A tracker's latest copy of a session's map: kept while the session is active (the previous one goes)."""
+        session = self._snapshot_session(sample.key_expr, sample.attachment)
+        if session is not None:
+            session.snapshot = sample.payload.to_bytes()
+
+    def _serve_snapshot(self, query: zenoh.Query) -> None:
+        """``twohr/<robot>/map/snapshot``, the session's id attached: the latest snapshot of its map, for the
+        tracker the session moved to."""
+        session = self._snapshot_session(query.key_expr, query.attachment)
+        if session is None or session.snapshot is None:
+            query.reply_err(b"no snapshot of this session's map")
+        else:
+            query.reply(query.key_expr, session.snapshot)
+
+    def _move_sessions(self, replica: str) -> None:
+        """The sessions of a tracker that died go to the least loaded of the others, each told to go on in its
+        map's latest snapshot (``move``); with no other tracker alive, they fail."""
+        others = self.alive.get("tracker", set()) - {replica}
+        for session in self.table.active():
+            if session.tracker != replica:
+                continue
+            target = least_loaded_tracker(others, self.table, always=True)
+            if not target:
+                session.state, session.detail = "failed", f"its tracker {replica} stopped during the session"
+                self._fail(session)
+                continue
+            session.tracker, session.moves = target, session.moves + 1
+            log.warning("session %s: its tracker %s stopped; it moves to tracker %s", session.id, replica, target)
+            self.audit.record("session.move", STACK, robot=session.request.robot_id, session=session.id,
+                              detail=f"tracker {replica} stopped; now on {target}" + (
+                                  "" if session.snapshot else ", with no map snapshot"))
+            self.send_control(session, "move")
 
     def _score(self, session: Session) -> None:
         """The ATE of the online poses and, once it is in, of the refined trajectory (when ground truth exists)."""
@@ -268,7 +319,8 @@ class GatewayBus:
 
     def _fail_for_gone_services(self) -> None:
         """Fail the active sessions once a pipeline service's token has stayed away for ``liveliness_grace`` while
-        this gateway stayed linked to its router. A token that went because this gateway's own link went (the
+        this gateway stayed linked to its router; where one tracker of several went, move its sessions
+        (:meth:`_move_sessions`). A token that went because this gateway's own link went (the
         router restarting, as a fleet's revocation makes it) is not a dead service: the tokens come back with the
         link, and the sessions go on."""
         now = time.monotonic()
@@ -285,9 +337,10 @@ class GatewayBus:
                 del self._gone[name]
             elif now - since >= self.settings.liveliness_grace:
                 del self._gone[name]
-                failed = (self.table.fail_active(f"its tracker {replica} stopped during the session", replica)
-                          if replica else self.table.fail_active(f"the {name} service stopped during the session"))
-                for session in failed:
+                if replica:
+                    self._move_sessions(replica)
+                    continue
+                for session in self.table.fail_active(f"the {name} service stopped during the session"):
                     self._fail(session)
 
     def _finish(self, session: Session) -> None:

@@ -11,6 +11,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, Field, model_validator
 
+from twohr.config import PipelineConfig
 from twohr.mapfile import NAME_PATTERN, OPERATOR
 from twohr.messages import ID_PATTERN, PathMsg, PoseMsg, StatusMsg
 from twohr.trajectory import Trajectory
@@ -106,8 +107,10 @@ class SessionInfo(BaseModel):
         "online", description="what GET .../trajectory serves: 'online' (the poses as published) until the tracker "
         "sends the refined trajectory after the session ends, then 'refined'")
     corrections: int = Field(0, description="live corrections received: keyframe poses after bundle adjustment")
-    health: Literal["ok", "degraded"] = Field("ok", description="the tracker's word on a live session: 'degraded' "
-                                              "when it drops frames or its keyframe jobs come back late")
+    health: Literal["ok", "degraded", "relocalising"] = Field(
+        "ok", description="the tracker's word on a live session: 'degraded' when it drops frames or its keyframe "
+        "jobs come back late; 'relocalising' while it looks for the camera in the session's map (a map to localize "
+        "in, or the snapshot a session moved with)")
     health_detail: str = Field("", description="why, with the figures: frames dropped, keyframe lag, CPU per frame")
     record: bool
     recording: str | None = None
@@ -115,6 +118,8 @@ class SessionInfo(BaseModel):
     start: int = 0
     tracker: str = Field("", description="the tracker replica serving the session, where the stack runs several "
                          "('' = the stack's one tracker)")
+    moves: int = Field(0, description="times the session moved to another tracker because its own died (it goes on "
+                       "in its map's latest snapshot, its poses in the same frame)")
 
 
 class PoseRecord:
@@ -179,6 +184,11 @@ class Session:
     unposed_at: float | None = None
     tracker: str = ""
     """the tracker replica serving it ('' = every tracker: a stack with one)"""
+    config: PipelineConfig | None = None
+    """the pipeline config it runs with (a tracker it moves to is given it again)"""
+    snapshot: bytes | None = None
+    """the latest snapshot of its map its tracker sent (a map file's bytes), while it is active"""
+    moves: int = 0
 
     def trajectory(self) -> Trajectory:
         """The poses as published (online), ordered by frame."""
@@ -188,6 +198,14 @@ class Session:
         if len(self.poses) < 2 or self.first_pose_at is None or self.last_pose_at == self.first_pose_at:
             return 0.0
         return (len(self.poses) - 1) / (self.last_pose_at - self.first_pose_at)
+
+
+def _after_online(online: Trajectory, refined: Trajectory) -> Trajectory:
+    """A moved session's whole trajectory: its refined one comes from the tracker it moved to, and covers only the
+    frames that one tracked; the poses published before them go first, as they were."""
+    before = online.stamps < (refined.stamps[0] if len(refined) else np.inf)
+    return Trajectory(np.concatenate([online.stamps[before], refined.stamps]),
+                      np.concatenate([online.poses[before], refined.poses]))
 
 
 class SessionTable:
@@ -236,7 +254,7 @@ class SessionTable:
             if not path.final:
                 session.corrections += 1
                 return None
-            session.refined = trajectory
+            session.refined = trajectory if not session.moves else _after_online(session.trajectory(), trajectory)
             return session
 
     def on_status(self, status: StatusMsg) -> Session | None:
@@ -269,11 +287,10 @@ class SessionTable:
                 session.source_done_at = time.time()
         return None
 
-    def fail_active(self, reason: str, tracker: str | None = None) -> list[Session]:
-        """Fail every active session (a service they need went away), or those placed on ``tracker``; returns
-        them."""
+    def fail_active(self, reason: str) -> list[Session]:
+        """Fail every active session (a service they need went away); returns them."""
         with self.lock:
-            failed = [s for s in self.sessions.values() if s.state in ACTIVE and tracker in (None, s.tracker)]
+            failed = [s for s in self.sessions.values() if s.state in ACTIVE]
             for s in failed:
                 s.state, s.detail = "failed", reason
         return failed

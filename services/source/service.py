@@ -64,7 +64,10 @@ class SourceService(Service):
             control, _ = decode(payload, ControlMsg)
             if control.robot_id != robot:
                 raise TwohrError(f"control for robot {control.robot_id} published on {key}")
-            self._start(control) if control.command == "start" else self._stop(robot, control.session_id)
+            if control.command == "start":
+                self._start(control)
+            elif control.command == "stop":  # a move is the tracker's: the frames go on as they were
+                self._stop(robot, control.session_id)
         elif stream in ("pose", "status"):
             answer, _ = decode(payload, PoseMsg if stream == "pose" else StatusMsg)
             if stream == "status" and (answer.service, answer.state) != ("tracker", "relocalising"):

@@ -11,6 +11,7 @@ import numpy as np
 from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics, Frame
 from twohr.features import drop_masked
+from twohr.mapfile import MapArrays
 from twohr.trajectory import Trajectory
 
 from .loops import LoopLog
@@ -58,6 +59,10 @@ class EveryFrameSchedule:
             ms_total=(t3 - t0) * 1000, reason=result.reason,
         )
         return result, stats
+
+    def map_copy(self) -> MapArrays | None:
+        """The whole map as a map file's arrays (this schedule changes it only between frames)."""
+        return self.map.arrays() if self.map.keyframes else None
 
     def map_snapshot(self, since: int = -1) -> MapSnapshot | None:
         """A copy of the map, or None while its version (the number of keyframes) is still ``since``."""

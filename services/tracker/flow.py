@@ -29,6 +29,7 @@ from twohr.config import TrackerConfig
 from twohr.dataset import CameraIntrinsics
 from twohr.features import masked
 from twohr.geometry import backproject, invert_pose, project, transform_points
+from twohr.mapfile import MapArrays
 
 from .keyframe_policy import VERY_WEAK, Evidence, close_points
 from .loops import LoopQuery
@@ -65,6 +66,9 @@ class MapUpdate:
     """place-recognition candidates of the job's keyframe, for the loop worker to verify"""
     fused: np.ndarray | None = None
     """(M, 2) landmark ids a closed loop fused: (retired duplicate, the landmark that replaces it)"""
+    arrays: MapArrays | None = None
+    """the whole map after the job, as a map file's arrays, when the per-frame path asked for a copy
+    (:meth:`~.keyframe_schedule.KeyframePipeline.map_copy`)"""
     idle_rows: np.ndarray | None = None
     """landmark rows the map no longer refers to (:meth:`~.map.Map.idle_rows`), for the per-frame path to give back
     those it does not hold"""

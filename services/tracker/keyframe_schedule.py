@@ -25,6 +25,7 @@ import numpy as np
 
 from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics, Frame
+from twohr.mapfile import MapArrays
 from twohr.messages import MessageError
 from twohr.trajectory import Trajectory
 from twohr.workers import Worker
@@ -84,6 +85,7 @@ class KeyframePipeline:
         self._number = -1  # of the latest frame
         self._job_number = 0  # of the latest keyframe job
         self._anchor = -1  # the latest keyframe taken: new frames' poses are kept relative to it
+        self._map_copy: MapArrays | None = None  # the latest copy of the map the mapping worker made
         self.queue: KeyframeQueue[KeyframeJob] = KeyframeQueue(runtime.keyframe_queue, config.tracker)
         """keyframe jobs waiting for the busy mapping worker (:mod:`.keyframe_policy`)"""
 
@@ -150,6 +152,8 @@ class KeyframePipeline:
         if update.loop_query is not None and self._loop is None:
             self._loop_query = update.loop_query  # the latest keyframe's wins
         self.frames.apply(update)
+        if update.arrays is not None:
+            self._map_copy = update.arrays
         if update.idle_rows is not None and len(update.idle_rows):
             self._give_back(update.idle_rows)
         if update.keyframe_id >= 0:
@@ -303,6 +307,13 @@ class KeyframePipeline:
         if job is not None and self.mapping.submit(job):
             self._job_number = job.number
             self._job_frame = job.frame
+
+    def map_copy(self) -> MapArrays | None:
+        """The copy of the whole map the mapping worker made after its latest job, once (None: none since the last
+        call); each call asks for the next one."""
+        copy, self._map_copy = self._map_copy, None
+        self.mapper.copy_wanted = True
+        return copy
 
     def map_snapshot(self, since: int = -1) -> MapSnapshot | None:
         """The map as of the latest keyframe job taken, or None while its version is still ``since``."""

@@ -75,6 +75,7 @@ class Mapper:
         self.loops = None
         self.loop_log = LoopLog()
         self._released: list[np.ndarray] = []  # map rows the per-frame path gave back, for the next job to free
+        self.copy_wanted = False  # the per-frame path asks for a copy of the whole map after the next job
         if config.loop_closing.vocabulary is not None:
             vocabulary = Vocabulary.load(vocabulary_path(config.loop_closing.vocabulary))
             self.loops = LoopClosing(world, vocabulary, config.loop_closing)
@@ -107,6 +108,9 @@ class Mapper:
             update = self._detected_keyframe(job)
         if self.conf.reuse_landmark_rows and update.kind != "loop" and self.tracker.localised:
             update.idle_rows = self.map.idle_rows()
+        if self.copy_wanted and self.map.keyframes:  # taken here: no other thread changes the map now
+            self.copy_wanted = False
+            update.arrays = self.map.arrays()
         update.timings["job"] = (time.perf_counter() - t0) * 1000
         return update
 

@@ -9,6 +9,7 @@ import numpy as np
 
 from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics, Frame
+from twohr.mapfile import MapArrays
 from twohr.trajectory import Trajectory
 
 from .every_frame import EveryFrameSchedule
@@ -50,6 +51,10 @@ class Schedule(Protocol):
     def map_snapshot(self, since: int = -1) -> MapSnapshot | None:
         """A copy of the map (landmarks, keyframe poses and stamps) as the per-frame path has it, or None while
         its version (the number of keyframes) is still ``since``."""
+
+    def map_copy(self) -> MapArrays | None:
+        """The whole map as a map file's arrays, copied where no thread was changing it, or None where no copy is
+        ready yet: a copy of the map kept outside the process (the service's snapshot)."""
 
     def close(self) -> None:
         """Stop any worker threads."""

@@ -52,12 +52,12 @@ from twohr.messages import (
     received_frame,
     split_matches,
 )
-from twohr.rates import FairShare, RateThinning
+from twohr.rates import FairShare, PeerShare, RateThinning
 from twohr.replicas import Replicas
-from twohr.service import Service, declare_publisher, serve
+from twohr.service import Service, bus_from_args, declare_publisher, one_line_errors, service_parser
 from twohr.trajectory import Trajectory
 
-from .mapfiles import map_file, usable_map
+from .mapfiles import arrays_file, map_file, usable_map
 from .schedule import Schedule, build_schedule
 from .stages import FrameStats, Stages, keyframe_job_latency
 from .trajectory import TrackResult
@@ -70,10 +70,19 @@ DEGRADED_KEYFRAME_LAG = 30
 #: robots sharing an overloaded tracker are thinned further while a keyframe job comes back more than this many
 #: frames late: a map starved of CPU costs more accuracy than the frames it would take
 FAIR_KEYFRAME_LAG = 5
+#: beside other trackers, a robot lost for LOST_FRAMES tracked frames in a row is tracked at LOST_HZ until it is found
+#: again: its keyframe jobs (relocalisation) need the cores more than its coasting poses; 3 and 5 Hz both held the
+#: second robot of the two-robot check under 0.025 m in 7 of 8 runs, without it 0 of 4 (docs/fleet.md, "Tracker
+#: replicas"); a short loss, which the next keyframe mends, is not thinned
+LOST_HZ = 3.0
+LOST_FRAMES = 10
 #: how long the map store may take to hand over or keep a map (seconds)
 MAP_TIMEOUT_S = 30.0
 #: seconds between the last frame before a camera's stamps went back in time and the first one after
 RESTARTED_CLOCK_GAP = 1 / 30
+#: a live session's whole map goes to the gateway at most this often (s): the snapshot a session moves with when
+#: its tracker dies is at most this old, plus one keyframe job
+SNAPSHOT_EVERY_S = 2.0
 
 log = logging.getLogger("twohr.tracker")
 
@@ -175,9 +184,11 @@ class SessionTrack:
     health: SessionHealth = field(default_factory=SessionHealth)
     map_name: str = ""  # the session's map: its poses are in this frame ("" = the robot's own)
     map_mode: str = ""
+    lost: int = 0  # frames tracked as lost in a row
     parent: MapHeader | None = None
     """the header of the map it localizes in or extends, as fetched (the map's next version names it); the file's
     arrays are not kept: the schedule's map was built from them"""
+    snapshot_at: float = float("-inf")  # when the map's latest snapshot was sent (monotonic s)
     stamp_shift: float = 0.0  # added to the camera's stamps since they went back in time
     last_stamp: float = float("-inf")
 
@@ -200,9 +211,12 @@ class TrackerService(Service):
 
     name = "tracker"
     follows_sessions = True
+    follows_moves = True
     priority = "per_frame"  # a frame's pose goes first
 
-    def __init__(self, bus=None) -> None:
+    def __init__(self, bus=None, shared_cores: bool = False) -> None:
+        """``shared_cores``: other trackers run on this host's cores; this one caps its robots' rates so that none is
+        served better than the others' worst (:class:`~twohr.rates.PeerShare`)."""
         # robots take turns: on an overloaded stack each gets the same share of the per-frame thread
         super().__init__(bus, queue_size=64, policy="backpressure", fair=True)
         self.tracks: dict[str, SessionTrack] = {}
@@ -213,9 +227,12 @@ class TrackerService(Service):
         self.loaded: dict[str, MapFile] = {}  # the maps fetched for them, until their first frame builds the Map
         self.finishing = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracker-finishing")
         """the ends of sessions, one after another, off the per-frame thread"""
+        self.snapshots = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracker-snapshots")
+        """encodes and sends the maps' snapshots, off the per-frame thread"""
         self._declaring = threading.Lock()  # both threads publish: one publisher per key
         self.replicas: dict[str, Replicas] = {}
         self.fair = FairShare()  # equal shares of the per-frame thread when the cameras ask for more
+        self.peers = PeerShare() if shared_cores else None  # and of the cores, beside other trackers
 
     def on_start(self) -> None:
         self.replicas = {name: Replicas(self.session, name) for name in keys.NETWORK_SERVICES}
@@ -227,19 +244,20 @@ class TrackerService(Service):
         return super().health() | {"robots": robots, "jobs": {name: r.stats() for name, r in self.replicas.items()}}
 
     def subscriptions(self) -> list[str]:
-        return [keys.all_robots("frames")]
+        # beside other trackers, every robot's poses too: how well each is served (PeerShare)
+        return [keys.all_robots("frames")] + ([keys.all_robots("pose")] if self.peers is not None else [])
 
     def run(self, stop: threading.Event | None = None) -> None:
         """Serve until ``stop`` is set; sessions still finishing then finish, their final paths and maps sent before
         the bus session closes."""
         super().run(_FinishingFirst(stop or self.stopping, self.finishing))
 
-    def publish(self, key: str, payload: bytes) -> None:
-        """Publish on ``key`` from the per-frame or the finishing thread."""
+    def publish(self, key: str, payload: bytes, attachment: str | None = None) -> None:
+        """Publish on ``key`` from the per-frame, the finishing or the snapshot thread."""
         with self._declaring:
             if key not in self._publishers:
                 self._publishers[key] = declare_publisher(self.session, key)
-        self._publishers[key].put(payload)
+        self._publishers[key].put(payload, attachment=attachment)
 
     def on_session_stop(self, session_id: str) -> None:
         """The session ended: it is handed to the finishing thread (:meth:`_finish`); its frames still coming are
@@ -308,7 +326,9 @@ class TrackerService(Service):
                 build_schedule(config, header.camera, stages, live=self.paced.get(header.session_id, True),
                                world=world), header,
                 map_name=control.map_name if control else "", map_mode=control.map_mode if control else "",
-                parent=stored.header if stored else None)
+                # a snapshot (a moved session's) names no parent: its map's next version names none
+                parent=stored.header if stored is not None and (control is None or control.command != "move")
+                else None)
             self.loaded.pop(header.session_id, None)  # the session tracks in the Map built from it
         return self.tracks[header.session_id]
 
@@ -378,6 +398,7 @@ class TrackerService(Service):
         header = header.model_copy(update={"stamp": frame.stamp})
         track.last_header = header
         result, stats = track.schedule.process(frame)
+        track.lost = track.lost + 1 if result.status == "lost" else 0
         if paced:
             log = track.schedule.keyframe_log
             self.fair.tracked(waited_ms, keyframes_late=bool(log) and log[-1].lag_frames > FAIR_KEYFRAME_LAG)
@@ -388,14 +409,20 @@ class TrackerService(Service):
             self.report(header, "relocalising", f"looking for the camera in map {track.map_name}",
                         frame=header.frame_index)
         self._publish_map(track, header)
+        self._keep_snapshot(track, header)
         self._report_health(track, header)
 
     def _fair_turn(self, track: SessionTrack, header: FrameMsg) -> bool:
         """Whether this live frame is tracked under the robots' fair shares (:class:`~twohr.rates.FairShare`):
         while the cameras ask more of the per-frame thread than it has, each session keeps an equal rate of evenly
-        spaced frames, and the others are dropped on their header."""
+        spaced frames, and the others are dropped on their header. Beside other trackers, also no robot better
+        served than theirs (:class:`~twohr.rates.PeerShare`), and a robot lost a while at :data:`LOST_HZ`."""
         self.fair.saw(header.session_id, header.stamp)
         rate = self.fair.rate(header.session_id)
+        cap = None if self.peers is None else self.peers.cap(header.robot_id, set(self.serving.values()))
+        rate = cap if rate is None else rate if cap is None else min(rate, cap)
+        if track.lost >= LOST_FRAMES and self.peers is not None:
+            rate = LOST_HZ if rate is None else min(rate, LOST_HZ)
         track.share_hz = rate
         if rate is None:
             track.thinning = None
@@ -433,6 +460,45 @@ class TrackerService(Service):
         path = PathMsg(**ids, final=False, frame_id=track.map_name, **fields)
         self.publish(keys.key(header.robot_id, "path"), encode(path, arrays))
 
+    def _keep_snapshot(self, track: SessionTrack, header: FrameMsg) -> None:
+        """Every :data:`SNAPSHOT_EVERY_S`, a copy of the session's whole map goes to the gateway on
+        ``twohr/<robot>/map/snapshot`` as a map file (encoded and sent on the snapshot thread): where this process
+        dies, the tracker the session moves to starts from it (:meth:`_fetch_snapshot`)."""
+        now = time.monotonic()
+        if now - track.snapshot_at < SNAPSHOT_EVERY_S:
+            return
+        arrays = track.schedule.map_copy()
+        if arrays is None:
+            return
+        track.snapshot_at = now
+        self.snapshots.submit(self._send_snapshot, arrays, track, header, self.config_for(header.session_id))
+
+    def _send_snapshot(self, arrays, track: SessionTrack, header: FrameMsg, config: PipelineConfig) -> None:
+        try:
+            stored = arrays_file(arrays, header.camera, config, track.map_name or "snapshot",
+                                 built_by=f"session {header.session_id} (robot {header.robot_id}), a snapshot")
+            self.publish(keys.snapshot_key(header.robot_id), encode_map(stored), attachment=header.session_id)
+        except Exception:  # the session goes on without this snapshot
+            self.counters.add("errors")
+            self.log.exception("session %s: the map's snapshot was not sent", header.session_id)
+
+    def _fetch_snapshot(self, control: ControlMsg) -> MapFile | None:
+        """The latest snapshot of a session's map (a session moved here from a tracker that died), from the
+        gateway; None where it holds none (the session had no map yet) or it is unusable: the session starts a new
+        map then."""
+        key = keys.snapshot_key(control.robot_id)
+        for reply in self.session.get(key, attachment=control.session_id, timeout=MAP_TIMEOUT_S):
+            if reply.ok is None:
+                self.log.warning("session %s: no map snapshot: %s", control.session_id,
+                                 reply.err.payload.to_bytes().decode(errors="replace"))
+                return None
+            try:
+                return read_map(reply.ok.payload.to_bytes(), detector=control.config.detector)
+            except MapFileError as exc:
+                self.log.warning("session %s: its map snapshot is unusable: %s", control.session_id, exc)
+                return None
+        return None
+
     def _publish_pose(self, header: FrameMsg, result: TrackResult, stats: FrameStats, frame_id: str = "") -> None:
         pose = PoseMsg(session_id=header.session_id, robot_id=header.robot_id, frame_index=header.frame_index,
                        stamp=header.stamp, frame_id=frame_id, position=result.pose[:3, 3].tolist(),
@@ -447,7 +513,7 @@ class TrackerService(Service):
         while it runs (:meth:`_on_sample`)."""
         if control.tracker in ("", self.replica):
             return True
-        if control.command == "start":
+        if control.command in ("start", "move"):
             self.elsewhere[control.session_id] = control.robot_id
         else:
             self.elsewhere.pop(control.session_id, None)
@@ -455,6 +521,11 @@ class TrackerService(Service):
 
     def _on_sample(self, sample) -> None:
         key = str(sample.key_expr)
+        if self.peers is not None and key.endswith(("/frames", "/pose")):
+            robot, stream = keys.parse(key)
+            (self.peers.framed if stream == "frames" else self.peers.posed)(robot)
+            if stream == "pose":
+                return
         if key.endswith("/frames") and self.elsewhere:
             robot = keys.parse(key)[0]
             if robot in self.elsewhere.values() and robot not in self.serving.values():
@@ -462,14 +533,24 @@ class TrackerService(Service):
         super()._on_sample(sample)
 
     def on_session_start(self, control: ControlMsg) -> None:
+        """A session starts here, or (``move``) comes here from a tracker that died: it goes on in the latest
+        snapshot of its map, where the camera is found again, its poses in the same frame as before."""
         self.serving[control.session_id] = control.robot_id
+        self.elsewhere.pop(control.session_id, None)
         stale = self.tracks.pop(control.session_id, None)  # a start repeated: begin again
         if stale is not None:
             stale.schedule.close()
         if control.map_mode:
             self.maps[control.session_id] = control
-            if control.map_mode in ("localize", "extend"):
-                self.loaded[control.session_id] = self._fetch_map(control)
+        if control.command == "move":
+            snapshot = self._fetch_snapshot(control)
+            if snapshot is not None:
+                self.loaded[control.session_id] = snapshot
+            self.report(control, "moved", f"tracker {self.replica} serves the session now, " + (
+                f"in its map's snapshot ({snapshot.header.keyframes} keyframes)" if snapshot is not None else
+                "in a new map: no snapshot of its map was kept (its poses are in a new frame)"))
+        elif control.map_mode in ("localize", "extend"):
+            self.loaded[control.session_id] = self._fetch_map(control)
         # paced by the camera (a real-rate replay or a live camera): the source never waits for poses
         self.paced[control.session_id] = control.rate > 0 or not control.sequence
 
@@ -489,4 +570,13 @@ class _FinishingFirst:
 
 
 def main(argv: list[str] | None = None) -> None:
-    serve(TrackerService, argv)
+    @one_line_errors("tracker")
+    def run() -> None:
+        parser = service_parser("tracker", __doc__)
+        parser.add_argument("--shared-cores", action="store_true", help="other trackers run on this host's cores "
+                            "(twohr up starts one per robot): no robot of this one is served better than theirs, and a "
+                            "robot lost a while is tracked at a few Hz while its map finds it again")
+        args = parser.parse_args(argv)
+        TrackerService(bus_from_args(args), shared_cores=args.shared_cores).run_forever()
+
+    run()

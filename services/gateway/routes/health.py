@@ -38,8 +38,9 @@ def healthz(bus: Bus, table: Table, settings: Settings,
     """Whether the stack is up (``StackUp``) to anyone; the operator's token (or a gateway with no token, on loopback)
     also sees: ``degraded`` with the reason while a live session is (its tracker drops frames or its keyframe jobs
     come back late: more robots than the CPU serves) or a pipeline service has no replica alive; the admitted load
-    in robots against the capacity; each service's counters, its replicas and their hosts (null when no replica
-    answers). A robot's token sees what anyone does: other robots' ids and the replicas' hosts are the operator's."""
+    in robots against the capacity; every tracker with its host, process id and robots (``trackers``); each
+    service's counters, its replicas and their hosts (null when no replica answers). A robot's token sees what
+    anyone does: other robots' ids and the replicas' hosts are the operator's."""
     missing = bus.missing_services()  # no liveliness token up: POST /sessions answers 503 until they are back
     if caller is None or caller.robot is not None:  # and no bus query for a caller without the token
         return StackUp(status="down" if missing else "up")
@@ -48,4 +49,11 @@ def healthz(bus: Bus, table: Table, settings: Settings,
     degraded = [f"{s.request.robot_id}: {s.health_detail}" for s in table.active() if s.health == "degraded"]
     reasons = degraded + ([f"services not running: {', '.join(missing)}"] if missing else [])
     return {"status": "degraded" if reasons else "ok", "reason": "; ".join(reasons), "missing_services": missing,
-            "robots": {"admitted": admitted_load(table), "capacity": settings.max_robots}, "services": services}
+            "robots": {"admitted": admitted_load(table), "capacity": settings.max_robots},
+            "trackers": trackers(services.get("tracker")), "services": services}
+
+
+def trackers(health: dict | None) -> list[dict]:
+    """Every tracker that answered: its replica, host, process id and the robots whose sessions it serves."""
+    answers = (health or {}).get("replicas", [])
+    return [{key: answer.get(key) for key in ("replica", "host", "pid", "robots")} for answer in answers]

@@ -117,7 +117,7 @@ def session_info(session: Session, recordings: Path) -> SessionInfo:
         health=session.health, health_detail=session.health_detail,
         record=session.request.record,
         recording=f"/sessions/{session.id}/recording" if recording.is_file() else None,
-        map=session.request.map, start=session.request.start, tracker=session.tracker,
+        map=session.request.map, start=session.request.start, tracker=session.tracker, moves=session.moves,
     )
 
 
@@ -149,7 +149,7 @@ def create_session(request: SessionRequest, settings: Settings, bus: Bus, table:
             raise HTTPException(status.HTTP_409_CONFLICT, f"robot {request.robot_id} already runs a session")
         admit(request, table, settings.max_robots)
         session = Session(id=uuid.uuid4().hex[:12], request=request, folder=folder, started_by=identity(who.robot),
-                          tracker=least_loaded_tracker(set(bus.alive.get("tracker", ())), table))
+                          tracker=least_loaded_tracker(set(bus.alive.get("tracker", ())), table), config=config)
         table.add(session)
     bus.send_control(session, "start", config)
     bus.audit.record("session.start", session.started_by, robot=request.robot_id, session=session.id,
