@@ -22,7 +22,23 @@ def _bench(args: argparse.Namespace) -> int:
     out = Path(args.out or "runs/bench")
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {}
-    if args.live or args.soak:
+    if args.fleet is not None:
+        from twohr.config import merge_overrides
+        from twohr.errors import ConfigError
+        from twohr_app.commands.up import parse_replicas
+
+        from . import fleet
+
+        if args.fleet < 1:
+            raise ConfigError(f"--fleet {args.fleet}: give a count of robots, 1 or more")
+        result = fleet.fleet_bench(sequence, config, args.fleet, frames=args.frames, start=args.start,
+                                   replicas=parse_replicas(args.replicas),
+                                   config_overrides=merge_overrides({}, args.set or []), progress=not args.quiet)
+        report["fleet"] = result
+        table = fleet.format_table(result)
+        (out / "fleet.md").write_text(f"{stamp_line(args.argv)}\n\n{table}\n")
+        print(table)
+    elif args.live or args.soak:
         from . import live
 
         if args.soak:
@@ -217,8 +233,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "through one stack (one detector service for all); per-robot figures and how many kept camera "
                    "rate. With --live: that many live robots at once, each its own twohr camera at 30 Hz on its own "
                    "stretch of the sequence: posed %%, ATE, latency per robot and the stack's CPU per robot")
-    p.add_argument("--replicas", action="append", metavar="SERVICE=N", help="with --live: replicas of network "
-                   "services in the stack, as twohr up --replicas takes them")
+    p.add_argument("--replicas", action="append", metavar="SERVICE=N", help="with --live or --fleet: replicas of "
+                   "network services in the stack, as twohr up --replicas takes them")
+    p.add_argument("--fleet", type=int, default=None, metavar="N", help="the server's capacity for robots that "
+                   "track themselves: the keyframe jobs of one run over --frames frames, recorded, then replayed by N "
+                   "robots at once against the stack's detector, yolo and matcher at their recorded times; each "
+                   "robot's keyframe job latency (p50, p99), the server's CPU, and the largest n <= N whose every p99 "
+                   "stays within 1 s (smaller n tried where N fails); bench.json: fleet.robots, "
+                   "fleet.keyframe_p99_ms, fleet.max_robots")
     p.add_argument("--rate", type=float, default=1.0,
                    help="with --bus: source speed, 1 = the camera's real rate (30 Hz for the dev sequence), "
                    "0 = as fast as the pipeline answers (at most two frames in flight)")

@@ -176,16 +176,21 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
     return row
 
 
-def _stack_cpu_s(system) -> float:
-    """CPU seconds (user + system) the stack's processes have used so far."""
-    total = 0.0
+def process_cpu_s(system) -> dict[str, float]:
+    """CPU seconds (user + system) each of the stack's processes has used so far, by its name."""
+    used = {}
     for child in system.group.children:
         try:
             fields = Path(f"/proc/{child.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
-            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+            used[child.name] = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
         except (OSError, IndexError, ValueError):
             pass
-    return total
+    return used
+
+
+def _stack_cpu_s(system) -> float:
+    """CPU seconds (user + system) the stack's processes have used so far."""
+    return sum(process_cpu_s(system).values())
 
 
 def fleet_runs(sequence, robots: int, frames: int, busy_counts: list[int], repeats: int, progress: bool = True,

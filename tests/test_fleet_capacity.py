@@ -1,7 +1,7 @@
 """Two live robots at 30 Hz on one stack that carries two (``--max-robots 2``): each its own ``twohr camera
 --replay`` at 30 Hz on its own stretch of the dev frames (0-299 and 260-559), as a new user would try. Both sessions
 finish with fair shares (posed fractions within 10 points) and usable maps (ATE of each served trajectory at most
-0.03 m); a third robot asking while they run gets 503 with ``Retry-After``."""
+0.03 m); a third robot asking while they run gets 503 with ``Retry-After``. ``twohr bench --fleet`` runs short."""
 
 from __future__ import annotations
 
@@ -61,3 +61,28 @@ def test_two_robots_at_camera_rate_share_fairly_and_a_third_is_turned_away(two_r
           f"{ {r: (row['latency_ms_p50'], row['latency_ms_p99']) for r, row in rows.items()} }")
     assert abs(posed["r1"] - posed["r2"]) <= 10, posed
     assert all(value is not None and value <= 0.03 for value in ate.values()), ate
+
+
+def test_the_fleet_bench_replays_two_robots_keyframe_jobs_and_finds_what_the_server_carries(tmp_path, dev_sequence):
+    """``twohr bench --fleet 2 --frames 120``: the keyframe jobs of one run, recorded, replayed by two robots at once
+    against a stack's network services; bench.json names both robots' p99 and the largest count carried. (The
+    figures belong in the docs, not in a timed test: here only that they are there and whole.)"""
+    import json
+    import subprocess
+    import sys
+
+    out = tmp_path / "bench"
+    result = subprocess.run([sys.executable, "-m", "twohr_app", "bench", "--fleet", "2", "--frames", "120", "--quiet",
+                             "--sequence", str(dev_sequence), "--out", str(out)], capture_output=True, text=True,
+                            timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    fleet = json.loads((out / "bench.json").read_text())["fleet"]
+    assert fleet["robots"] == 2 and len(fleet["keyframe_p99_ms"]) == 2, fleet
+    assert all(p is not None and p > 0 for p in fleet["keyframe_p99_ms"]), fleet
+    assert fleet["recorded"]["keyframe"] >= 5, fleet["recorded"]  # 120 frames make more keyframes than that
+    two = next(run for run in fleet["runs"] if run["robots"] == 2)
+    assert all(n == fleet["recorded"]["keyframe"] for n in two["keyframe_jobs"]), two  # every job answered
+    assert two["network_cores"] > 0 and two["failed_jobs"] == [0, 0], two
+    carried = [run["robots"] for run in fleet["runs"] if all(p <= 1000 for p in run["keyframe_ms_p99"])]
+    assert fleet["max_robots"] == max(carried, default=0), fleet
+    assert "max robots with every keyframe p99" in (out / "fleet.md").read_text()

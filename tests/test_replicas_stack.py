@@ -163,7 +163,7 @@ def test_a_tracker_that_dies_hands_its_robot_to_another_in_the_same_map(stack, d
     print(f"moved in {moved_after:.2f} s; {posed_at_move} poses then, {moved['frames']} at the end; "
           f"ATE {moved['ate_rmse']} m ({moved['trajectory']}), online {moved['ate_rmse_online']} m")
     assert moved_after <= 2.0, moved_after
-    assert moved["state"] == "finished" and moved["frames"] >= posed_at_move + 100, moved
+    assert moved["state"] == "finished" and moved["frames"] >= posed_at_move + 30, moved  # a second's frames at least
     assert served.headers["x-twohr-trajectory"] == "refined", served.headers
     assert len(served.text.splitlines()) >= moved["frames"] - 10, "the refined trajectory lacks the early frames"
     assert moved["ate_rmse"] <= 0.03, moved
