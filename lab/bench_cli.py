@@ -60,7 +60,7 @@ def _bench(args: argparse.Namespace) -> int:
             rows = [row for tls in links for row in live.live_runs(
                 sequence, frames, busy, repeats, progress=not args.quiet, camera_runs=args.camera_runs,
                 config_overrides=overrides, tls=tls)]
-        report["live"] = rows
+        report["live"] = {"rows": rows, "robots": live.robot_summary(rows)}
         table = live.format_table(rows)
         if args.soak:
             report["soak"] = live.soak_summary(rows[0], args.soak)

@@ -115,6 +115,7 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
     subscriber = observer.declare_subscriber(keys.key(robot, "pose"), poses)
     hogs = _busy(busy)
     rss: dict[str, list[tuple[float, float]]] = {}
+    upstream: list[tuple[int, float]] = []  # (bytes, seconds) each camera run sent
     try:
         with stack.http() as client:
             response = client.post("/sessions", json={"source": "camera", "robot_id": robot, "record": False,
@@ -127,7 +128,7 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
                 camera = subprocess.Popen(
                     [sys.executable, "-m", "twohr_app", "camera", "--replay", str(sequence.root), "--rate",
                      "30", "--robot", robot, *stack.camera_args, "--frames", str(per_run), "--start", str(start),
-                     *(["--loop"] if per_run > len(sequence) else [])], stdout=subprocess.DEVNULL)
+                     *(["--loop"] if per_run > len(sequence) else [])], stdout=subprocess.PIPE, text=True)
                 while camera.poll() is None:
                     if time.monotonic() >= next_sample:
                         for child in stack.system.group.children:
@@ -140,6 +141,7 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
                             print(f"  {robot}: {len(poses.received)} poses after {time.monotonic() - t0:.0f} s",
                                   flush=True)
                     time.sleep(0.2)
+                upstream.append(_camera_upstream(camera.stdout.read()))
             deadline = time.monotonic() + 30
             while time.monotonic() < deadline:  # until the last frames' poses are in
                 info = client.get(f"/sessions/{session_id}").json()
@@ -168,7 +170,8 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
            "health": info.get("health"), "health_detail": info.get("health_detail"),
            "served": served.headers.get("x-twohr-trajectory"),
            "ate_served": None if looped else _score(sequence, served.text),
-           "ate_online": None if looped else _score(sequence, online.text), "rss_mib": rss}
+           "ate_online": None if looped else _score(sequence, online.text), "rss_mib": rss,
+           "upstream_bytes_per_s": round(sum(b for b, _ in upstream) / max(1e-9, sum(s for _, s in upstream)))}
     if looped and len(stamps) > 1:
         minutes = (stamps - stamps[0]) / 60
         per_minute = np.bincount(minutes.astype(int))
@@ -186,6 +189,14 @@ def process_cpu_s(system) -> dict[str, float]:
         except (OSError, IndexError, ValueError):
             pass
     return used
+
+
+def _camera_upstream(printed: str) -> tuple[int, float]:
+    """(bytes, seconds) a ``twohr camera`` run sent to the stack, from its last line: every frame goes upstream."""
+    import re
+
+    found = re.search(r"in ([0-9.]+) s \(.*\), ([0-9]+) bytes", printed or "")
+    return (int(found[2]), float(found[1])) if found else (0, 0.0)
 
 
 def _stack_cpu_s(system) -> float:
@@ -310,19 +321,30 @@ def _stack(system, scratch: Path, router: str, port: int, robot: str, keys: Path
                      verify=ssl.create_default_context(cafile=str(keys / "ca.crt")))
 
 
+def robot_summary(rows: list[dict]) -> list[dict]:
+    """Each robot of the runs, its medians over them: frames posed (%) and the bytes per second its camera sent
+    upstream (every frame, JPEG and depth PNG: the robots' frames cross the wire)."""
+    robots = sorted({row["robot"] for row in rows})
+    return [{"robot": robot,
+             "posed_percent": float(np.median([r["posed_percent"] for r in rows if r["robot"] == robot])),
+             "upstream_bytes_per_s": float(np.median([r["upstream_bytes_per_s"] for r in rows if r["robot"] == robot]))}
+            for robot in robots]
+
+
 def format_table(rows: list[dict]) -> str:
     """The sessions as a Markdown table (with the robot count, robot and stack CPU per robot for fleet runs)."""
     fleet = any("robots" in r for r in rows)
     lines = ["| " + ("robots | robot | " if fleet else "") + "link | busy | frames | posed % | dropped | FPS | "
-             "latency p50 / p99 ms | ATE served | ATE online | health |" + (" stack cores per robot |" if fleet
-                                                                             else ""),
-             "|---" * (10 + 3 * fleet) + "|"]
+             "latency p50 / p99 ms | ATE served | ATE online | upstream MB/s | health |" + (
+                 " stack cores per robot |" if fleet else ""),
+             "|---" * (11 + 3 * fleet) + "|"]
     for r in rows:
         lines.append((f"| {r['robots']} | {r['robot']} " if fleet else "") +
                      f"| {r.get('link', 'tcp')} | {r['busy_processes']} | {r['frames']} | {r['posed_percent']} | "
                      f"{r['dropped']} | {r['fps']} | "
                      f"{r['latency_ms_p50']} / {r['latency_ms_p99']} | {r['ate_served']} ({r['served']}) | "
-                     f"{r['ate_online']} | {r['health']} {r['health_detail'] or ''} |" +
+                     f"{r['ate_online']} | {r.get('upstream_bytes_per_s', 0) / 1e6:.2f} | "
+                     f"{r['health']} {r['health_detail'] or ''} |" +
                      (f" {r['stack_cores_per_robot']} |" if fleet else ""))
     return "\n".join(lines)
 

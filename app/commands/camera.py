@@ -157,14 +157,15 @@ def _camera(args: argparse.Namespace) -> int:
     else:
         payloads = realsense_payloads(robot, args.width, args.height, args.fps, args.frames)
     session = open_bus(args)
-    sent, t0 = 0, time.monotonic()
+    sent, sent_bytes, t0 = 0, 0, time.monotonic()
     try:
         publisher = declare_publisher(session, key)
         for payload in payloads:
             publisher.put(payload)
-            sent += 1
-        elapsed = time.monotonic() - t0
-        print(f"published {sent} frames on {key} in {elapsed:.1f} s ({sent / max(elapsed, 1e-9):.1f} FPS)")
+            sent, sent_bytes = sent + 1, sent_bytes + len(payload)
+        elapsed = max(time.monotonic() - t0, 1e-9)
+        print(f"published {sent} frames on {key} in {elapsed:.1f} s ({sent / elapsed:.1f} FPS), {sent_bytes} bytes "
+              f"({sent_bytes / elapsed:.0f} bytes/s upstream)")
     finally:
         session.close()
     return 0

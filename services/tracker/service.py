@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -34,7 +35,7 @@ from twohr.dataset import Frame
 from twohr.errors import TwohrError
 from twohr.features import Keypoints, Matches
 from twohr.geometry import rot_to_quat
-from twohr.mapfile import MapFile, MapFileError, MapHeader, encode_map, read_map
+from twohr.mapfile import MapArrays, MapFile, MapFileError, MapHeader, encode_map, read_map
 from twohr.messages import (
     ControlMsg,
     DynamicsMsg,
@@ -54,7 +55,14 @@ from twohr.messages import (
 )
 from twohr.rates import FairShare, PeerShare, RateThinning
 from twohr.replicas import Replicas
-from twohr.service import Service, bus_from_args, declare_publisher, one_line_errors, service_parser
+from twohr.service import (
+    Service,
+    bus_from_args,
+    change_priority,
+    declare_publisher,
+    one_line_errors,
+    service_parser,
+)
 from twohr.trajectory import Trajectory
 
 from .mapfiles import arrays_file, map_file, usable_map
@@ -72,8 +80,8 @@ DEGRADED_KEYFRAME_LAG = 30
 FAIR_KEYFRAME_LAG = 5
 #: beside other trackers, a robot lost for LOST_FRAMES tracked frames in a row is tracked at LOST_HZ until it is found
 #: again: its keyframe jobs (relocalisation) need the cores more than its coasting poses; 3 and 5 Hz both held the
-#: second robot of the two-robot check under 0.025 m in 7 of 8 runs, without it 0 of 4 (docs/fleet.md, "Tracker
-#: replicas"); a short loss, which the next keyframe mends, is not thinned
+#: second robot of the two-robot check under 0.025 m in 7 of 8 runs, without it 0 of 4 (docs/fleet.md, "Fair shares
+#: between trackers"); a short loss, which the next keyframe mends, is not thinned
 LOST_HZ = 3.0
 LOST_FRAMES = 10
 #: how long the map store may take to hand over or keep a map (seconds)
@@ -217,7 +225,8 @@ class TrackerService(Service):
 
     def __init__(self, bus=None, shared_cores: bool = False) -> None:
         """``shared_cores``: other trackers run on this host's cores; this one caps its robots' rates so that none is
-        served better than the others' worst (:class:`~twohr.rates.PeerShare`), and runs at the networks' priority."""
+        served better than the others' worst (:class:`~twohr.rates.PeerShare`), and runs at the networks' priority
+        while the others serve live robots (:meth:`_yield_priority`)."""
         # robots take turns: on an overloaded stack each gets the same share of the per-frame thread
         super().__init__(bus, queue_size=64, policy="backpressure", fair=True)
         self.tracks: dict[str, SessionTrack] = {}
@@ -234,13 +243,25 @@ class TrackerService(Service):
         self.replicas: dict[str, Replicas] = {}
         self.fair = FairShare()  # equal shares of the per-frame thread when the cameras ask for more
         self.peers = PeerShare() if shared_cores else None  # and of the cores, beside other trackers
-        if shared_cores:
-            # no priority over the networks: two trackers raised above them took the cores their keyframe jobs
-            # needed (the second robot's map 0.014-0.032 m in 3 runs, against 0.015-0.021 m in 4 at normal priority)
-            self.priority = "keyframe"
+        self.raised_by = 0  # how far take_priority raised this process (0: it could not, or it is not asked to)
+        self.yielding = False  # lowered to the networks' priority while other robots are live on these cores
 
     def on_start(self) -> None:
         self.replicas = {name: Replicas(self.session, name) for name in keys.NETWORK_SERVICES}
+
+    def take_priority(self) -> None:
+        before = os.getpriority(os.PRIO_PROCESS, 0)
+        super().take_priority()
+        self.raised_by = before - os.getpriority(os.PRIO_PROCESS, 0)
+
+    def _yield_priority(self, others: bool) -> None:
+        """Beside other trackers' live robots, back to the networks' priority; alone again, the frames' priority.
+        Two trackers raised above the detector, yolo and matcher took the cores their own keyframe jobs needed (the
+        second robot's map 0.014-0.032 m in 3 runs, against 0.015-0.021 m in 4 at the networks' priority); a robot
+        alone keeps the raise that serves a busy robot's frames first."""
+        if self.raised_by and others != self.yielding and change_priority(
+                self.raised_by if others else -self.raised_by):
+            self.yielding = others
 
     def health(self) -> dict:
         """The shell's counters, the robots whose sessions this tracker serves, and the keyframe jobs each network
@@ -424,7 +445,10 @@ class TrackerService(Service):
         served than theirs (:class:`~twohr.rates.PeerShare`), and a robot lost a while at :data:`LOST_HZ`."""
         self.fair.saw(header.session_id, header.stamp)
         rate = self.fair.rate(header.session_id)
-        cap = None if self.peers is None else self.peers.cap(header.robot_id, set(self.serving.values()))
+        served = set(self.serving.values())
+        cap = None if self.peers is None else self.peers.cap(header.robot_id, served)
+        if self.peers is not None:
+            self._yield_priority(bool(set(self.peers.rates()) - served))
         rate = cap if rate is None else rate if cap is None else min(rate, cap)
         if track.lost >= LOST_FRAMES and self.peers is not None:
             rate = LOST_HZ if rate is None else min(rate, LOST_HZ)
@@ -478,7 +502,7 @@ class TrackerService(Service):
         track.snapshot_at, track.snapshot_keyframes = now, len(arrays.keyframe_stamps)
         self.snapshots.submit(self._send_snapshot, arrays, track, header, self.config_for(header.session_id))
 
-    def _send_snapshot(self, arrays, track: SessionTrack, header: FrameMsg, config: PipelineConfig) -> None:
+    def _send_snapshot(self, arrays: MapArrays, track: SessionTrack, header: FrameMsg, config: PipelineConfig) -> None:
         try:
             stored = arrays_file(arrays, header.camera, config, track.map_name or "snapshot",
                                  built_by=f"session {header.session_id} (robot {header.robot_id}), a snapshot")
@@ -554,7 +578,7 @@ class TrackerService(Service):
             if snapshot is not None:
                 self.loaded[control.session_id] = snapshot
             self.report(control, "moved", f"tracker {self.replica} serves the session now, " + (
-                f"in its map's snapshot ({snapshot.header.keyframes} keyframes)" if snapshot is not None else
+                f"in its map as last kept ({snapshot.header.keyframes} keyframes)" if snapshot is not None else
                 "in a new map: no snapshot of its map was kept (its poses are in a new frame)"))
         elif control.map_mode in ("localize", "extend"):
             self.loaded[control.session_id] = self._fetch_map(control)
