@@ -141,7 +141,7 @@ class RobotReplay:
 
         self.robot, self.session_id, self.jobs = robot, session_id, jobs
         self.replicas = {name: Replicas(bus_session, name) for name in keys.NETWORK_SERVICES}
-        self.frames = self._frame_payloads(sequence, {c.frame for j in jobs for c in j.calls if not c.arrays})
+        self.frames = self._frame_payloads(sequence, {c.frame for j in jobs for c in j.calls if c.arrays is None})
         self.latency_ms: dict[str, list[float]] = {"keyframe": [], "mask": []}  # from when it was due to its answer
         self.service_ms: list[float] = []  # keyframe jobs, from when they were sent
         self.late_ms: list[float] = []
