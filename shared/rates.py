@@ -144,10 +144,9 @@ class PeerShare:
                 self.first_posed.pop(robot, None)
         return rates
 
-    def cap(self, robot: str, served: set[str], now: float | None = None) -> float | None:
-        """The rate ``robot`` (one of ``served``, the robots of this tracker) may have tracked now, or None: no
-        other robot is served worse."""
-        rates = self.rates(now)
+    def cap(self, robot: str, served: set[str], rates: dict[str, tuple[float, float]]) -> float | None:
+        """The rate ``robot`` (one of ``served``, the robots of this tracker) may have tracked now, by ``rates``
+        (:meth:`rates`), or None: no other robot is served worse."""
         others = [fraction for other, (_, fraction) in rates.items() if other not in served]
         if robot not in rates or not others:
             return None

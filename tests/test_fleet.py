@@ -143,6 +143,22 @@ def test_one_identity_per_robot_and_revocation_while_running(keys, tmp_path, sel
             assert sorted((k, p) for _, k, p in got) == [("twohr/a/camera", b"a's own"), ("twohr/b/camera", b"b's own")]
         assert poses_at_a == ["twohr/b/pose"] and watched == []
         token.undeclare()
+        # a map snapshot goes from the tracker to the gateway only: a robot may neither send one nor ask for one
+        gateway = _client(fleet.identity("gateway"), endpoint)
+        sessions.append(gateway)
+        snapshots: list[tuple[str, bytes]] = []
+        gateway.declare_subscriber("twohr/*/map/snapshot", lambda s: snapshots.append(
+            (str(s.key_expr), s.payload.to_bytes())))
+        gateway.declare_queryable("twohr/*/map/snapshot", lambda q: q.reply(q.key_expr, b"the map"))
+        time.sleep(1.0)
+        b.put("twohr/a/map/snapshot", b"b's forged map of a")
+        b.put("twohr/b/map/snapshot", b"b's own map")
+        tracker.put("twohr/a/map/snapshot", b"a's map")
+        asked = {name: [r.ok.payload.to_bytes() for r in who.get("twohr/a/map/snapshot", timeout=2.0)
+                        if r.ok is not None] for name, who in (("b", b), ("tracker", tracker))}
+        time.sleep(1.0)
+        assert snapshots == [("twohr/a/map/snapshot", b"a's map")], snapshots
+        assert asked == {"b": [], "tracker": [b"the map"]}, asked
         # no certificate, a self-signed one named a, a's certificate with b's password: refused or powerless
         with pytest.raises(TwohrError, match="cannot join"):
             open_session(BusConfig(connect=[endpoint], identity=None, user="a", password=SecretStr("x"),

@@ -76,14 +76,14 @@ def test_trackers_on_shared_cores_cap_only_the_better_served_robot():
     now = 179 / 30
     fractions = {robot: round(fraction, 1) for robot, (_, fraction) in peers.rates(now=now).items()}
     assert fractions == {"a": 0.8, "b": 0.5}, fractions  # 73 and 45 poses of the 91 frames in the window
-    assert abs(peers.cap("a", {"a"}, now=now) - 0.55 * 30) < 0.5
-    assert peers.cap("b", {"b"}, now=now) is None
-    assert peers.cap("a", {"a", "b"}, now=now) is None  # one tracker serving both: its FairShare's work
-    assert peers.cap("a", {"a"}, now=now + 3.5) is None  # nothing seen for longer than the window
+    assert abs(peers.cap("a", {"a"}, peers.rates(now=now)) - 0.55 * 30) < 0.5
+    assert peers.cap("b", {"b"}, peers.rates(now=now)) is None
+    assert peers.cap("a", {"a", "b"}, peers.rates(now=now)) is None  # one tracker serving both: its FairShare's work
+    assert peers.cap("a", {"a"}, peers.rates(now=now + 3.5)) is None  # nothing seen for longer than the window
     even = PeerShare(window_s=1.0, settle_s=1.0)
     for t in (0.0, 0.5, 1.0):
         for robot in ("a", "b"):
             even.framed(robot, now=t)
             even.posed(robot, now=t)
     assert len(even.rates(now=1.0)) == 2
-    assert even.cap("a", {"a"}, now=1.0) is None and even.cap("b", {"b"}, now=1.0) is None
+    assert even.cap("a", {"a"}, even.rates(now=1.0)) is None and even.cap("b", {"b"}, even.rates(now=1.0)) is None

@@ -445,13 +445,13 @@ class TrackerService(Service):
         served than theirs (:class:`~twohr.rates.PeerShare`), and a robot lost a while at :data:`LOST_HZ`."""
         self.fair.saw(header.session_id, header.stamp)
         rate = self.fair.rate(header.session_id)
-        served = set(self.serving.values())
-        cap = None if self.peers is None else self.peers.cap(header.robot_id, served)
-        if self.peers is not None:
-            self._yield_priority(bool(set(self.peers.rates()) - served))
-        rate = cap if rate is None else rate if cap is None else min(rate, cap)
-        if track.lost >= LOST_FRAMES and self.peers is not None:
-            rate = LOST_HZ if rate is None else min(rate, LOST_HZ)
+        if self.peers is not None:  # beside other trackers
+            served, rates = set(self.serving.values()), self.peers.rates()
+            self._yield_priority(bool(set(rates) - served))
+            cap = self.peers.cap(header.robot_id, served, rates)
+            rate = cap if rate is None else rate if cap is None else min(rate, cap)
+            if track.lost >= LOST_FRAMES:
+                rate = LOST_HZ if rate is None else min(rate, LOST_HZ)
         track.share_hz = rate
         if rate is None:
             track.thinning = None
@@ -549,16 +549,13 @@ class TrackerService(Service):
         return False
 
     def _on_sample(self, sample) -> None:
-        key = str(sample.key_expr)
-        if self.peers is not None and key.endswith(("/frames", "/pose")):
-            robot, stream = keys.parse(key)
+        robot, stream = keys.parse(str(sample.key_expr))
+        if self.peers is not None and stream in ("frames", "pose"):
             (self.peers.framed if stream == "frames" else self.peers.posed)(robot)
             if stream == "pose":
                 return
-        if key.endswith("/frames") and self.elsewhere:
-            robot = keys.parse(key)[0]
-            if robot in self.elsewhere.values() and robot not in self.serving.values():
-                return  # a robot another tracker serves
+        if stream == "frames" and robot in self.elsewhere.values() and robot not in self.serving.values():
+            return  # a robot another tracker serves (its controls still come in: they move it)
         super()._on_sample(sample)
 
     def on_session_start(self, control: ControlMsg) -> None:
