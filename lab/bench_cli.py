@@ -35,6 +35,11 @@ def _bench(args: argparse.Namespace) -> int:
                                    replicas=parse_replicas(args.replicas),
                                    config_overrides=merge_overrides({}, args.set or []), progress=not args.quiet)
         report["fleet"] = result
+        if not (args.set or args.replicas or args.config or args.preset):  # the stack twohr up starts by default
+            from twohr_app.capacity import keep_bench
+
+            kept = keep_bench(result["max_robots"])
+            print(f"kept for twohr up --max-robots auto: {kept.line()}")
         table = fleet.format_table(result)
         (out / "fleet.md").write_text(f"{stamp_line(args.argv)}\n\n{table}\n")
         print(table)

@@ -68,13 +68,14 @@ def test_the_fleet_bench_replays_two_robots_keyframe_jobs_and_finds_what_the_ser
     against a stack's network services; bench.json names both robots' p99 and the largest count carried. (The
     figures belong in the docs, not in a timed test: here only that they are there and whole.)"""
     import json
+    import os
     import subprocess
     import sys
 
-    out = tmp_path / "bench"
+    out, cache = tmp_path / "bench", tmp_path / "cache"
     result = subprocess.run([sys.executable, "-m", "twohr_app", "bench", "--fleet", "2", "--frames", "120", "--quiet",
                              "--sequence", str(dev_sequence), "--out", str(out)], capture_output=True, text=True,
-                            timeout=600)
+                            timeout=600, env=os.environ | {"XDG_CACHE_HOME": str(cache)})
     assert result.returncode == 0, result.stderr[-3000:]
     fleet = json.loads((out / "bench.json").read_text())["fleet"]
     assert fleet["robots"] == 2 and len(fleet["keyframe_p99_ms"]) == 2, fleet
@@ -86,3 +87,7 @@ def test_the_fleet_bench_replays_two_robots_keyframe_jobs_and_finds_what_the_ser
     carried = [run["robots"] for run in fleet["runs"] if all(p <= 1000 for p in run["keyframe_ms_p99"])]
     assert fleet["max_robots"] == max(carried, default=0), fleet
     assert "max robots with every keyframe p99" in (out / "fleet.md").read_text()
+    # what it found is what `twohr up --max-robots auto` admits on this host from now on
+    kept = json.loads((cache / "twohr" / "capacity.json").read_text())
+    assert [entry["robots"] for entry in kept.values() if entry["source"] == "twohr bench --fleet"] == [
+        float(max(1, fleet["max_robots"]))], kept

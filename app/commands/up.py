@@ -138,9 +138,15 @@ def _check_args(args: argparse.Namespace) -> tuple[dict[str, int], float, int]:
     if args.only:
         raise ConfigError("--only names the services a --join host runs; a stack runs every service")
     replicas = check_replicas(parse_replicas(args.replicas))
-    max_robots = parse_max_robots(args.max_robots)
+    max_robots = None if args.max_robots == "auto" else parse_max_robots(args.max_robots)
     map_versions = parse_map_versions(args.map_versions)
     check_exposure(args)
+    if max_robots is None:  # measured on this host (kept after the first time), not assumed from its cores
+        from ..capacity import auto_capacity
+
+        capacity = auto_capacity(say=lambda line: print(line, flush=True))
+        print(f"--max-robots auto: {capacity.line()}", flush=True)
+        max_robots = capacity.robots
     return replicas, max_robots, map_versions
 
 
@@ -268,8 +274,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "its map, if it dies")
     p.add_argument("--max-robots", default="auto", metavar="N", help="robots the stack admits at 30 Hz, each on a "
                    "tracker of its own (N trackers run); past it POST /sessions gets 503 with Retry-After (a session "
-                   "at \"rate\" 15 counts half); auto (default) = from this host's cores, as measured by twohr bench "
-                   "--live --robots N")
+                   "at \"rate\" 15 counts half); auto (default) = measured: the robots twohr bench --fleet carried on "
+                   "this host, else one keyframe job and one frame timed at the first start (kept per CPU in "
+                   "~/.cache/twohr/capacity.json)")
     p.add_argument("--join", default=None, metavar="ENDPOINT", help="run no stack: start replicas of the --only "
                    "services on this host, joined to the running stack's router at ENDPOINT (tls/HOST:7447 with "
                    "--keys)")
