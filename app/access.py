@@ -19,7 +19,23 @@ from __future__ import annotations
 from pydantic import BaseModel, Field
 
 from twohr.bus import endpoint_host, is_loopback_host
-from twohr.keys import ALIVE_PREFIX, HEALTH_PREFIX, MAPS_PREFIX, PREFIX, RAW_CAMERA, key, snapshot_key
+from twohr.keys import (
+    ALIVE_PREFIX,
+    CONTROL,
+    DETECT_QUERY,
+    DYNAMICS_QUERY,
+    HEALTH_PREFIX,
+    MAPS_PREFIX,
+    MATCH_QUERY,
+    NETWORK_SERVICES,
+    PREFIX,
+    RAW_CAMERA,
+    alive_key,
+    edge_replica,
+    health_key,
+    key,
+    snapshot_key,
+)
 
 #: rmw_zenoh's liveliness space (``twohr_services.ros2.rmw.ADMIN_SPACE``)
 ADMIN_SPACE_ROS2 = "@ros2_lv"
@@ -42,8 +58,10 @@ class Grants(BaseModel):
     matching: list[str] | None = Field(None, description="subscriber declarations it may learn of, so that it sends "
                                        "what it publishes at all (default: its publish keys); a robot learns of "
                                        "every camera subscriber, since they subscribe to all cameras at once")
-    tokens: list[str] = Field(default_factory=list, description="rmw_zenoh liveliness tokens it may hold (its ROS 2 "
-                              "nodes and endpoints), besides those its publish keys name")
+    tokens: list[str] = Field(default_factory=list, description="liveliness tokens it may hold besides its role's "
+                              "(rmw_zenoh's of its ROS 2 nodes and endpoints; a robot's own tracker's)")
+    watch: list[str] = Field(default_factory=list, description="liveliness tokens it may follow, where "
+                             "watch_liveliness does not give it all")
 
 
 def ros2_keys(domain: int) -> list[str]:
@@ -154,7 +172,7 @@ def role_rules(role: str, grants: Grants) -> list[dict]:
     ros2_tokens = grants.tokens + [k for k in grants.publish if k.startswith(f"{ADMIN_SPACE_ROS2}/")]
     if ros2_tokens:
         rules.append(_rule(f"{role}-ros2-tokens", ["liveliness_token"], "ingress", ros2_tokens))
-    watched = ([f"{ALIVE_PREFIX}/**"] if grants.watch_liveliness else []) + [
+    watched = ([f"{ALIVE_PREFIX}/**"] if grants.watch_liveliness else grants.watch) + [
         k for k in grants.subscribe if k.startswith(f"{ADMIN_SPACE_ROS2}/")]
     if watched:
         rules += [_rule(f"{role}-watch", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", watched),
@@ -162,17 +180,37 @@ def role_rules(role: str, grants: Grants) -> list[dict]:
     return rules
 
 
-def robot_grants(robot: str, ros2_domain: int = 0) -> Grants:
+#: what a robot's own tracker publishes of its robot, as the stack's tracker does
+TRACKER_RESULTS = ("pose", "path", "status", "landmarks")
+
+
+def robot_grants(robot: str, ros2_domain: int = 0, edge: bool = False) -> Grants:
     """What robot ``robot`` may do on a fleet's bus: what a ``client`` may of twohr's keys, but publish only its own
     camera, and neither ask the services' health nor follow their liveliness tokens (both name every replica and
-    its host: the operator's, through ``GET /healthz``); of ROS 2, :func:`robot_ros2_grants`."""
+    its host: the operator's, through ``GET /healthz``); of ROS 2, :func:`robot_ros2_grants`.
+
+    ``edge`` (``twohr keys add --edge``): it runs its own tracker (``twohr camera --edge``), which also publishes
+    the robot's own results (:data:`TRACKER_RESULTS`), hears its own sessions start and stop, asks the network
+    services' replicas for its own keyframes (following their tokens), fetches and saves maps, and holds the token
+    and answers the health query of tracker ``edge+<robot>``; of any other robot's keys, nothing more."""
     client = role_grants(ros2_domain)["client"]
     ros2 = robot_ros2_grants(robot, ros2_domain)
     twohr_only = [k for k in client.subscribe if k.startswith(f"{PREFIX}/")]
-    return Grants(publish=[key(robot, RAW_CAMERA), *ros2.publish], subscribe=twohr_only + ros2.subscribe,
-                  serve=ros2.serve, ask=client.ask + ros2.ask, watch_liveliness=False, read_health=False,
-                  matching=[k for k in client.publish if k.startswith(f"{PREFIX}/")] + ros2.publish,
-                  tokens=ros2.tokens)
+    grants = Grants(publish=[key(robot, RAW_CAMERA), *ros2.publish], subscribe=twohr_only + ros2.subscribe,
+                    serve=ros2.serve, ask=client.ask + ros2.ask, watch_liveliness=False, read_health=False,
+                    matching=[k for k in client.publish if k.startswith(f"{PREFIX}/")] + ros2.publish,
+                    tokens=ros2.tokens)
+    if edge:
+        replica = edge_replica(robot)
+        grants.publish += [key(robot, stream) for stream in TRACKER_RESULTS]
+        grants.subscribe.append(key(robot, CONTROL))
+        grants.ask += [f"{key(robot, query)}/*" for query in (DETECT_QUERY, DYNAMICS_QUERY, MATCH_QUERY)] + [
+            f"{MAPS_PREFIX}/*/save"]
+        grants.serve.append(health_key("tracker", replica))
+        grants.tokens.append(alive_key("tracker", replica))
+        grants.watch += [alive_key(service) for service in NETWORK_SERVICES]
+        grants.matching += [key(robot, stream) for stream in TRACKER_RESULTS]
+    return grants
 
 
 def _policy(subjects: list[dict], rules: list[dict]) -> tuple[list[dict], list[dict], dict]:
@@ -182,12 +220,13 @@ def _policy(subjects: list[dict], rules: list[dict]) -> tuple[list[dict], list[d
 
 
 def access_control(ros2_domain: int = 0, uplinks: list[str] | None = None, robots: list[str] | None = None,
-                   replicas: list[str] | None = None) -> dict:
+                   replicas: list[str] | None = None, edge: list[str] | None = None) -> dict:
     """The router's ``access_control`` section: deny by default, allow what :func:`role_grants` lists.
 
     Without ``robots``, each role is known by its user name, and every outside client shares the ``client`` role.
     With ``robots`` (a fleet's stack), each service role and each robot is known by its certificate's common name
-    and its user name together, and robot ``r`` gets :func:`robot_grants`; there is no shared ``client`` or
+    and its user name together, and robot ``r`` gets :func:`robot_grants` (those of ``edge`` with their own tracker's
+    rights); there is no shared ``client`` or
     ``router`` role; each of ``replicas`` (``ROLE@HOST``, a service replica of another host with a certificate of its
     own) is known by that name and gets its role's rules. A robot's own router that links to the stack's router
     lists that router's Zenoh ids as ``uplinks`` and grants it :func:`uplink_grants`: the router that dials is the
@@ -202,7 +241,8 @@ def access_control(ros2_domain: int = 0, uplinks: list[str] | None = None, robot
                                  role_rules(role, grants)))
     for robot in robots or []:
         subject = {"id": f"robot-{robot}", "cert_common_names": [robot], "usernames": [robot]}
-        parts.append(_policy([subject], role_rules(subject["id"], robot_grants(robot, ros2_domain))))
+        grants = robot_grants(robot, ros2_domain, edge=robot in (edge or []))
+        parts.append(_policy([subject], role_rules(subject["id"], grants)))
     if uplinks:
         parts.append(_policy([{"id": "uplink", "zids": list(uplinks)}],
                              role_rules("uplink", uplink_grants(ros2_domain))))

@@ -261,6 +261,7 @@ class RouterList(BaseModel):
     version: int
     robots: list[str]
     replicas: list[str] = Field(default_factory=list)
+    edge: list[str] = Field(default_factory=list, description="the robots that run their own tracker")
     users: SecretStr
 
 
@@ -284,7 +285,9 @@ def read_list(folder: Path) -> RouterList:
     for name in replicas:
         if not isinstance(name, str) or not name.isprintable() or not name or any(c in name for c in " :/"):
             raise ListError(version, f"{folder / ROBOTS_FILE} lists an invalid replica {name!r}")
-    return RouterList(version=version, robots=robots, replicas=replicas, users=(folder / USERS_FILE).read_text())
+    edge = [name for name in data.get("edge", []) if name in robots]
+    return RouterList(version=version, robots=robots, replicas=replicas, edge=edge,
+                      users=(folder / USERS_FILE).read_text())
 
 
 def router_state(router_folder: Path) -> Path | None:
@@ -372,7 +375,7 @@ class FleetRouter:
             users = write_private(private / USERS_FILE, listing.users.get_secret_value())
             security = RouterSecurity(users_file=users, identity=self.identity,
                                       access_control=access_control(self.ros2_domain, robots=listing.robots,
-                                                                    replicas=listing.replicas))
+                                                                    replicas=listing.replicas, edge=listing.edge))
             session = start_router(self.listen, security)
         except BaseException:
             shutil.rmtree(private, ignore_errors=True)

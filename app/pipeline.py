@@ -44,9 +44,10 @@ class StageOutput:
 class FrontEnd:
     """Keypoints and the dynamic mask of a frame (detector + yolo cores, in this process)."""
 
-    def __init__(self, config: PipelineConfig) -> None:
+    def __init__(self, config: PipelineConfig, detector: bool = True) -> None:
+        """``detector`` False: the dynamic masks alone (the keypoints come from elsewhere)."""
         self.config = config
-        self.detector = build_detector(config.detector)
+        self.detector = build_detector(config.detector) if detector else None
         self.masker = DynamicMasker(config.yolo) if config.yolo.enabled else None
 
     def __call__(self, frame: Frame) -> StageOutput:
@@ -78,18 +79,32 @@ def detector_provenance(detector, image_size: tuple[int, int]) -> dict:
     return chosen
 
 
-def local_stages(config: PipelineConfig, camera: CameraIntrinsics) -> Stages:
-    """The detector, YOLO and matcher cores in this process, compiled for the camera's image size."""
-    front = FrontEnd(config)
+#: the network stages a schedule asks: where each runs is the caller's choice (:func:`local_stages`)
+NETWORKS = ("detector", "yolo", "matcher")
+
+
+def local_stages(config: PipelineConfig, camera: CameraIntrinsics, here: tuple[str, ...] = NETWORKS,
+                 elsewhere: Stages | None = None) -> Stages:
+    """The detector, YOLO and matcher cores in this process, compiled for the camera's image size; with ``here``
+    naming fewer of :data:`NETWORKS`, the others are ``elsewhere``'s (a robot's own tracker asks the stack for
+    some, :mod:`twohr_app.edge`)."""
+    unknown = set(here) - set(NETWORKS)
+    if unknown or (elsewhere is None and set(here) != set(NETWORKS)):
+        raise ValueError(f"stages here {here}: name some of {NETWORKS}, and give the others' stages")
+    front = FrontEnd(config, detector="detector" in here)
     blank = np.zeros((camera.height, camera.width, 3), np.uint8)
-    front.detector.detect(blank)  # compile the networks for this size now, not on the first frames
-    if front.masker is not None:
+    if front.detector is not None:
+        front.detector.detect(blank)  # compile the networks for this size now, not on the first frames
+    masks = front.masker is not None and "yolo" in here
+    if masks:
         front.masker.detect_dynamic(blank)
-    matcher = build_matcher(config.matcher)
-    chosen = detector_provenance(front.detector, (camera.width, camera.height))
-    return Stages(lambda frame: front.detector.detect(frame.rgb),
-                  None if front.masker is None else front.dynamic_mask,
-                  lambda _frame, desc_a, desc_b: matcher(desc_a, desc_b), chosen)
+    matcher = build_matcher(config.matcher) if "matcher" in here else None
+    return Stages(
+        (lambda frame: front.detector.detect(frame.rgb)) if front.detector is not None else elsewhere.detect,
+        (front.dynamic_mask if masks else None) if "yolo" in here else elsewhere.dynamic_mask,
+        (lambda _frame, desc_a, desc_b: matcher(desc_a, desc_b)) if matcher is not None else elsewhere.match,
+        detector_provenance(front.detector, (camera.width, camera.height)) if front.detector is not None else {},
+        match_sets=None if matcher is not None else elsewhere.match_sets)
 
 
 def cached_stages(config: PipelineConfig, cache: dict[int, StageOutput]) -> Stages:

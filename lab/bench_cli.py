@@ -23,6 +23,7 @@ def _bench(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {}
     if args.fleet is not None:
+        from twohr import keys
         from twohr.config import merge_overrides
         from twohr.errors import ConfigError
         from twohr_app.commands.up import parse_replicas
@@ -31,11 +32,16 @@ def _bench(args: argparse.Namespace) -> int:
 
         if args.fleet < 1:
             raise ConfigError(f"--fleet {args.fleet}: give a count of robots, 1 or more")
+        from twohr_app.edge import parse_server_stages
+
+        server = parse_server_stages(args.server_stages) if args.server_stages else tuple(keys.NETWORK_SERVICES)
         result = fleet.fleet_bench(sequence, config, args.fleet, frames=args.frames, start=args.start,
                                    replicas=parse_replicas(args.replicas),
-                                   config_overrides=merge_overrides({}, args.set or []), progress=not args.quiet)
+                                   config_overrides=merge_overrides({}, args.set or []), progress=not args.quiet,
+                                   server_stages=server)
         report["fleet"] = result
-        if not (args.set or args.replicas or args.config or args.preset):  # the stack twohr up starts by default
+        # the stack twohr up starts by default, serving every network of a robot it tracks itself
+        if not (args.set or args.replicas or args.config or args.preset or args.server_stages):
             from twohr_app.capacity import keep_bench
 
             kept = keep_bench(result["max_robots"])
@@ -53,6 +59,11 @@ def _bench(args: argparse.Namespace) -> int:
         from twohr.config import merge_overrides
 
         links = {"tcp": [False], "tls": [True], "both": [False, True]}[args.link]
+        tracking = ("central", "edge") if args.edge else ("central",)
+        if args.edge and (args.soak or args.camera_runs != 1):
+            from twohr.errors import ConfigError
+
+            raise ConfigError("--edge runs one camera per session: not with --soak or --camera-runs")
         overrides = merge_overrides({}, args.set or [])
         if args.robots is not None or args.replicas:  # robots on one stack, each with its own camera
             from twohr_app.commands.up import parse_replicas
@@ -60,11 +71,11 @@ def _bench(args: argparse.Namespace) -> int:
             replicas = parse_replicas(args.replicas)
             rows = [row for tls in links for row in live.fleet_runs(
                 sequence, args.robots or 1, frames, busy, repeats, progress=not args.quiet, config_overrides=overrides,
-                tls=tls, replicas=replicas)]
+                tls=tls, replicas=replicas, tracking=tracking)]
         else:
             rows = [row for tls in links for row in live.live_runs(
                 sequence, frames, busy, repeats, progress=not args.quiet, camera_runs=args.camera_runs,
-                config_overrides=overrides, tls=tls)]
+                config_overrides=overrides, tls=tls, tracking=tracking)]
         report["live"] = {"rows": rows, "robots": live.robot_summary(rows)}
         table = live.format_table(rows)
         if args.soak:
@@ -231,6 +242,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="one live camera session on the sequence looped at 30 Hz for MINUTES: every service's RSS "
                    "every 10 s and the FPS per minute")
     p.add_argument("--soak-busy", type=int, default=0, help="with --soak: busy processes beside the stack")
+    p.add_argument("--server-stages", default=None, metavar="LIST", help="with --fleet: the networks the server "
+                   "runs for each robot, comma-separated (default: all three; detector: twohr camera --edge's default, "
+                   "the robot running yolo and the matcher itself)")
+    p.add_argument("--edge", action="store_true", help="with --live: every session also with the robot tracking "
+                   "itself (twohr camera --edge), beside the stack tracking it; bench.json live.robots[i] gives each "
+                   "way's upstream_bytes_per_s")
     p.add_argument("--camera-runs", type=int, default=1, help="with --live or --soak: feed each session that many "
                    "separate twohr camera runs of its frames (each a new client whose stamps start again, as a camera "
                    "driver restarted), e.g. --live --frames 560 --camera-runs 6 --busy 0")

@@ -155,11 +155,11 @@ class RobotReplay:
                 for index in sorted(frames)}
 
     def _ask(self, call: Call) -> None:
-        from twohr.messages import MatchRequestMsg, encode
+        from twohr.messages import MatchRequestMsg, colour_image, encode
 
-        service = {keys.DETECT_QUERY: "detector", keys.DYNAMICS_QUERY: "yolo", keys.MATCH_QUERY: "matcher"}[call.query]
-        if call.arrays is None:
-            payload = self.frames[call.frame]
+        service = SERVICE_OF[call.query]
+        if call.arrays is None:  # the detector reads the colour image alone, as the tracker sends it
+            payload = colour_image(self.frames[call.frame]) if service == "detector" else self.frames[call.frame]
         else:
             request = MatchRequestMsg(session_id=self.session_id, robot_id=self.robot, frame_index=call.frame,
                                       stamp=call.stamp, reference=call.reference)
@@ -259,16 +259,29 @@ def carried(run: dict) -> bool:
     return not any(run["failed_jobs"]) and all(p is not None and p <= P99_LIMIT_MS for p in run["keyframe_ms_p99"])
 
 
+#: which service answers each query
+SERVICE_OF = {keys.DETECT_QUERY: "detector", keys.DYNAMICS_QUERY: "yolo", keys.MATCH_QUERY: "matcher"}
+
+
+def on_server(jobs: list[Job], server_stages: tuple[str, ...]) -> list[Job]:
+    """The jobs as the server sees them when a robot runs the networks not in ``server_stages`` itself (``twohr
+    camera --edge --server-stages``): their other calls gone, and jobs left with none."""
+    kept = [Job(job.kind, job.frame, job.at, [c for c in job.calls if SERVICE_OF[c.query] in server_stages])
+            for job in jobs]
+    return [job for job in kept if job.calls]
+
+
 def fleet_bench(sequence: RGBDSequence, config: PipelineConfig, robots: int, frames: int | None = None,
                 start: int = 0, replicas: dict[str, int] | None = None, config_overrides: dict | None = None,
-                progress: bool = True) -> dict:
+                progress: bool = True, server_stages: tuple[str, ...] = tuple(keys.NETWORK_SERVICES)) -> dict:
     """``twohr bench --fleet N`` (see the module docstring): the recorded jobs, the run of N robots, the smaller runs
-    where it failed, and the largest n carried."""
+    where it failed, and the largest n carried. ``server_stages``: the networks the server runs for the robots (the
+    default, all three; ``twohr camera --edge``'s default, the detector alone)."""
     from twohr.bus import free_port
     from twohr.machine import machine
     from twohr_app.supervisor import start_system
 
-    jobs = record_jobs(sequence, config, start, frames, progress)
+    jobs = on_server(record_jobs(sequence, config, start, frames, progress), server_stages)
     kinds = {kind: sum(job.kind == kind for job in jobs) for kind in ("keyframe", "mask")}
     if progress:
         print(f"recorded {kinds['keyframe']} keyframe jobs and {kinds['mask']} masks over "
@@ -298,6 +311,7 @@ def fleet_bench(sequence: RGBDSequence, config: PipelineConfig, robots: int, fra
             system.stop()
     return {"robots": robots, "keyframe_p99_ms": runs[robots]["keyframe_ms_p99"], "max_robots": low,
             "p99_limit_ms": P99_LIMIT_MS, "frames": frames or len(sequence) - start, "recorded": kinds,
+            "server_stages": list(server_stages),
             "replicas": {name: 1 for name in keys.NETWORK_SERVICES} | (replicas or {}),
             "runs": [runs[n] for n in sorted(runs)], "machine": machine()}
 
@@ -313,7 +327,8 @@ def format_table(result: dict) -> str:
                      f"{'yes' if carried(run) else 'no'} |")
     machine = result["machine"]
     lines += ["", f"max robots with every keyframe p99 <= {result['p99_limit_ms']:.0f} ms: {result['max_robots']} "
-              f"({machine['cpu_model']}, {machine['cpus']} CPUs, AMX {'yes' if machine['amx'] else 'no'})"]
+              f"({machine['cpu_model']}, {machine['cpus']} CPUs, AMX {'yes' if machine['amx'] else 'no'}; the "
+              f"server runs {', '.join(result.get('server_stages', keys.NETWORK_SERVICES))})"]
     return "\n".join(lines)
 
 

@@ -90,6 +90,7 @@ class LiveStack:
     camera_args: list[str]
     headers: dict = field(default_factory=dict)
     verify: object = True  # an ssl.SSLContext with the fleet CA, over HTTPS
+    edge: bool = False  # the robot tracks itself (twohr camera --edge): its frames never reach the stack
 
     def http(self):
         import httpx
@@ -116,32 +117,52 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
     hogs = _busy(busy)
     rss: dict[str, list[tuple[float, float]]] = {}
     upstream: list[tuple[int, float]] = []  # (bytes, seconds) each camera run sent
+    if stack.edge and camera_runs != 1:
+        raise ValueError("a robot that tracks itself runs one camera per session")
+    edge_camera = None
+
+    def start_camera() -> subprocess.Popen:
+        return subprocess.Popen(
+            [sys.executable, "-m", "twohr_app", "camera", "--replay", str(sequence.root), "--rate", "30", "--robot",
+             robot, *stack.camera_args, "--frames", str(per_run), "--start", str(start),
+             *(["--loop"] if per_run > len(sequence) else []), *(["--edge"] if stack.edge else [])],
+            stdout=subprocess.PIPE, text=True)
+
     try:
         with stack.http() as client:
+            edge_camera = start_camera() if stack.edge else None
+            if edge_camera is not None and "tracks itself" not in edge_camera.stdout.readline():
+                raise RuntimeError(f"robot {robot}'s own tracker did not start")
             response = client.post("/sessions", json={"source": "camera", "robot_id": robot, "record": False,
                                                       "config": config_overrides or {}, "rate": rate})
             response.raise_for_status()
             session_id = response.json()["id"]
             t0 = time.monotonic()
             next_sample = t0
+
+            def running(camera: subprocess.Popen) -> bool:
+                if camera is not edge_camera:
+                    return camera.poll() is None
+                # a robot's own tracker lingers for the session's stop: its frames are done once all are counted
+                return camera.poll() is None and (client.get(f"/sessions/{session_id}").json()["frames_sent"] or 0) \
+                    < per_run * (rate / 30 if rate else 1) - 1
+
             for _ in range(camera_runs):
-                camera = subprocess.Popen(
-                    [sys.executable, "-m", "twohr_app", "camera", "--replay", str(sequence.root), "--rate",
-                     "30", "--robot", robot, *stack.camera_args, "--frames", str(per_run), "--start", str(start),
-                     *(["--loop"] if per_run > len(sequence) else [])], stdout=subprocess.PIPE, text=True)
-                while camera.poll() is None:
+                camera = edge_camera or start_camera()
+                while running(camera):
                     if time.monotonic() >= next_sample:
-                        for child in stack.system.group.children:
-                            value = rss_mib(child.proc.pid)
+                        for name, pid in [(child.name, child.proc.pid) for child in stack.system.group.children] + (
+                                [("edge tracker", camera.pid)] if camera is edge_camera else []):
+                            value = rss_mib(pid)
                             if value is not None:
-                                rss.setdefault(child.name, []).append((round(time.monotonic() - t0, 1),
-                                                                       round(value, 1)))
+                                rss.setdefault(name, []).append((round(time.monotonic() - t0, 1), round(value, 1)))
                         next_sample += sample_every_s
                         if progress:
                             print(f"  {robot}: {len(poses.received)} poses after {time.monotonic() - t0:.0f} s",
                                   flush=True)
                     time.sleep(0.2)
-                upstream.append(_camera_upstream(camera.stdout.read()))
+                if camera is not edge_camera:
+                    upstream.append(_camera_upstream(camera.stdout.read()))
             deadline = time.monotonic() + 30
             while time.monotonic() < deadline:  # until the last frames' poses are in
                 info = client.get(f"/sessions/{session_id}").json()
@@ -154,15 +175,20 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
             client.delete(f"/sessions/{session_id}")
             served = client.get(f"/sessions/{session_id}/trajectory")
             online = client.get(f"/sessions/{session_id}/trajectory", params={"online": True})
+            if edge_camera is not None:  # it ends once the session's final path is out
+                upstream.append(_camera_upstream(edge_camera.communicate(timeout=120)[0]))
     finally:
         for hog in hogs:
             hog.kill()
+        if edge_camera is not None and edge_camera.poll() is None:
+            edge_camera.kill()
         subscriber.undeclare()
         observer.close()
     latency = poses.latency_ms()
     stamps = np.array([r for _, r, _ in poses.received])
     relayed = info["frames_sent"] or frames  # fewer than the camera sent where the session was admitted at a rate
-    row = {"robot": robot, "busy_processes": busy, "frames": frames, "relayed": relayed, "posed": info["frames"],
+    row = {"robot": robot, "tracking": "edge" if stack.edge else "central", "busy_processes": busy, "frames": frames,
+           "relayed": relayed, "posed": info["frames"],
            "dropped": info["frames_dropped"], "posed_percent": round(100 * info["frames"] / max(1, relayed), 1),
            "fps": info["fps"],
            "latency_ms_p50": round(float(np.percentile(latency, 50)), 1) if len(latency) else None,
@@ -192,7 +218,8 @@ def process_cpu_s(system) -> dict[str, float]:
 
 
 def _camera_upstream(printed: str) -> tuple[int, float]:
-    """(bytes, seconds) a ``twohr camera`` run sent to the stack, from its last line: every frame goes upstream."""
+    """(bytes, seconds) a ``twohr camera`` run sent to the stack, from its last line: every frame goes upstream (with
+    ``--edge``: the keyframe jobs and the results)."""
     import re
 
     found = re.search(r"in ([0-9.]+) s \(.*\), ([0-9]+) bytes", printed or "")
@@ -206,7 +233,7 @@ def _stack_cpu_s(system) -> float:
 
 def fleet_runs(sequence, robots: int, frames: int, busy_counts: list[int], repeats: int, progress: bool = True,
                config_overrides: dict | None = None, tls: bool = False, replicas: dict[str, int] | None = None,
-               rate: float = 0.0) -> list[dict]:
+               rate: float = 0.0, tracking: tuple[str, ...] = ("central",)) -> list[dict]:
     """``robots`` live robots at once on one stack (``twohr bench --live --robots N``): each its own ``twohr
     camera`` at 30 Hz on its own stretch of the sequence (starts spread over it: frames 0-299 and 260-559 for two
     robots of 300 frames on the 560-frame dev sequence), its own robot id and, with ``tls``, its own bundle. One row
@@ -222,46 +249,48 @@ def fleet_runs(sequence, robots: int, frames: int, busy_counts: list[int], repea
     names = [f"r{i + 1}" for i in range(robots)]
     step = (len(sequence) - frames) // (robots - 1) if robots > 1 else 0
     with tempfile.TemporaryDirectory(prefix="twohr-fleet-") as scratch:
-        keys = _fleet_keys(Path(scratch), router, names) if tls else None
+        keys = _fleet_keys(Path(scratch), router, names, edge="edge" in tracking) if tls else None
         system = start_system(router, [str(sequence.root.parent)], str(Path(scratch) / "recordings"), "127.0.0.1",
                               port, timeout=300, keys=keys, replicas=replicas,
                               max_robots=float(robots))
         try:
             rows = []
-            for busy in busy_counts:
-                for repeat in range(repeats):
-                    if progress:
-                        print(f"{robots} robots x {frames} frames, {busy} busy process(es), run {repeat + 1}",
-                              flush=True)
-                    stacks = [_stack(system, Path(scratch), router, port, name, keys) for name in names]
-                    hogs = _busy(busy)
-                    cpu0, t0 = _stack_cpu_s(system), time.monotonic()
-                    try:
-                        with ThreadPoolExecutor(robots) as pool:
-                            run = list(pool.map(
-                                lambda i, stack, busy: camera_session(
-                                    stack, sequence, names[i], frames, busy, progress=progress,
-                                    config_overrides=config_overrides, start=min(i * step, len(sequence) - frames),
-                                    rate=rate), range(robots), stacks, [busy] * robots))
-                    finally:
-                        for hog in hogs:
-                            hog.kill()
-                    cpu_s, wall_s = _stack_cpu_s(system) - cpu0, time.monotonic() - t0
-                    posed = sum(r["posed"] for r in run)
-                    for row in run:
-                        row |= {"robots": robots, "run": repeat + 1, "link": "tls" if tls else "tcp",
-                                "stack_cores_per_robot": round(cpu_s / wall_s / robots, 2),
-                                "stack_cpu_ms_per_posed_frame": round(1000 * cpu_s / max(1, posed), 1)}
-                    rows += run
+            for busy, repeat, how in [(b, r, t) for b in busy_counts for r in range(repeats) for t in tracking]:
+                if progress:
+                    print(f"{robots} robots x {frames} frames, {busy} busy process(es), run {repeat + 1}, "
+                          f"tracked {'by each robot' if how == 'edge' else 'by the stack'}", flush=True)
+                stacks = [_stack(system, Path(scratch), router, port, name, keys, edge=how == "edge")
+                          for name in names]
+                hogs = _busy(busy)
+                cpu0, t0 = _stack_cpu_s(system), time.monotonic()
+                try:
+                    with ThreadPoolExecutor(robots) as pool:
+                        run = list(pool.map(
+                            lambda i, stack, busy: camera_session(
+                                stack, sequence, names[i], frames, busy, progress=progress,
+                                config_overrides=config_overrides, start=min(i * step, len(sequence) - frames),
+                                rate=rate), range(robots), stacks, [busy] * robots))
+                finally:
+                    for hog in hogs:
+                        hog.kill()
+                cpu_s, wall_s = _stack_cpu_s(system) - cpu0, time.monotonic() - t0
+                posed = sum(r["posed"] for r in run)
+                for row in run:
+                    row |= {"robots": robots, "run": repeat + 1, "link": "tls" if tls else "tcp",
+                            "stack_cores_per_robot": round(cpu_s / wall_s / robots, 2),
+                            "stack_cpu_ms_per_posed_frame": round(1000 * cpu_s / max(1, posed), 1)}
+                rows += run
             return rows
         finally:
             system.stop()
 
 
 def live_runs(sequence, frames: int, busy_counts: list[int], repeats: int, progress: bool = True,
-              camera_runs: int = 1, config_overrides: dict | None = None, tls: bool = False) -> list[dict]:
+              camera_runs: int = 1, config_overrides: dict | None = None, tls: bool = False,
+              tracking: tuple[str, ...] = ("central",)) -> list[dict]:
     """Start ``twohr up`` once and run :func:`camera_session` ``repeats`` times per busy count (each session with
-    ``config_overrides``). With ``tls``, the stack runs on a fleet's keys made for the run (every link mutual
+    ``config_overrides``), tracked each way ``tracking`` names (``central``: by the stack; ``edge``: by the robot,
+    ``twohr camera --edge``). With ``tls``, the stack runs on a fleet's keys made for the run (every link mutual
     TLS, the gateway on HTTPS) and each session's robot joins with its own bundle, as ``twohr up --keys`` does."""
     from twohr.bus import free_port
     from twohr_app.supervisor import start_system
@@ -270,17 +299,18 @@ def live_runs(sequence, frames: int, busy_counts: list[int], repeats: int, progr
     port = free_port()
     robots = [f"live{busy}x{repeat}" for busy in busy_counts for repeat in range(repeats)]
     with tempfile.TemporaryDirectory(prefix="twohr-live-") as scratch:
-        keys = _fleet_keys(Path(scratch), router, robots) if tls else None
+        keys = _fleet_keys(Path(scratch), router, robots, edge="edge" in tracking) if tls else None
         system = start_system(router, [str(sequence.root.parent)], str(Path(scratch) / "recordings"), "127.0.0.1",
                               port, timeout=300, ros2_domain=0, keys=keys)
         try:
             rows = []
-            for robot in robots:
+            for robot, how in [(robot, how) for robot in robots for how in tracking]:
                 busy = int(robot[4:].split("x")[0])
                 if progress:
                     print(f"camera session: {frames} frames, {busy} busy process(es), {robot}, "
-                          f"{'TLS' if tls else 'TCP'}", flush=True)
-                stack = _stack(system, Path(scratch), router, port, robot, keys)
+                          f"{'TLS' if tls else 'TCP'}, tracked {'by the robot' if how == 'edge' else 'by the stack'}",
+                          flush=True)
+                stack = _stack(system, Path(scratch), router, port, robot, keys, edge=how == "edge")
                 rows.append({**camera_session(stack, sequence, robot, frames * camera_runs, busy, progress=progress,
                                               camera_runs=camera_runs, config_overrides=config_overrides),
                              "link": "tls" if tls else "tcp"})
@@ -289,20 +319,22 @@ def live_runs(sequence, frames: int, busy_counts: list[int], repeats: int, progr
             system.stop()
 
 
-def _fleet_keys(scratch: Path, router: str, robots: list[str]) -> Path:
-    """A fleet's keys for one bench run, with a bundle per robot (``<scratch>/<robot>.bundle``); the operator's token
-    is ``bench-operator-token``."""
+def _fleet_keys(scratch: Path, router: str, robots: list[str], edge: bool = False) -> Path:
+    """A fleet's keys for one bench run, with a bundle per robot (``<scratch>/<robot>.bundle``; ``edge``: each may
+    run its own tracker); the operator's token is ``bench-operator-token``."""
     from twohr_app.fleet import Fleet
 
     fleet = Fleet(scratch / "keys")
     fleet.init(api_token="bench-operator-token")
     for robot in robots:
-        fleet.add(robot, scratch / f"{robot}.bundle", endpoint=router)
+        fleet.add(robot, scratch / f"{robot}.bundle", endpoint=router, edge=edge)
     return fleet.folder
 
 
-def _stack(system, scratch: Path, router: str, port: int, robot: str, keys: Path | None) -> LiveStack:
-    """How robot ``robot`` reaches ``system``: with its bundle on a fleet's keys, else with the client config."""
+def _stack(system, scratch: Path, router: str, port: int, robot: str, keys: Path | None,
+           edge: bool = False) -> LiveStack:
+    """How robot ``robot`` reaches ``system``: with its bundle on a fleet's keys, else with the client config (with
+    ``edge``, tracking itself: a tracker's config on a stack without keys, whose roles are all this host's)."""
     import ssl
 
     from twohr.bus import BusConfig
@@ -311,36 +343,42 @@ def _stack(system, scratch: Path, router: str, port: int, robot: str, keys: Path
 
     if keys is None:
         config = write_client_config(scratch / "C.json5", router, system.credentials)
+        own = write_client_config(scratch / "T.json5", router, system.credentials, role="tracker") if edge else config
         return LiveStack(system, f"http://127.0.0.1:{port}", BusConfig(config_file=config),
-                         ["--zenoh-config", str(config)])
+                         ["--zenoh-config", str(own)], edge=edge)
     bundle = scratch / f"{robot}.bundle"
     identity = load_identity(bundle)
     observer = BusConfig(connect=[router], identity=identity, user=None, password=None, config_file=None)
     return LiveStack(system, f"https://127.0.0.1:{port}", observer, ["--keys", str(bundle)],
                      headers={"Authorization": "Bearer bench-operator-token"},
-                     verify=ssl.create_default_context(cafile=str(keys / "ca.crt")))
+                     verify=ssl.create_default_context(cafile=str(keys / "ca.crt")), edge=edge)
 
 
 def robot_summary(rows: list[dict]) -> list[dict]:
-    """Each robot of the runs, its medians over them: frames posed (%) and the bytes per second its camera sent
-    upstream (every frame, JPEG and depth PNG: the robots' frames cross the wire)."""
-    robots = sorted({row["robot"] for row in rows})
-    return [{"robot": robot,
-             "posed_percent": float(np.median([r["posed_percent"] for r in rows if r["robot"] == robot])),
-             "upstream_bytes_per_s": float(np.median([r["upstream_bytes_per_s"] for r in rows if r["robot"] == robot]))}
-            for robot in robots]
+    """Each robot of the runs and how it was tracked, its medians over them: frames posed (%) and the bytes per
+    second it sent upstream (tracked by the stack: every frame, JPEG and depth PNG; tracking itself: its keyframes'
+    colour images and its results)."""
+    groups = sorted({(row["robot"], row.get("tracking", "central")) for row in rows})
+    summary = []
+    for robot, tracking in groups:
+        mine = [r for r in rows if r["robot"] == robot and r.get("tracking", "central") == tracking]
+        summary.append({"robot": robot, "tracking": tracking,
+                        "posed_percent": float(np.median([r["posed_percent"] for r in mine])),
+                        "upstream_bytes_per_s": float(np.median([r["upstream_bytes_per_s"] for r in mine]))})
+    return summary
 
 
 def format_table(rows: list[dict]) -> str:
     """The sessions as a Markdown table (with the robot count, robot and stack CPU per robot for fleet runs)."""
     fleet = any("robots" in r for r in rows)
-    lines = ["| " + ("robots | robot | " if fleet else "") + "link | busy | frames | posed % | dropped | FPS | "
-             "latency p50 / p99 ms | ATE served | ATE online | upstream MB/s | health |" + (
+    lines = ["| " + ("robots | robot | " if fleet else "") + "tracking | link | busy | frames | posed % | dropped | "
+             "FPS | latency p50 / p99 ms | ATE served | ATE online | upstream MB/s | health |" + (
                  " stack cores per robot |" if fleet else ""),
-             "|---" * (11 + 3 * fleet) + "|"]
+             "|---" * (12 + 3 * fleet) + "|"]
     for r in rows:
         lines.append((f"| {r['robots']} | {r['robot']} " if fleet else "") +
-                     f"| {r.get('link', 'tcp')} | {r['busy_processes']} | {r['frames']} | {r['posed_percent']} | "
+                     f"| {r.get('tracking', 'central')} | {r.get('link', 'tcp')} | {r['busy_processes']} | "
+                     f"{r['frames']} | {r['posed_percent']} | "
                      f"{r['dropped']} | {r['fps']} | "
                      f"{r['latency_ms_p50']} / {r['latency_ms_p99']} | {r['ate_served']} ({r['served']}) | "
                      f"{r['ate_online']} | {r.get('upstream_bytes_per_s', 0) / 1e6:.2f} | "

@@ -104,6 +104,22 @@ def parse_replica_key(key_expr: str) -> tuple[str, str]:
     return parts[2], parts[3]
 
 
+#: the tracker replica name of a robot's own tracker (``twohr camera --edge``): ``edge+<robot>``; a service's
+#: replica name (:func:`twohr.service.replica_id`) never holds a ``+``, so no stack process can pass for one
+EDGE_MARK = "edge+"
+
+
+def edge_replica(robot_id: str) -> str:
+    """The tracker replica name of robot ``robot_id``'s own tracker."""
+    key(robot_id, "pose")  # a valid robot id
+    return f"{EDGE_MARK}{robot_id}"
+
+
+def edge_robot(replica: str) -> str | None:
+    """The robot whose own tracker ``replica`` is, or None for a tracker of the stack."""
+    return replica[len(EDGE_MARK):] if replica.startswith(EDGE_MARK) else None
+
+
 def replica_query(robot_id: str, query: str, replica: str) -> str:
     """The key a network query for ``robot_id`` goes to when one replica is to answer it,
     e.g. ``twohr/robot1/rpc/detect/host-4711``."""

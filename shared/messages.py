@@ -77,6 +77,16 @@ class FrameMsg(Message):
     sent_at: float = Field(0.0, description="wall-clock time the source published it, for latency")
 
 
+class ImageMsg(Message):
+    """A frame's colour image alone, ``rgb`` (H, W, 3) uint8 RGB, for a stage that reads nothing else (the
+    detector): the frame's header (its camera included) without the depth image."""
+
+    schema_name: ClassVar[str] = "twohr.Image"
+    required_arrays: ClassVar[tuple[str, ...]] = ("rgb",)
+    camera: CameraIntrinsics
+    sent_at: float = Field(0.0, description="wall-clock time the source published the frame, for latency")
+
+
 class KeypointsMsg(Message):
     """Keypoints of a frame: ``xy``, ``descriptors``, ``scores`` (+ ``reliability``, ``repeatability``)."""
 
@@ -211,8 +221,8 @@ class ControlMsg(Message):
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.schema_name: cls
-    for cls in (FrameMsg, KeypointsMsg, DynamicsMsg, MatchesMsg, MatchRequestMsg, PoseMsg, LandmarksMsg, PathMsg,
-                StatusMsg, ControlMsg)
+    for cls in (FrameMsg, ImageMsg, KeypointsMsg, DynamicsMsg, MatchesMsg, MatchRequestMsg, PoseMsg, LandmarksMsg,
+                PathMsg, StatusMsg, ControlMsg)
 }
 
 
@@ -354,6 +364,26 @@ def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None
     Raises :class:`MessageError` if anything is off."""
     message, parts = split(payload, expect)
     return message, {spec.name: decode_array(spec, blob) for spec, blob in parts if only is None or spec.name in only}
+
+
+def relayed_frame(payload: bytes, session_id: str, frame_index: int) -> bytes:
+    """A camera's frame message (``twohr/<robot>/camera``) as a session's frame (``frames``): the session's id and
+    frame number in its header, the camera's send time kept (now where it gave none). The encoded images go on as
+    they came: no decoding, no re-encoding. :class:`MessageError` for a malformed message."""
+    import time
+
+    frame, parts = split(payload, FrameMsg)
+    relayed = frame.model_copy(update={"session_id": session_id, "frame_index": frame_index,
+                                       "sent_at": frame.sent_at or time.time()})
+    return encode(relayed, blobs={spec.name: (spec, blob) for spec, blob in parts})
+
+
+def colour_image(payload: bytes) -> bytes:
+    """A frame message as an :class:`ImageMsg`: the colour image as it came (a stage that reads nothing else gets
+    no depth over the wire, half the frame's bytes)."""
+    frame, parts = split(payload, FrameMsg)
+    return encode(ImageMsg(**frame.model_dump()), blobs={spec.name: (spec, blob) for spec, blob in parts
+                                                         if spec.name == "rgb"})
 
 
 def received_frame(payload: bytes) -> tuple[FrameMsg, Frame]:

@@ -36,6 +36,8 @@ class Replicas:
         self.answered: collections.Counter[str] = collections.Counter()  # jobs each replica answered
         self.retried = 0  # jobs sent again after their replica went away
         self.lost = 0  # jobs no replica answered
+        self.bytes_sent = 0  # the jobs' payloads, each time one was sent
+        self.bytes_received = 0  # the answers'
         self._subscriber = session.liveliness().declare_subscriber(keys.alive_key(service), self._on_token,
                                                                     history=True)
 
@@ -74,6 +76,7 @@ class Replicas:
         while (replica := self.pick(tried, wait=self.wait_for_one if not tried else 0.0)) is not None:
             with self._lock:
                 self._in_flight[replica] += 1
+                self.bytes_sent += len(payload)
             try:
                 reply = next(iter(self.session.get(keys.replica_query(robot_id, query, replica), payload=payload,
                                                    timeout=timeout)), None)
@@ -81,9 +84,11 @@ class Replicas:
                 with self._lock:
                     self._in_flight[replica] -= 1
             if reply is not None and reply.ok is not None:
+                answer = reply.ok.payload.to_bytes()
                 with self._lock:
                     self.answered[replica] += 1
-                return reply.ok.payload.to_bytes()
+                    self.bytes_received += len(answer)
+                return answer
             if reply is not None:
                 raise MessageError(f"{self.service} {replica}: {reply.err.payload.to_bytes().decode(errors='replace')}")
             tried.add(replica)
@@ -98,7 +103,7 @@ class Replicas:
         """What :meth:`call` did: jobs answered per replica, jobs sent again, jobs lost, and the live replicas."""
         with self._lock:
             return {"alive": sorted(self._alive), "answered": dict(self.answered), "retried": self.retried,
-                    "lost": self.lost}
+                    "lost": self.lost, "bytes_sent": self.bytes_sent, "bytes_received": self.bytes_received}
 
     def close(self) -> None:
         self._subscriber.undeclare()

@@ -185,6 +185,10 @@ class Service:
     def subscriptions(self) -> list[str]:
         return []
 
+    def control_keys(self) -> list[str]:
+        """Where it hears sessions start and stop (when it ``follows_sessions``): every robot's control key."""
+        return [keys.all_robots(keys.CONTROL)]
+
     def on_session_start(self, control: ControlMsg) -> None:
         """A session starts: set up per-session state (its config is ``control.config``)."""
 
@@ -310,7 +314,7 @@ class Service:
         """Serve until ``stop`` is set (or SIGINT/SIGTERM when run as a program)."""
         stop = stop or self.stopping
         self.session = open_session(self.bus)
-        wanted = self.subscriptions() + ([keys.all_robots(keys.CONTROL)] if self.follows_sessions else [])
+        wanted = self.subscriptions() + (self.control_keys() if self.follows_sessions else [])
         subscribers = [self.session.declare_subscriber(k, self._on_sample) for k in wanted]
         self.on_start()  # queryables, and warm models: healthy and alive means ready
         queryable = self.session.declare_queryable(keys.health_key(self.name, self.replica), self._on_health)

@@ -243,8 +243,9 @@ def shared_module_users() -> dict[str, set[str]]:
 def test_shared_keeps_only_what_two_users_need():
     """``shared/`` is the common library: a module only one room uses lives in that room."""
     users = shared_module_users()
-    # the check counts rooms, not files: the tracker places keyframe jobs on replicas, twohr bench --fleet too
-    assert users["replicas"] == {"services/tracker", "lab"}
+    # the check counts rooms, not files: the tracker places keyframe jobs on replicas, twohr bench --fleet and a
+    # robot's own tracker (twohr camera --edge) too
+    assert users["replicas"] == {"services/tracker", "lab", "app"}
     assert {"services/tracker", "app", "lab", "shared/dataset"} <= users["geometry"]
     lonely = {name: sorted(found) for name, found in users.items() if len(found) < 2}
     assert lonely.keys() == SHARED_WITH_ONE_USER.keys(), lonely

@@ -93,7 +93,10 @@ def test_each_job_goes_to_one_replica_and_the_least_busy_takes_the_next(bus):
         answers = list(pool.map(lambda i: replicas.call("r1", QUERY, b"job").decode().split()[0], range(6)))
     assert sorted(answers) == ["a"] * 3 + ["b"] * 3  # three in flight on each at once
     assert (a.jobs(), b.jobs()) == (3, 3)  # each job to one replica, never two
-    assert replicas.stats() | {"alive": []} == {"alive": [], "answered": {"a": 3, "b": 3}, "retried": 0, "lost": 0}
+    answered = {"a": 3, "b": 3}
+    assert replicas.stats() | {"alive": [], "bytes_received": 0} == {
+        "alive": [], "answered": answered, "retried": 0, "lost": 0, "bytes_sent": 6 * len(b"job"), "bytes_received": 0}
+    assert replicas.stats()["bytes_received"] > 0  # the answers name their replica
 
 
 def test_a_job_whose_replica_is_killed_is_answered_by_another_and_the_replica_rejoins(bus):

@@ -21,18 +21,24 @@ from twohr.errors import TwohrError
 log = logging.getLogger(__name__)
 
 
-def open_bus(args: argparse.Namespace):
-    """A Zenoh session from a client config file (``--zenoh-config``), or a robot's bundle (``--keys``), or the
-    default (``$TWOHR_ZENOH_ROUTER``, else ``tcp/127.0.0.1:7447``, with the credentials in the environment), to
+def camera_bus(args: argparse.Namespace):
+    """How the camera joins the bus: a client config file (``--zenoh-config``), or a robot's bundle (``--keys``), or
+    the default (``$TWOHR_ZENOH_ROUTER``, else ``tcp/127.0.0.1:7447``, with the credentials in the environment), to
     ``--router`` where given."""
-    from twohr.bus import BusConfig, bus_from_args, open_session
+    from twohr.bus import BusConfig, bus_from_args
 
     if args.zenoh_config:
         if not Path(args.zenoh_config).is_file():
             raise TwohrError(f"Zenoh config not found: {args.zenoh_config}")
-        return open_session(BusConfig(config_file=args.zenoh_config))
-    bus = bus_from_args(args)
-    return open_session(bus.model_copy(update={"shared_memory": False}))  # a client that comes and goes
+        return BusConfig(config_file=args.zenoh_config)
+    return bus_from_args(args).model_copy(update={"shared_memory": False})  # a client that comes and goes
+
+
+def open_bus(args: argparse.Namespace):
+    """A Zenoh session as :func:`camera_bus` says."""
+    from twohr.bus import open_session
+
+    return open_session(camera_bus(args))
 
 
 class RatePacer:
@@ -152,10 +158,21 @@ def _camera(args: argparse.Namespace) -> int:
         raise TwohrError("--frames must be at least 1")
     if args.rate < 0:
         raise TwohrError("--rate must be 0 (as fast as possible) or a frame rate in Hz")
+    if args.linger < 0:
+        raise TwohrError("--linger must be 0 or more seconds")
+    if args.edge:
+        from ..edge import parse_server_stages
+
+        server_stages = parse_server_stages(args.server_stages)
     if args.replay:
         payloads = replay_payloads(args.replay, robot, args.rate, args.frames, args.start, args.loop)
     else:
         payloads = realsense_payloads(robot, args.width, args.height, args.fps, args.frames)
+    if args.edge:
+        from ..edge import run_edge
+
+        return run_edge(camera_bus(args), robot, payloads, server_stages, args.linger,
+                        say=lambda line: print(line, flush=True))
     session = open_bus(args)
     sent, sent_bytes, t0 = 0, 0, time.monotonic()
     try:
@@ -189,6 +206,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "from (default: connect to $TWOHR_ZENOH_ROUTER or tcp/127.0.0.1:7447)")
     add_router_option(p, help="router endpoint to connect to, instead of --zenoh-config (default: the --keys "
                       "bundle's endpoint, else $TWOHR_ZENOH_ROUTER)")
+    p.add_argument("--edge", action="store_true", help="track on this host: the robot's own tracker runs in this "
+                   "process and no frame leaves it (poses, paths and status go out as the stack's tracker sends them; "
+                   "a fleet's robot needs a bundle of twohr keys add --edge; a stack without keys, a tracker's "
+                   "--zenoh-config)")
+    p.add_argument("--server-stages", default="detector", metavar="LIST", help="with --edge: the networks the stack "
+                   "runs for this robot's keyframes, comma-separated (detector, yolo, matcher, or none); the others "
+                   "run here (default: detector)")
+    p.add_argument("--linger", type=float, default=120.0, metavar="S", help="with --edge: after the last frame, how "
+                   "long to wait for the session's stop (DELETE /sessions/ID) before ending it here; either way its "
+                   "refined trajectory goes out (default 120)")
     p.add_argument("--width", type=int, default=640, help="RealSense stream width (default 640)")
     p.add_argument("--height", type=int, default=480, help="RealSense stream height (default 480)")
     p.add_argument("--fps", type=int, default=30, help="RealSense frame rate (default 30)")

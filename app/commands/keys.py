@@ -79,8 +79,9 @@ def _admitted(fleet: Fleet, what: str) -> int:
 
 def _add(args: argparse.Namespace) -> int:
     fleet = Fleet(args.dir)
-    bundle = fleet.add(args.robot, Path(args.out), args.endpoint, args.days)
-    print(f"robot {bundle.name}: bundle {args.out} (private; give it to the robot alone)"
+    bundle = fleet.add(args.robot, Path(args.out), args.endpoint, args.days, edge=args.edge)
+    print(f"robot {bundle.name}{' (runs its own tracker)' if args.edge else ''}: bundle {args.out} (private; give "
+          "it to the robot alone)"
           + (f", endpoint {bundle.endpoint}" if bundle.endpoint else ", no endpoint: the robot names one with "
              "--router"))
     return _admitted(fleet, f"robot {bundle.name}")
@@ -108,7 +109,8 @@ def _list(args: argparse.Namespace) -> int:
     print(f"{'robot':20} {'state':10} {'expires':17} serial")
     for robot, record in [*sorted(fleet.robots.items()), *sorted(fleet.replicas.items())]:
         state = "revoked" if record.revoked else "expired" if record.not_after < now else "active"
-        print(f"{robot:20} {state:10} {record.not_after:%Y-%m-%d %H:%M} {record.serial}")
+        edge = " (own tracker)" if getattr(record, "edge", False) else ""
+        print(f"{robot:20} {state:10} {record.not_after:%Y-%m-%d %H:%M} {record.serial}{edge}")
     print(f"{len(fleet.robots)} robots, version {fleet.version}"
           + (f"; {len(fleet.replicas)} service replicas of other hosts (ROLE@HOST)" if fleet.replicas else ""))
     return 0
@@ -177,6 +179,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--days", type=float, default=365, help="how long its certificate is valid from now, in days "
                    f"(a fraction for hours; above 0, at most {MAX_ROBOT_DAYS}; default 365): the router closes the "
                    "robot's link when it expires")
+    q.add_argument("--edge", action="store_true", help="the robot runs its own tracker (twohr camera --edge): it "
+                   "may publish its own poses, paths, status and landmarks; its frames never leave it")
     q.set_defaults(func=_add)
     q = actions.add_parser("renew", help="a new certificate for a robot, in a new bundle (needs DIR/ca.key)")
     q.add_argument("dir", metavar="DIR")

@@ -107,6 +107,8 @@ class RobotRecord(ReplicaRecord):
     """One robot of the fleet: a certificate and bus password as a replica's, and an API token."""
 
     token_sha256: str = Field(description="SHA-256 (hex) of its API token; the token itself is in its bundle only")
+    edge: bool = Field(False, description="it runs its own tracker (twohr camera --edge): it may publish its own "
+                       "poses, paths, status and landmarks and ask the network services for its keyframes")
 
 
 class FleetFile(BaseModel):
@@ -217,8 +219,9 @@ class Fleet:
                                                              .isoformat()} for r, rec in active.items()}))
         if router_too:
             write_users(router / USERS_FILE, users)
-            write_private(router / ROBOTS_FILE, json.dumps({"version": fleet.version, "robots": sorted(active),
-                                                            "replicas": sorted(replicas)}))
+            write_private(router / ROBOTS_FILE, json.dumps({
+                "version": fleet.version, "robots": sorted(active), "replicas": sorted(replicas),
+                "edge": sorted(robot for robot, record in active.items() if record.edge)}))
 
     # -- certificates -------------------------------------------------------------------------------------------
     def issue(self, name: str, days: float, hosts: list[str] | None = None,
@@ -318,8 +321,10 @@ class Fleet:
         return certificates.served_hosts((self.service_folder(role) / CERT_FILE).read_bytes())
 
     # -- robots ---------------------------------------------------------------------------------------------------
-    def add(self, robot: str, out: Path, endpoint: str | None = None, days: float = ROBOT_DAYS) -> Bundle:
-        """Add ``robot`` to the fleet and write its bundle to ``out`` (private, 0600, a new file of ours)."""
+    def add(self, robot: str, out: Path, endpoint: str | None = None, days: float = ROBOT_DAYS,
+            edge: bool = False) -> Bundle:
+        """Add ``robot`` to the fleet and write its bundle to ``out`` (private, 0600, a new file of ours); ``edge``:
+        it runs its own tracker (:attr:`RobotRecord.edge`)."""
         check_robot_id(robot)
         check_days(days)
         check_endpoint(endpoint)
@@ -334,7 +339,7 @@ class Fleet:
             now = datetime.datetime.now(datetime.timezone.utc)
             fleet.robots[robot] = RobotRecord(serial=f"{cert.serial_number:x}", not_after=cert.not_valid_after_utc,
                                               added=now, password=SecretStr(password),
-                                              token_sha256=token_digest(token))
+                                              token_sha256=token_digest(token), edge=edge)
             self._save(fleet)
         return bundle
 

@@ -15,7 +15,7 @@ import numpy as np
 from twohr import keys
 from twohr.config import DetectorConfig
 from twohr.dataset import undistorted
-from twohr.messages import ControlMsg, FrameMsg, KeypointsMsg, decode, encode
+from twohr.messages import ControlMsg, FrameMsg, ImageMsg, KeypointsMsg, MessageError, decode, encode
 from twohr.service import MODEL_CACHE_SIZE, Service, reply_to, serve
 
 from .core import build_detector
@@ -60,7 +60,9 @@ class DetectorService(Service):
         reply_to(payload, self._keypoints)
 
     def _keypoints(self, payload: bytes) -> bytes:
-        frame, arrays = decode(payload, FrameMsg, only=("rgb",))
+        frame, arrays = decode(payload, only=("rgb",))
+        if not isinstance(frame, (ImageMsg, FrameMsg)):  # a keyframe's colour image, or its whole frame
+            raise MessageError(f"the detector reads a frame or its image, not {frame.schema_name}")
         detector = self.detector_for(self.config_for(frame.session_id).detector.model_dump_json())
         t0 = time.perf_counter()
         kp = detector.detect(undistorted(arrays["rgb"], frame.camera))

@@ -13,6 +13,8 @@ import os
 
 from fastapi import HTTPException, status
 
+from twohr import keys
+
 from .sessions import SessionRequest, SessionTable
 
 #: the camera rate one robot's share of the stack is sized for (Hz)
@@ -70,6 +72,21 @@ def least_loaded_tracker(trackers: set[str], table: SessionTable, always: bool =
         if session.tracker in loads:
             loads[session.tracker] += session_load(session.request)
     return min(sorted(loads), key=lambda replica: loads[replica])
+
+
+def tracker_for(request: SessionRequest, trackers: set[str], table: SessionTable) -> str:
+    """The tracker a new session goes to: a camera session to its robot's own tracker where that one is alive
+    (``twohr camera --edge``: the robot's frames never reach the stack), else the least loaded of the stack's
+    (:func:`least_loaded_tracker`; a robot's own tracker serves no other robot)."""
+    own = keys.edge_replica(request.robot_id)
+    if request.source == "camera" and own in trackers:
+        return own
+    return least_loaded_tracker(stack_trackers(trackers), table)
+
+
+def stack_trackers(trackers: set[str]) -> set[str]:
+    """Of live tracker replicas, the stack's: not a robot's own."""
+    return {replica for replica in trackers if keys.edge_robot(replica) is None}
 
 
 def admit(request: SessionRequest, table: SessionTable, capacity: float | None) -> None:

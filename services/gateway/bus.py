@@ -23,7 +23,7 @@ from twohr.mapfile import OPERATOR, MapAccessError, MapFileError, MapMissingErro
 from twohr.messages import ControlMsg, MessageError, PathMsg, PoseMsg, StatusMsg, decode, encode, path_trajectory
 from twohr.service import declare_publisher
 
-from .admission import least_loaded_tracker
+from .admission import least_loaded_tracker, stack_trackers
 from .audit import STACK, AuditLog
 from .live import BusLiveView, live_access
 from .ownership import Grants
@@ -35,6 +35,10 @@ log = logging.getLogger("twohr.gateway")
 #: threads that read and save map files for the map store's queries: a save waiting on the store (another save, a
 #: slow disk) takes one, and reads and other saves go on in the others
 MAP_STORE_WORKERS = 4
+
+
+#: a session's detail while its robot's own tracker (``twohr camera --edge``) is out of reach: the robot tracks on
+OWN_TRACKER_AWAY = "the robot's own tracker is out of reach (its link or its process): its poses come back with it"
 
 
 class GatewayBus:
@@ -258,9 +262,13 @@ class GatewayBus:
     def _move_sessions(self, replica: str) -> None:
         """The sessions of a tracker that died go to the least loaded of the others, each told to go on in its
         map's latest snapshot (``move``); with no other tracker alive, they fail."""
-        others = self.alive.get("tracker", set()) - {replica}
+        others = stack_trackers(self.alive.get("tracker", set()) - {replica})
         for session in self.table.active():
             if session.tracker != replica:
+                continue
+            if keys.edge_robot(replica) is not None:  # its frames are the robot's: none reach another tracker
+                session.detail = OWN_TRACKER_AWAY
+                log.warning("session %s: the robot's own tracker %s is out of reach", session.id, replica)
                 continue
             target = least_loaded_tracker(others, self.table, always=True)
             if not target:
@@ -309,6 +317,9 @@ class GatewayBus:
         replicas = self.alive.setdefault(name, set())
         if sample.kind == zenoh.SampleKind.PUT:
             replicas.add(replica)
+            for session in self.table.active():  # a robot's own tracker in reach again
+                if session.tracker == replica and session.detail == OWN_TRACKER_AWAY:
+                    session.detail = ""
             return
         replicas.discard(replica)
         # an optional service (the ros2 bridge) is not part of a session's pipeline

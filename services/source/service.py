@@ -12,7 +12,6 @@ keyframe, on a network that may be compiled and timed for it) as frames dropped.
 from __future__ import annotations
 
 import threading
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,7 +19,7 @@ from twohr import keys
 from twohr.bus import BusConfig, bus_from_args
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
-from twohr.messages import ControlMsg, FrameMsg, PoseMsg, StatusMsg, decode, encode, split
+from twohr.messages import ControlMsg, FrameMsg, PoseMsg, StatusMsg, decode, relayed_frame
 from twohr.paths import resolve_under_roots
 from twohr.rates import RateThinning
 from twohr.service import Service, one_line_errors, service_parser
@@ -64,8 +63,8 @@ class SourceService(Service):
             control, _ = decode(payload, ControlMsg)
             if control.robot_id != robot:
                 raise TwohrError(f"control for robot {control.robot_id} published on {key}")
-            if control.command == "start":
-                self._start(control)
+            if control.command == "start" and keys.edge_robot(control.tracker) is None:
+                self._start(control)  # (a robot that tracks itself relays its camera to its own tracker)
             elif control.command == "stop":  # a move is the tracker's: the frames go on as they were
                 self._stop(robot, control.session_id)
         elif stream in ("pose", "status"):
@@ -142,15 +141,10 @@ class SourceService(Service):
         playback = self.playbacks.get(robot)
         if playback is None or playback.control.sequence:
             return  # no live session for this robot
-        frame, parts = split(payload, FrameMsg)
-        if playback.thinning is not None and not playback.thinning.keep(frame.stamp):
+        if playback.thinning is not None and not playback.thinning.keep(decode(payload, FrameMsg, only=())[0].stamp):
             return  # the session was admitted at a lower rate than its camera's
         control = playback.control
-        relayed = frame.model_copy(update={"session_id": control.session_id, "frame_index": playback.sent,
-                                           "sent_at": frame.sent_at or time.time()})
-        # the camera's encoded images go on as they came: no decoding, no re-encoding
-        blobs = {spec.name: (spec, blob) for spec, blob in parts}
-        self.publish(keys.key(robot, "frames"), encode(relayed, blobs=blobs))
+        self.publish(keys.key(robot, "frames"), relayed_frame(payload, control.session_id, playback.sent))
         playback.sent += 1
         if playback.sent % RELAY_STATUS_EVERY == 0:
             self.report(control, "relaying", frames=playback.sent)

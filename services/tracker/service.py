@@ -47,6 +47,7 @@ from twohr.messages import (
     PathDeltas,
     PathMsg,
     PoseMsg,
+    colour_image,
     decode,
     encode,
     path_arrays,
@@ -99,15 +100,18 @@ class RemoteStage:
     """A network stage in another service, asked over the bus with the frame message as the source sent it: one
     replica of that service answers each job (:class:`twohr.replicas.Replicas`)."""
 
-    def __init__(self, replicas: Replicas, robot_id: str, query: str, parse, timeout: float = 10.0) -> None:
+    def __init__(self, replicas: Replicas, robot_id: str, query: str, parse, timeout: float = 10.0,
+                 upload=None) -> None:
+        """``upload``: the frame message -> what is sent (default: the message itself)."""
         self.replicas, self.robot_id, self.query, self.parse = replicas, robot_id, query, parse
-        self.timeout = timeout
+        self.timeout, self.upload = timeout, upload
 
     def __call__(self, frame: Frame):
-        return self.parse(self.replicas.call(self.robot_id, self.query, frame.message, self.timeout))
+        payload = frame.message if self.upload is None else self.upload(frame.message)
+        return self.parse(self.replicas.call(self.robot_id, self.query, payload, self.timeout))
 
 
-def _keypoints_reply(payload: bytes) -> Keypoints:
+def keypoints_reply(payload: bytes) -> Keypoints:
     _, arrays = decode(payload, KeypointsMsg)
     return Keypoints(arrays["xy"], arrays["descriptors"], arrays["scores"], arrays.get("reliability"),
                      arrays.get("repeatability"))
@@ -223,10 +227,11 @@ class TrackerService(Service):
     follows_moves = True
     priority = "per_frame"  # a frame's pose goes first
 
-    def __init__(self, bus=None, shared_cores: bool = False) -> None:
+    def __init__(self, bus=None, shared_cores: bool = False, snapshots: bool = True) -> None:
         """``shared_cores``: other trackers run on this host's cores; this one caps its robots' rates so that none is
         served better than the others' worst (:class:`~twohr.rates.PeerShare`), and runs at the networks' priority
-        while the others serve live robots (:meth:`_yield_priority`)."""
+        while the others serve live robots (:meth:`_yield_priority`). ``snapshots``: send each live map's snapshot
+        to the gateway (:meth:`_keep_snapshot`), for the tracker its session moves to if this one dies."""
         # robots take turns: on an overloaded stack each gets the same share of the per-frame thread
         super().__init__(bus, queue_size=64, policy="backpressure", fair=True)
         self.tracks: dict[str, SessionTrack] = {}
@@ -237,7 +242,8 @@ class TrackerService(Service):
         self.loaded: dict[str, MapFile] = {}  # the maps fetched for them, until their first frame builds the Map
         self.finishing = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracker-finishing")
         """the ends of sessions, one after another, off the per-frame thread"""
-        self.snapshots = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracker-snapshots")
+        self.snapshots = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracker-snapshots") \
+            if snapshots else None
         """encodes and sends the maps' snapshots, off the per-frame thread"""
         self._declaring = threading.Lock()  # both threads publish: one publisher per key
         self.replicas: dict[str, Replicas] = {}
@@ -339,11 +345,7 @@ class TrackerService(Service):
         session's map where it names one to localize in or extend."""
         if header.session_id not in self.tracks:
             config = self.config_for(header.session_id)
-            robot_id = header.robot_id
-            matcher = RemoteMatcher(self.replicas["matcher"], robot_id, header.session_id)
-            stages = Stages(RemoteStage(self.replicas["detector"], robot_id, keys.DETECT_QUERY, _keypoints_reply),
-                            RemoteStage(self.replicas["yolo"], robot_id, keys.DYNAMICS_QUERY, _dynamics_reply)
-                            if config.yolo.enabled else None, matcher, match_sets=matcher.sets)
+            stages = self.stages_for(header, config)
             stored = self.loaded.get(header.session_id)
             world = None if stored is None else usable_map(stored, config, header.camera, f"map {stored.header.name}")
             control = self.maps.get(header.session_id)
@@ -366,6 +368,16 @@ class TrackerService(Service):
                 raise TwohrError(f"map {control.map_name}: {reply.err.payload.to_bytes().decode(errors='replace')}")
             return read_map(reply.ok.payload.to_bytes(), detector=control.config.detector)
         raise TwohrError(f"map {control.map_name}: the map store did not answer on {key} (twohr up --maps DIR)")
+
+    def stages_for(self, header: FrameMsg, config: PipelineConfig) -> Stages:
+        """The stages of a session's schedule: each network asked over the bus, one replica per job."""
+        robot_id = header.robot_id
+        matcher = RemoteMatcher(self.replicas["matcher"], robot_id, header.session_id)
+        # the detector reads the colour image alone: the depth image (half the message) stays here
+        return Stages(RemoteStage(self.replicas["detector"], robot_id, keys.DETECT_QUERY, keypoints_reply,
+                                  upload=colour_image),
+                      RemoteStage(self.replicas["yolo"], robot_id, keys.DYNAMICS_QUERY, _dynamics_reply)
+                      if config.yolo.enabled else None, matcher, match_sets=matcher.sets)
 
     def _save_map(self, control: ControlMsg, track: SessionTrack) -> None:
         """A build or extend session's map, saved in the map store as the map's next version (a map with no keyframe,
@@ -494,7 +506,8 @@ class TrackerService(Service):
         gateway on ``twohr/<robot>/map/snapshot`` as a map file (encoded and sent on the snapshot thread): where this
         process dies, the tracker the session moves to starts from it (:meth:`_fetch_snapshot`)."""
         now = time.monotonic()
-        if now - track.snapshot_at < SNAPSHOT_EVERY_S or len(track.schedule.map.keyframes) <= track.snapshot_keyframes:
+        if self.snapshots is None or now - track.snapshot_at < SNAPSHOT_EVERY_S or (
+                len(track.schedule.map.keyframes) <= track.snapshot_keyframes):
             return  # a map that gained no keyframe is sent no more (a stored one is in the map store already)
         arrays = track.schedule.map_copy()
         if arrays is None:

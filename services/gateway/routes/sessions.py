@@ -24,7 +24,7 @@ from twohr.models import get_spec, keyframe_network
 from twohr.paths import resolve_under_roots
 from twohr.trajectory import tum_text
 
-from ..admission import admit, least_loaded_tracker
+from ..admission import admit, tracker_for
 from ..deps import Bus, Caller, Settings, Table, Who, errors, require_token
 from ..ownership import Grants, identity
 from ..sessions import ACTIVE, MapRequest, PoseOut, Session, SessionInfo, SessionRequest, SessionTable
@@ -149,7 +149,7 @@ def create_session(request: SessionRequest, settings: Settings, bus: Bus, table:
             raise HTTPException(status.HTTP_409_CONFLICT, f"robot {request.robot_id} already runs a session")
         admit(request, table, settings.max_robots)
         session = Session(id=uuid.uuid4().hex[:12], request=request, folder=folder, started_by=identity(who.robot),
-                          tracker=least_loaded_tracker(set(bus.alive.get("tracker", ())), table), config=config)
+                          tracker=tracker_for(request, set(bus.alive.get("tracker", ())), table), config=config)
         table.add(session)
     bus.send_control(session, "start", config)
     bus.audit.record("session.start", session.started_by, robot=request.robot_id, session=session.id,

@@ -1,0 +1,199 @@
+"""A robot's own tracker (``twohr camera --edge``): the robot tracks itself, beside its camera, in one process.
+
+The camera's frames go to the tracker in memory: no per-frame stream leaves the robot. The tracker is the stack's
+(:class:`~twohr_services.tracker.service.TrackerService`: the same schedule, poses, paths, status and final
+trajectory on the same keys), serving this robot's sessions only, as tracker replica ``edge+<robot>``: the gateway
+places a camera session of the robot on it while its liveliness token is alive.
+
+Where each network runs is configuration (``--server-stages``, default ``detector``): the stack's replicas answer
+those (the detector gets a keyframe's colour JPEG alone, about 86 kB for 640x480), the others run here (yolo at
+320 px and the matcher: a match query's float32 descriptors would cost more on the link than the matching costs
+here). A robot whose link to the stack drops keeps tracking in its local map (its keyframe jobs find no replica
+and are skipped: no new keyframes until the link is back), and says so on its status and its console.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+
+from twohr import keys
+from twohr.bus import BusConfig
+from twohr.config import PipelineConfig
+from twohr.messages import ControlMsg, FrameMsg, StatusMsg, decode, encode, relayed_frame
+from twohr.rates import RateThinning
+from twohr.replicas import Replicas
+from twohr_services.source.service import RELAY_STATUS_EVERY
+from twohr_services.tracker.service import TrackerService
+from twohr_services.tracker.stages import Stages
+
+from .pipeline import NETWORKS, local_stages
+
+#: the networks the stack answers for a robot that tracks itself, by default
+SERVER_STAGES = ("detector",)
+#: how long a keyframe job waits for a replica of a server stage to appear (s): past it the link is taken as down
+#: and the job is skipped (the stack's trackers wait 10 s, for replicas that restart)
+LINK_WAIT_S = 1.0
+
+log = logging.getLogger("twohr.edge")
+
+
+@dataclass
+class Relay:
+    """The camera's frames into the session the robot's tracker serves (at the session's admitted rate)."""
+
+    control: ControlMsg
+    thinning: RateThinning | None
+    sent: int = 0
+
+
+def parse_server_stages(value: str) -> tuple[str, ...]:
+    """``--server-stages``: comma-separated names of :data:`~twohr_app.pipeline.NETWORKS`, or ``none``."""
+    from twohr.errors import ConfigError
+
+    names = tuple(dict.fromkeys(n.strip() for n in value.split(",") if n.strip() and n.strip() != "none"))
+    unknown = [n for n in names if n not in NETWORKS]
+    if unknown:
+        raise ConfigError(f"--server-stages {value!r}: {', '.join(unknown)} is no network stage (name some of "
+                          f"{', '.join(NETWORKS)}, or none)")
+    return names
+
+
+class EdgeTracker(TrackerService):
+    """Robot ``robot``'s own tracker: fed the camera's frames by :meth:`feed`, the ``server_stages`` asked of the
+    stack and the other networks run in this process."""
+
+    def __init__(self, bus: BusConfig, robot: str, server_stages: tuple[str, ...] = SERVER_STAGES) -> None:
+        super().__init__(bus, snapshots=False)  # a map's snapshot serves a move; its frames cannot move
+        self.robot, self.server_stages = robot, tuple(server_stages)
+        self.replica = keys.edge_replica(robot)
+        self.relay: Relay | None = None
+        self.online: bool | None = None  # the server stages' replicas in reach, as last reported
+        self.published_bytes = 0
+        self.ready = threading.Event()  # serving: its token declared, its sessions heard
+
+    def subscriptions(self) -> list[str]:
+        return []  # its frames come from the camera, in memory
+
+    def control_keys(self) -> list[str]:
+        return [keys.key(self.robot, keys.CONTROL)]
+
+    def takes(self, control: ControlMsg) -> bool:
+        return control.tracker == self.replica
+
+    def on_start(self) -> None:
+        self.replicas = {name: Replicas(self.session, name, wait_for_one=LINK_WAIT_S) for name in NETWORKS}
+
+    def process_one(self, timeout: float = 0.2) -> bool:
+        self.ready.set()  # the shell's loop runs: the token and the control subscription are declared
+        return super().process_one(timeout)
+
+    def stages_for(self, header: FrameMsg, config: PipelineConfig) -> Stages:
+        here = tuple(name for name in NETWORKS if name not in self.server_stages)
+        remote = super().stages_for(header, config)
+        return remote if not here else local_stages(config, header.camera, here=here, elsewhere=remote)
+
+    def publish(self, key: str, payload: bytes, attachment: str | None = None) -> None:
+        self.published_bytes += len(payload)
+        super().publish(key, payload, attachment)
+
+    def upstream_bytes(self) -> int:
+        """What this robot sent the stack so far: its results and its keyframe jobs (payloads)."""
+        return self.published_bytes + sum(r.bytes_sent for r in self.replicas.values())
+
+    def on_session_start(self, control: ControlMsg) -> None:
+        super().on_session_start(control)
+        self.relay = Relay(control, RateThinning(control.rate) if control.rate > 0 else None)
+        self.online = None
+
+    def on_session_stop(self, session_id: str) -> None:
+        if self.relay is not None and self.relay.control.session_id == session_id:
+            self.relay = None
+        super().on_session_stop(session_id)
+
+    def feed(self, payload: bytes) -> bool:
+        """One camera frame message: into the session this robot's tracker serves, if any (False: none, or the
+        frame is above the session's admitted rate)."""
+        relay = self.relay
+        if relay is None:
+            return False
+        if relay.thinning is not None and not relay.thinning.keep(decode(payload, FrameMsg, only=())[0].stamp):
+            return False
+        self.counters.add("received")
+        frames = keys.key(self.robot, "frames")
+        self.inbox.put((frames, relayed_frame(payload, relay.control.session_id, relay.sent)))
+        relay.sent += 1
+        if relay.sent % RELAY_STATUS_EVERY == 0:  # as the stack's source counts a camera's frames
+            status = StatusMsg(session_id=relay.control.session_id, robot_id=self.robot, frame_index=-1,
+                               stamp=time.time(), service="source", state="relaying", counters={"frames": relay.sent})
+            self.publish(keys.key(self.robot, "status"), encode(status))
+        return True
+
+    def handle(self, key: str, payload: bytes) -> None:
+        self._watch_link()
+        super().handle(key, payload)
+
+    def _watch_link(self) -> None:
+        """Say when the server stages go out of reach and come back (the link to the stack, or the stack's
+        replicas): on the session's status (sent when the link is back) and on the console."""
+        relay = self.relay
+        online = all(self.replicas[name].alive() for name in self.server_stages)
+        if relay is None or online == self.online:
+            return
+        if self.online is not None or not online:
+            detail = ("the stack is in reach again: keyframes from its " if online else
+                      "the stack is out of reach: tracking in the local map, no new keyframes from its ") + \
+                ", ".join(self.server_stages) + (" from now on" if online else " until the link is back")
+            (log.info if online else log.warning)("%s", detail)
+            self.report(relay.control, "online" if online else "offline", detail)
+        self.online = online
+
+    def finish_all(self) -> None:
+        """End every session still served here, as a stop would (its final path goes out, its map is saved)."""
+        for session_id in list(self.serving):
+            self.on_session_stop(session_id)
+
+
+def run_edge(bus: BusConfig, robot: str, payloads, server_stages: tuple[str, ...], linger_s: float,
+             say=print) -> int:
+    """``twohr camera --edge``: the camera's ``payloads`` into robot ``robot``'s own tracker, in this process. After
+    the last frame it waits up to ``linger_s`` for the session to be stopped (its refined trajectory then goes out),
+    and ends any still running itself. Prints what it sent upstream."""
+    tracker = EdgeTracker(bus, robot, server_stages)
+    stop = threading.Event()
+    thread = threading.Thread(target=tracker.run, args=(stop,), name="edge-tracker", daemon=True)
+    thread.start()
+    if not tracker.ready.wait(30):
+        stop.set()
+        from twohr.errors import TwohrError
+
+        raise TwohrError(f"robot {robot}'s tracker could not join the bus within 30 s")
+    time.sleep(0.5)  # the gateway hears its token before the first session asks for it
+    say(f"robot {robot} tracks itself (tracker {tracker.replica}); the stack answers its "
+        f"{', '.join(server_stages) or 'nothing'}; start its session with POST /sessions "
+        f"{{\"source\": \"camera\", \"robot_id\": \"{robot}\"}}")
+    fed, frames, t0 = 0, 0, time.monotonic()
+    try:
+        while tracker.relay is None and thread.is_alive():
+            time.sleep(0.05)  # frames go out when a session wants them: a replay starts with its session
+        t0 = time.monotonic()
+        for payload in payloads:
+            frames += 1
+            fed += tracker.feed(payload)
+        elapsed = max(time.monotonic() - t0, 1e-9)
+        deadline = time.monotonic() + linger_s
+        while tracker.serving and time.monotonic() < deadline and thread.is_alive():
+            time.sleep(0.2)  # the session's stop, from the gateway
+    except KeyboardInterrupt:
+        elapsed = max(time.monotonic() - t0, 1e-9)
+    finally:
+        tracker.finish_all()
+        stop.set()
+        thread.join(timeout=120)
+    sent = tracker.upstream_bytes()
+    jobs = {name: replicas.bytes_sent for name, replicas in tracker.replicas.items() if replicas.bytes_sent}
+    say(f"tracked {fed} of {frames} frames here in {elapsed:.1f} s ({frames / elapsed:.1f} FPS), {sent} bytes "
+        f"({sent / elapsed:.0f} bytes/s upstream): keyframe jobs {jobs or 0}, results {tracker.published_bytes}")
+    return 0
