@@ -17,11 +17,12 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from twohr import keys
 from twohr.bus import BusConfig
 from twohr.config import PipelineConfig
+from twohr.dataset import CameraIntrinsics
 from twohr.messages import ControlMsg, FrameMsg, StatusMsg, decode, encode, relayed_frame
 from twohr.rates import RateThinning
 from twohr.replicas import Replicas
@@ -73,6 +74,7 @@ class EdgeTracker(TrackerService):
         self.online: bool | None = None  # the server stages' replicas in reach, as last reported
         self.published_bytes = 0
         self.ready = threading.Event()  # serving: its token declared, its sessions heard
+        self.local: dict[tuple, Stages] = {}  # the stages that run here, by config and camera size
 
     def subscriptions(self) -> list[str]:
         return []  # its frames come from the camera, in memory
@@ -91,9 +93,28 @@ class EdgeTracker(TrackerService):
         return super().process_one(timeout)
 
     def stages_for(self, header: FrameMsg, config: PipelineConfig) -> Stages:
-        here = tuple(name for name in NETWORKS if name not in self.server_stages)
+        """The server stages over the bus, the others in this process (compiled once per camera and config)."""
         remote = super().stages_for(header, config)
-        return remote if not here else local_stages(config, header.camera, here=here, elsewhere=remote)
+        local = self._local_stages(config, header.camera)
+        if local is None:
+            return remote
+        asked = {"detector": ("detect",), "yolo": ("dynamic_mask",), "matcher": ("match", "match_sets")}
+        return replace(local, **{field: getattr(remote, field) for name in self.server_stages for field in asked[name]})
+
+    def _local_stages(self, config: PipelineConfig, camera: CameraIntrinsics) -> Stages | None:
+        here = tuple(name for name in NETWORKS if name not in self.server_stages)
+        if not here:
+            return None
+        key = (config.model_dump_json(include={"detector", "yolo", "matcher"}), camera.width, camera.height)
+        if key not in self.local:
+            self.local[key] = local_stages(config, camera, here=here)
+        return self.local[key]
+
+    def warm(self, camera: CameraIntrinsics) -> None:
+        """Compile the networks that run here for this camera with the default config now, not on a session's
+        first frame (a second and a half of frames dropped at 30 Hz)."""
+        self.warm_up(f"the networks here ({camera.width}x{camera.height})",
+                     lambda: self._local_stages(PipelineConfig(), camera))
 
     def publish(self, key: str, payload: bytes, attachment: str | None = None) -> None:
         self.published_bytes += len(payload)
@@ -157,11 +178,13 @@ class EdgeTracker(TrackerService):
 
 
 def run_edge(bus: BusConfig, robot: str, payloads, server_stages: tuple[str, ...], linger_s: float,
-             say=print) -> int:
-    """``twohr camera --edge``: the camera's ``payloads`` into robot ``robot``'s own tracker, in this process. After
-    the last frame it waits up to ``linger_s`` for the session to be stopped (its refined trajectory then goes out),
-    and ends any still running itself. Prints what it sent upstream."""
+             camera: CameraIntrinsics | None = None, say=print) -> int:
+    """``twohr camera --edge``: the camera's ``payloads`` into robot ``robot``'s own tracker, in this process, from
+    the start of its session (``camera``, where known before the first frame: the networks here are compiled for it
+    first). After the last frame it waits up to ``linger_s`` for the session to be stopped (its refined trajectory
+    then goes out), and ends any still running itself. Prints what it sent upstream."""
     tracker = EdgeTracker(bus, robot, server_stages)
+    tracker.take_priority()  # a frame's pose goes first on the robot too (where it may raise itself)
     stop = threading.Event()
     thread = threading.Thread(target=tracker.run, args=(stop,), name="edge-tracker", daemon=True)
     thread.start()
@@ -174,6 +197,8 @@ def run_edge(bus: BusConfig, robot: str, payloads, server_stages: tuple[str, ...
     say(f"robot {robot} tracks itself (tracker {tracker.replica}); the stack answers its "
         f"{', '.join(server_stages) or 'nothing'}; start its session with POST /sessions "
         f"{{\"source\": \"camera\", \"robot_id\": \"{robot}\"}}")
+    if camera is not None:
+        tracker.warm(camera)
     fed, frames, t0 = 0, 0, time.monotonic()
     try:
         while tracker.relay is None and thread.is_alive():

@@ -87,10 +87,12 @@ def local_stages(config: PipelineConfig, camera: CameraIntrinsics, here: tuple[s
                  elsewhere: Stages | None = None) -> Stages:
     """The detector, YOLO and matcher cores in this process, compiled for the camera's image size; with ``here``
     naming fewer of :data:`NETWORKS`, the others are ``elsewhere``'s (a robot's own tracker asks the stack for
-    some, :mod:`twohr_app.edge`)."""
+    some, :mod:`twohr_app.edge`; None: they are filled in later, and raise until then)."""
     unknown = set(here) - set(NETWORKS)
-    if unknown or (elsewhere is None and set(here) != set(NETWORKS)):
-        raise ValueError(f"stages here {here}: name some of {NETWORKS}, and give the others' stages")
+    if unknown:
+        raise ValueError(f"stages here {here}: name some of {NETWORKS}")
+    if elsewhere is None:
+        elsewhere = Stages(_runs_elsewhere, _runs_elsewhere, _runs_elsewhere)
     front = FrontEnd(config, detector="detector" in here)
     blank = np.zeros((camera.height, camera.width, 3), np.uint8)
     if front.detector is not None:
@@ -105,6 +107,10 @@ def local_stages(config: PipelineConfig, camera: CameraIntrinsics, here: tuple[s
         (lambda _frame, desc_a, desc_b: matcher(desc_a, desc_b)) if matcher is not None else elsewhere.match,
         detector_provenance(front.detector, (camera.width, camera.height)) if front.detector is not None else {},
         match_sets=None if matcher is not None else elsewhere.match_sets)
+
+
+def _runs_elsewhere(*_args):
+    raise RuntimeError("this stage runs elsewhere and was not given")
 
 
 def cached_stages(config: PipelineConfig, cache: dict[int, StageOutput]) -> Stages:

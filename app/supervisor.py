@@ -388,7 +388,8 @@ def check_replicas(replicas: dict[str, int], trackers: bool = True) -> dict[str,
     allowed = (*NETWORK_SERVICES, "tracker") if trackers else NETWORK_SERVICES
     for name, count in replicas.items():
         if name not in allowed:
-            why = ("runs in the stack, not joined to it" if name == "tracker" else
+            why = ("runs in the stack, not joined to it (a robot tracks itself with twohr camera --edge)"
+                   if name == "tracker" else
                    "is not a network service" if name in PIPELINE_SERVICES else "is no service")
             raise ConfigError(f"replicas of {name!r}: {name} {why}; replicas are for {', '.join(allowed)}")
         if count < 1:

@@ -347,6 +347,13 @@ class Service:
             signal.signal(sig, lambda *_: self.stopping.set())
         self.take_priority()
         self.run(self.stopping)
+        # the bus session is closed and every session finished: leave now. A replica found after a stack's stop had
+        # hung in the interpreter's exit (one thread left, waiting on a lock of Zenoh's runtime, SIGTERM caught and
+        # ignored), and with its supervisor gone no one sends the SIGKILL that ends such a process
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
 
 
 def replica_id() -> str:

@@ -180,7 +180,7 @@ def replica_health_of(stack, service: str) -> list[dict]:
     (["up", "--replicas", "detector=0"], "detector=0: a service needs at least one replica"),
     (["up", "--replicas", "planner=2"], "replicas of 'planner': planner is no service"),
     (["up", "--replicas", "tracker=0"], "tracker=0: a service needs at least one replica"),
-    (["up", "--join", "tcp/127.0.0.1:9", "--only", "tracker", "--insecure"], "tracker runs in the stack"),
+    (["up", "--join", "tcp/127.0.0.1:9", "--only", "tracker", "--insecure"], "a robot tracks itself with twohr camera --edge"),
     (["up", "--replicas", "detector"], "write SERVICE=COUNT"),
     (["up", "--join", "tcp/127.0.0.1:9"], "--join needs --only"),
     (["up", "--join", "tcp/127.0.0.1:9", "--only", "detector"], "give the fleet's keys"),

@@ -171,7 +171,12 @@ def _camera(args: argparse.Namespace) -> int:
     if args.edge:
         from ..edge import run_edge
 
-        return run_edge(camera_bus(args), robot, payloads, server_stages, args.linger,
+        known = None
+        if args.replay:
+            from twohr.dataset import RGBDSequence
+
+            known = RGBDSequence(args.replay).camera
+        return run_edge(camera_bus(args), robot, payloads, server_stages, args.linger, camera=known,
                         say=lambda line: print(line, flush=True))
     session = open_bus(args)
     sent, sent_bytes, t0 = 0, 0, time.monotonic()
