@@ -191,8 +191,9 @@ def robot_grants(robot: str, ros2_domain: int = 0, edge: bool = False) -> Grants
 
     ``edge`` (``twohr keys add --edge``): it runs its own tracker (``twohr camera --edge``), which also publishes
     the robot's own results (:data:`TRACKER_RESULTS`), hears its own sessions start and stop, asks the network
-    services' replicas for its own keyframes (following their tokens), fetches and saves maps, and holds the token
-    and answers the health query of tracker ``edge+<robot>``; of any other robot's keys, nothing more."""
+    services' replicas for its own keyframes (following their tokens: these name the replicas' hosts), fetches maps
+    (saving one stays the stack's tracker's), and holds the token and answers the health query of tracker
+    ``edge+<robot>``; of any other robot's keys, nothing more."""
     client = role_grants(ros2_domain)["client"]
     ros2 = robot_ros2_grants(robot, ros2_domain)
     twohr_only = [k for k in client.subscribe if k.startswith(f"{PREFIX}/")]
@@ -204,8 +205,9 @@ def robot_grants(robot: str, ros2_domain: int = 0, edge: bool = False) -> Grants
         replica = edge_replica(robot)
         grants.publish += [key(robot, stream) for stream in TRACKER_RESULTS]
         grants.subscribe.append(key(robot, CONTROL))
-        grants.ask += [f"{key(robot, query)}/*" for query in (DETECT_QUERY, DYNAMICS_QUERY, MATCH_QUERY)] + [
-            f"{MAPS_PREFIX}/*/save"]
+        # no map saves: the map store takes a save without a session as the operator's (a robot's own tracker
+        # localizes in stored maps; building or extending one runs on the stack)
+        grants.ask += [f"{key(robot, query)}/*" for query in (DETECT_QUERY, DYNAMICS_QUERY, MATCH_QUERY)]
         grants.serve.append(health_key("tracker", replica))
         grants.tokens.append(alive_key("tracker", replica))
         grants.watch += [alive_key(service) for service in NETWORK_SERVICES]

@@ -23,6 +23,7 @@ from twohr import keys
 from twohr.bus import BusConfig
 from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics
+from twohr.errors import TwohrError
 from twohr.messages import ControlMsg, FrameMsg, StatusMsg, decode, encode, relayed_frame
 from twohr.rates import RateThinning
 from twohr.replicas import Replicas
@@ -30,13 +31,18 @@ from twohr_services.source.service import RELAY_STATUS_EVERY
 from twohr_services.tracker.service import TrackerService
 from twohr_services.tracker.stages import Stages
 
-from .pipeline import NETWORKS, local_stages
+from .pipeline import local_stages
 
 #: the networks the stack answers for a robot that tracks itself, by default
 SERVER_STAGES = ("detector",)
 #: how long a keyframe job waits for a replica of a server stage to appear (s): past it the link is taken as down
 #: and the job is skipped (the stack's trackers wait 10 s, for replicas that restart)
 LINK_WAIT_S = 1.0
+
+#: how long the camera waits for a session before it says where one may have gone (s)
+WAIT_HINT_S = 30.0
+#: how long ending the robot's sessions may take when the camera stops (s)
+FINISH_TIMEOUT_S = 300.0
 
 log = logging.getLogger("twohr.edge")
 
@@ -51,14 +57,14 @@ class Relay:
 
 
 def parse_server_stages(value: str) -> tuple[str, ...]:
-    """``--server-stages``: comma-separated names of :data:`~twohr_app.pipeline.NETWORKS`, or ``none``."""
+    """``--server-stages``: comma-separated names of :data:`twohr.keys.NETWORK_SERVICES`, or ``none``."""
     from twohr.errors import ConfigError
 
     names = tuple(dict.fromkeys(n.strip() for n in value.split(",") if n.strip() and n.strip() != "none"))
-    unknown = [n for n in names if n not in NETWORKS]
+    unknown = [n for n in names if n not in keys.NETWORK_SERVICES]
     if unknown:
         raise ConfigError(f"--server-stages {value!r}: {', '.join(unknown)} is no network stage (name some of "
-                          f"{', '.join(NETWORKS)}, or none)")
+                          f"{', '.join(keys.NETWORK_SERVICES)}, or none)")
     return names
 
 
@@ -71,10 +77,12 @@ class EdgeTracker(TrackerService):
         self.robot, self.server_stages = robot, tuple(server_stages)
         self.replica = keys.edge_replica(robot)
         self.relay: Relay | None = None
-        self.online: bool | None = None  # the server stages' replicas in reach, as last reported
-        self.published_bytes = 0
+        self.online: bool | None = None  # the server stages' replicas in reach, as last seen
+        self.offline_since: float | None = None  # when they went out of reach (monotonic s)
+        self.published_bytes, self.bytes_lock = 0, threading.Lock()
         self.ready = threading.Event()  # serving: its token declared, its sessions heard
         self.local: dict[tuple, Stages] = {}  # the stages that run here, by config and camera size
+        self.local_lock = threading.Lock()
 
     def subscriptions(self) -> list[str]:
         return []  # its frames come from the camera, in memory
@@ -86,7 +94,8 @@ class EdgeTracker(TrackerService):
         return control.tracker == self.replica
 
     def on_start(self) -> None:
-        self.replicas = {name: Replicas(self.session, name, wait_for_one=LINK_WAIT_S) for name in NETWORKS}
+        self.replicas = {name: Replicas(self.session, name, wait_for_one=LINK_WAIT_S)
+                         for name in keys.NETWORK_SERVICES}
 
     def process_one(self, timeout: float = 0.2) -> bool:
         self.ready.set()  # the shell's loop runs: the token and the control subscription are declared
@@ -102,13 +111,14 @@ class EdgeTracker(TrackerService):
         return replace(local, **{field: getattr(remote, field) for name in self.server_stages for field in asked[name]})
 
     def _local_stages(self, config: PipelineConfig, camera: CameraIntrinsics) -> Stages | None:
-        here = tuple(name for name in NETWORKS if name not in self.server_stages)
+        here = tuple(name for name in keys.NETWORK_SERVICES if name not in self.server_stages)
         if not here:
             return None
         key = (config.model_dump_json(include={"detector", "yolo", "matcher"}), camera.width, camera.height)
-        if key not in self.local:
-            self.local[key] = local_stages(config, camera, here=here)
-        return self.local[key]
+        with self.local_lock:  # the camera's thread warms them, the service's thread asks for them
+            if key not in self.local:
+                self.local[key] = local_stages(config, camera, here=here)
+            return self.local[key]
 
     def warm(self, camera: CameraIntrinsics) -> None:
         """Compile the networks that run here for this camera with the default config now, not on a session's
@@ -117,7 +127,8 @@ class EdgeTracker(TrackerService):
                      lambda: self._local_stages(PipelineConfig(), camera))
 
     def publish(self, key: str, payload: bytes, attachment: str | None = None) -> None:
-        self.published_bytes += len(payload)
+        with self.bytes_lock:  # the per-frame, finishing and camera threads publish
+            self.published_bytes += len(payload)
         super().publish(key, payload, attachment)
 
     def upstream_bytes(self) -> int:
@@ -125,9 +136,12 @@ class EdgeTracker(TrackerService):
         return self.published_bytes + sum(r.bytes_sent for r in self.replicas.values())
 
     def on_session_start(self, control: ControlMsg) -> None:
+        for session_id in [s for s in self.serving if s != control.session_id]:  # one robot, one session
+            self.on_session_stop(session_id)
+            self.session_configs.pop(session_id, None)
         super().on_session_start(control)
         self.relay = Relay(control, RateThinning(control.rate) if control.rate > 0 else None)
-        self.online = None
+        self.online, self.offline_since = None, None
 
     def on_session_stop(self, session_id: str) -> None:
         if self.relay is not None and self.relay.control.session_id == session_id:
@@ -157,24 +171,36 @@ class EdgeTracker(TrackerService):
         super().handle(key, payload)
 
     def _watch_link(self) -> None:
-        """Say when the server stages go out of reach and come back (the link to the stack, or the stack's
-        replicas): on the session's status (sent when the link is back) and on the console."""
+        """Say when the server stages go out of reach (the link to the stack, or the stack's replicas): on the
+        console at once, and on the session's status once the stack hears the robot again."""
         relay = self.relay
         online = all(self.replicas[name].alive() for name in self.server_stages)
         if relay is None or online == self.online:
             return
-        if self.online is not None or not online:
-            detail = ("the stack is in reach again: keyframes from its " if online else
-                      "the stack is out of reach: tracking in the local map, no new keyframes from its ") + \
-                ", ".join(self.server_stages) + (" from now on" if online else " until the link is back")
-            (log.info if online else log.warning)("%s", detail)
-            self.report(relay.control, "online" if online else "offline", detail)
+        stages = ", ".join(self.server_stages)
+        if not online:
+            self.offline_since = time.monotonic()
+            log.warning("the stack is out of reach: tracking in the local map, no new keyframes from its %s until "
+                        "the link is back", stages)
+        elif self.offline_since is not None:
+            detail = (f"the stack was out of reach for {time.monotonic() - self.offline_since:.1f} s: tracked in the "
+                      f"local map meanwhile, without new keyframes; keyframes from its {stages} again")
+            log.info("%s", detail)
+            self.report(relay.control, "online", detail)
+            self.offline_since = None
         self.online = online
 
-    def finish_all(self) -> None:
-        """End every session still served here, as a stop would (its final path goes out, its map is saved)."""
+    def end_sessions(self, timeout: float) -> None:
+        """End every session still served here as the gateway's stop would, on the service's own thread (its final
+        path goes out), waiting up to ``timeout`` s for them to be handed to the finishing thread."""
+        self.relay = None
         for session_id in list(self.serving):
-            self.on_session_stop(session_id)
+            stop = ControlMsg(session_id=session_id, robot_id=self.robot, frame_index=-1, stamp=time.time(),
+                              command="stop", tracker=self.replica)
+            self.inbox.put((keys.key(self.robot, keys.CONTROL), encode(stop)), urgent=True)
+        deadline = time.monotonic() + timeout
+        while self.serving and time.monotonic() < deadline:
+            time.sleep(0.05)
 
 
 def run_edge(bus: BusConfig, robot: str, payloads, server_stages: tuple[str, ...], linger_s: float,
@@ -190,8 +216,6 @@ def run_edge(bus: BusConfig, robot: str, payloads, server_stages: tuple[str, ...
     thread.start()
     if not tracker.ready.wait(30):
         stop.set()
-        from twohr.errors import TwohrError
-
         raise TwohrError(f"robot {robot}'s tracker could not join the bus within 30 s")
     time.sleep(0.5)  # the gateway hears its token before the first session asks for it
     say(f"robot {robot} tracks itself (tracker {tracker.replica}); the stack answers its "
@@ -201,10 +225,17 @@ def run_edge(bus: BusConfig, robot: str, payloads, server_stages: tuple[str, ...
         tracker.warm(camera)
     fed, frames, t0 = 0, 0, time.monotonic()
     try:
+        hint_at = time.monotonic() + WAIT_HINT_S
         while tracker.relay is None and thread.is_alive():
             time.sleep(0.05)  # frames go out when a session wants them: a replay starts with its session
+            if time.monotonic() > hint_at:
+                hint_at = float("inf")
+                say(f"no session has come to robot {robot}'s own tracker yet; if one runs, the gateway placed it "
+                    "elsewhere: was this robot's key made with twohr keys add --edge, and is it the camera session?")
         t0 = time.monotonic()
         for payload in payloads:
+            if not thread.is_alive():
+                raise TwohrError(f"robot {robot}'s tracker stopped (its log above says why)")
             frames += 1
             fed += tracker.feed(payload)
         elapsed = max(time.monotonic() - t0, 1e-9)
@@ -214,9 +245,9 @@ def run_edge(bus: BusConfig, robot: str, payloads, server_stages: tuple[str, ...
     except KeyboardInterrupt:
         elapsed = max(time.monotonic() - t0, 1e-9)
     finally:
-        tracker.finish_all()
+        tracker.end_sessions(timeout=30)
         stop.set()
-        thread.join(timeout=120)
+        thread.join(timeout=FINISH_TIMEOUT_S)  # the final bundle adjustment and path of a long session
     sent = tracker.upstream_bytes()
     jobs = {name: replicas.bytes_sent for name, replicas in tracker.replicas.items() if replicas.bytes_sent}
     say(f"tracked {fed} of {frames} frames here in {elapsed:.1f} s ({frames / elapsed:.1f} FPS), {sent} bytes "

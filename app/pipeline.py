@@ -18,6 +18,7 @@ import numpy as np
 from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics, Frame
 from twohr.features import Keypoints
+from twohr.keys import NETWORK_SERVICES
 from twohr.trajectory import Trajectory
 from twohr.workers import prefetch
 from twohr_services.detector.core import R2D2Detector, build_detector
@@ -79,20 +80,13 @@ def detector_provenance(detector, image_size: tuple[int, int]) -> dict:
     return chosen
 
 
-#: the network stages a schedule asks: where each runs is the caller's choice (:func:`local_stages`)
-NETWORKS = ("detector", "yolo", "matcher")
-
-
-def local_stages(config: PipelineConfig, camera: CameraIntrinsics, here: tuple[str, ...] = NETWORKS,
-                 elsewhere: Stages | None = None) -> Stages:
+def local_stages(config: PipelineConfig, camera: CameraIntrinsics,
+                 here: tuple[str, ...] = NETWORK_SERVICES) -> Stages:
     """The detector, YOLO and matcher cores in this process, compiled for the camera's image size; with ``here``
-    naming fewer of :data:`NETWORKS`, the others are ``elsewhere``'s (a robot's own tracker asks the stack for
-    some, :mod:`twohr_app.edge`; None: they are filled in later, and raise until then)."""
-    unknown = set(here) - set(NETWORKS)
-    if unknown:
-        raise ValueError(f"stages here {here}: name some of {NETWORKS}")
-    if elsewhere is None:
-        elsewhere = Stages(_runs_elsewhere, _runs_elsewhere, _runs_elsewhere)
+    naming fewer of them, the others' stages raise until the caller puts its own in their place (a robot's own
+    tracker asks the stack for some: :mod:`twohr_app.edge`)."""
+    if set(here) - set(NETWORK_SERVICES):
+        raise ValueError(f"stages here {here}: name some of {NETWORK_SERVICES}")
     front = FrontEnd(config, detector="detector" in here)
     blank = np.zeros((camera.height, camera.width, 3), np.uint8)
     if front.detector is not None:
@@ -102,11 +96,10 @@ def local_stages(config: PipelineConfig, camera: CameraIntrinsics, here: tuple[s
         front.masker.detect_dynamic(blank)
     matcher = build_matcher(config.matcher) if "matcher" in here else None
     return Stages(
-        (lambda frame: front.detector.detect(frame.rgb)) if front.detector is not None else elsewhere.detect,
-        (front.dynamic_mask if masks else None) if "yolo" in here else elsewhere.dynamic_mask,
-        (lambda _frame, desc_a, desc_b: matcher(desc_a, desc_b)) if matcher is not None else elsewhere.match,
-        detector_provenance(front.detector, (camera.width, camera.height)) if front.detector is not None else {},
-        match_sets=None if matcher is not None else elsewhere.match_sets)
+        (lambda frame: front.detector.detect(frame.rgb)) if front.detector is not None else _runs_elsewhere,
+        (front.dynamic_mask if masks else None) if "yolo" in here else _runs_elsewhere,
+        (lambda _frame, desc_a, desc_b: matcher(desc_a, desc_b)) if matcher is not None else _runs_elsewhere,
+        detector_provenance(front.detector, (camera.width, camera.height)) if front.detector is not None else {})
 
 
 def _runs_elsewhere(*_args):

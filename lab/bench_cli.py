@@ -44,8 +44,11 @@ def _bench(args: argparse.Namespace) -> int:
         if not (args.set or args.replicas or args.config or args.preset or args.server_stages):
             from twohr_app.capacity import keep_bench
 
-            kept = keep_bench(result["max_robots"])
-            print(f"kept for twohr up --max-robots auto: {kept.line()}")
+            if result["max_robots"] < args.fleet:  # a limit found; all N carried is only a lower bound
+                kept = keep_bench(result["max_robots"])
+                print(f"kept for twohr up --max-robots auto: {kept.line()}")
+            else:
+                print(f"not kept for twohr up --max-robots auto: all {args.fleet} robots were carried (try more)")
         table = fleet.format_table(result)
         (out / "fleet.md").write_text(f"{stamp_line(args.argv)}\n\n{table}\n")
         print(table)

@@ -230,6 +230,7 @@ def test_a_robots_own_tracker_publishes_its_own_results_and_no_other_robots(edge
         e.declare_subscriber("twohr/e/control", lambda s: controls["e"].append(s.payload.to_bytes()))
         f.declare_subscriber("twohr/e/control", lambda s: controls["f"].append(s.payload.to_bytes()))
         detector.declare_queryable("twohr/*/rpc/detect/d1", lambda q: q.reply(q.key_expr, b"kp"))
+        gateway.declare_queryable("twohr/maps/*/save", lambda q: q.reply(q.key_expr, b"saved"))
         replicas_seen: dict[str, list[str]] = {"e": [], "p": []}
         for name, session in (("e", e), ("p", p)):
             session.liveliness().declare_subscriber(alive_key("detector"), lambda s, n=name: replicas_seen[n].append(
@@ -248,12 +249,15 @@ def test_a_robots_own_tracker_publishes_its_own_results_and_no_other_robots(edge
         asked = {name: [r.ok.payload.to_bytes() for r in session.get(replica_query(robot, "rpc/detect", "d1"),
                                                                      timeout=2.0) if r.ok is not None]
                  for name, session, robot in (("e", e, "e"), ("e for f", e, "f"), ("p", p, "p"))}
+        # the map store takes a save without a session as the operator's: no robot may ask for one
+        asked["e saves"] = [r.ok.payload.to_bytes() for r in e.get("twohr/maps/lab/save", payload=b"map",
+                                                                     timeout=2.0) if r.ok is not None]
         time.sleep(1.0)
         assert sorted(results) == [("twohr/e/pose", b"e's pose"), ("twohr/e/status", b"e's status"),
                                    ("twohr/f/pose", b"f's pose")], results
         assert trackers == [edge_replica("e")], trackers  # once: f's token for e and p's own never reach it
         assert controls == {"e": [b"start"], "f": []}, controls
-        assert asked == {"e": [b"kp"], "e for f": [], "p": []}, asked
+        assert asked == {"e": [b"kp"], "e for f": [], "p": [], "e saves": []}, asked
         assert replicas_seen == {"e": ["twohr/_alive/detector/d1"], "p": []}, replicas_seen
         for token in [*tokens, detector_token]:
             token.undeclare()

@@ -87,7 +87,9 @@ def test_the_fleet_bench_replays_two_robots_keyframe_jobs_and_finds_what_the_ser
     carried = [run["robots"] for run in fleet["runs"] if all(p <= 1000 for p in run["keyframe_ms_p99"])]
     assert fleet["max_robots"] == max(carried, default=0), fleet
     assert "max robots with every keyframe p99" in (out / "fleet.md").read_text()
-    # what it found is what `twohr up --max-robots auto` admits on this host from now on
-    kept = json.loads((cache / "twohr" / "capacity.json").read_text())
-    assert [entry["robots"] for entry in kept.values() if entry["source"] == "twohr bench --fleet"] == [
-        float(max(1, fleet["max_robots"]))], kept
+    # a limit it found is what `twohr up --max-robots auto` admits on this host from now on; both robots carried
+    # says only "at least 2", which is not kept
+    kept_file = cache / "twohr" / "capacity.json"
+    kept = json.loads(kept_file.read_text()) if kept_file.exists() else {}
+    assert [entry["robots"] for entry in kept.values() if entry["source"] == "twohr bench --fleet"] == (
+        [float(max(1, fleet["max_robots"]))] if fleet["max_robots"] < 2 else []), kept

@@ -181,7 +181,8 @@ class GatewayBus:
 
     def missing_services(self) -> list[str]:
         """The pipeline services whose liveliness token is not up."""
-        return [name for name in PIPELINE_SERVICES if not self.alive.get(name)]
+        return [name for name in PIPELINE_SERVICES if not (
+            stack_trackers(self.alive.get(name, set())) if name == "tracker" else self.alive.get(name))]
 
     def send_control(self, session: Session, command: str, config: PipelineConfig | None = None) -> None:
         """Publish a start, stop or move of ``session`` on ``twohr/<robot>/control`` (with ``config``, or the
@@ -322,8 +323,9 @@ class GatewayBus:
                     session.detail = ""
             return
         replicas.discard(replica)
-        # an optional service (the ros2 bridge) is not part of a session's pipeline
-        if not replicas and name in PIPELINE_SERVICES:
+        # an optional service (the ros2 bridge) is not part of a session's pipeline; a robot's own tracker is not
+        # the stack's
+        if not (stack_trackers(replicas) if name == "tracker" else replicas) and name in PIPELINE_SERVICES:
             self._gone.setdefault(name, time.monotonic())
         elif name == "tracker":  # the sessions placed on this one have lost their tracker
             self._gone.setdefault(f"tracker {replica}", time.monotonic())
@@ -343,7 +345,7 @@ class GatewayBus:
             self._linked_since = now
         for name, since in list(self._gone.items()):
             service, _, replica = name.partition(" ")  # "tracker <replica>": one tracker of several
-            back = replica in self.alive.get(service, set()) if replica else self.alive.get(name)
+            back = replica in self.alive.get(service, set()) if replica else self.missing_services().count(name) == 0
             if back or since < self._linked_since:
                 del self._gone[name]
             elif now - since >= self.settings.liveliness_grace:
@@ -351,7 +353,11 @@ class GatewayBus:
                 if replica:
                     self._move_sessions(replica)
                     continue
-                for session in self.table.fail_active(f"the {name} service stopped during the session"):
+                # a session on a robot's own tracker needs none of the stack's trackers
+                def needs_it(session: Session, service: str = name) -> bool:
+                    return service != "tracker" or keys.edge_robot(session.tracker) is None
+
+                for session in self.table.fail_active(f"the {name} service stopped during the session", needs_it):
                     self._fail(session)
 
     def _finish(self, session: Session) -> None:

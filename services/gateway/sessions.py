@@ -287,10 +287,10 @@ class SessionTable:
                 session.source_done_at = time.time()
         return None
 
-    def fail_active(self, reason: str) -> list[Session]:
-        """Fail every active session (a service they need went away); returns them."""
+    def fail_active(self, reason: str, which=lambda session: True) -> list[Session]:
+        """Fail every active session (of those ``which`` picks: a service they need went away); returns them."""
         with self.lock:
-            failed = [s for s in self.sessions.values() if s.state in ACTIVE]
+            failed = [s for s in self.sessions.values() if s.state in ACTIVE and which(s)]
             for s in failed:
                 s.state, s.detail = "failed", reason
         return failed

@@ -15,6 +15,7 @@ from pathlib import Path
 from fastapi import APIRouter, Depends, HTTPException, status
 from fastapi.responses import FileResponse, PlainTextResponse
 
+from twohr import keys
 from twohr.config import PipelineConfig, load_config
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
@@ -148,8 +149,14 @@ def create_session(request: SessionRequest, settings: Settings, bus: Bus, table:
         if table.active_for_robot(request.robot_id):
             raise HTTPException(status.HTTP_409_CONFLICT, f"robot {request.robot_id} already runs a session")
         admit(request, table, settings.max_robots)
+        tracker = tracker_for(request, set(bus.alive.get("tracker", ())), table)
+        if keys.edge_robot(tracker) is not None and request.map is not None and request.map.mode != "localize":
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY,
+                                f"robot {request.robot_id} tracks itself (twohr camera --edge): it may localize in a "
+                                f"stored map, but {request.map.mode} needs the stack's tracker (twohr camera without "
+                                "--edge)")
         session = Session(id=uuid.uuid4().hex[:12], request=request, folder=folder, started_by=identity(who.robot),
-                          tracker=tracker_for(request, set(bus.alive.get("tracker", ())), table), config=config)
+                          tracker=tracker, config=config)
         table.add(session)
     bus.send_control(session, "start", config)
     bus.audit.record("session.start", session.started_by, robot=request.robot_id, session=session.id,
