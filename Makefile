@@ -35,7 +35,7 @@ docs: venv
 	PYTHONDONTWRITEBYTECODE=1 $(BIN)/mkdocs build --strict --quiet
 
 test: venv docs models lint test-prerequisites
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=15
 
 # The whole system in containers (docker compose), with an engine started here if none answers;
 # prints a SKIP line and succeeds where no engine can be started. See scripts/docker-here.sh.
