@@ -24,10 +24,9 @@ from twohr.bus import BusConfig
 from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics
 from twohr.errors import TwohrError
-from twohr.messages import ControlMsg, FrameMsg, StatusMsg, decode, encode, relayed_frame
-from twohr.rates import RateThinning
+from twohr.messages import ControlMsg, FrameMsg, StatusMsg, encode
+from twohr.rates import CameraRelay
 from twohr.replicas import Replicas
-from twohr_services.source.service import RELAY_STATUS_EVERY
 from twohr_services.tracker.service import TrackerService
 from twohr_services.tracker.stages import Stages
 
@@ -48,12 +47,11 @@ log = logging.getLogger("twohr.edge")
 
 
 @dataclass
-class Relay:
-    """The camera's frames into the session the robot's tracker serves (at the session's admitted rate)."""
+class Served:
+    """The session this robot's tracker serves, and its camera's frames into it."""
 
     control: ControlMsg
-    thinning: RateThinning | None
-    sent: int = 0
+    relay: CameraRelay
 
 
 def parse_server_stages(value: str) -> tuple[str, ...]:
@@ -76,7 +74,7 @@ class EdgeTracker(TrackerService):
         super().__init__(bus, snapshots=False)  # a map's snapshot serves a move; its frames cannot move
         self.robot, self.server_stages = robot, tuple(server_stages)
         self.replica = keys.edge_replica(robot)
-        self.relay: Relay | None = None
+        self.served: Served | None = None
         self.online: bool | None = None  # the server stages' replicas in reach, as last seen
         self.offline_since: float | None = None  # when they went out of reach (monotonic s)
         self.published_bytes, self.bytes_lock = 0, threading.Lock()
@@ -140,29 +138,27 @@ class EdgeTracker(TrackerService):
             self.on_session_stop(session_id)
             self.session_configs.pop(session_id, None)
         super().on_session_start(control)
-        self.relay = Relay(control, RateThinning(control.rate) if control.rate > 0 else None)
+        self.served = Served(control, CameraRelay(control.session_id, control.rate))
         self.online, self.offline_since = None, None
 
     def on_session_stop(self, session_id: str) -> None:
-        if self.relay is not None and self.relay.control.session_id == session_id:
-            self.relay = None
+        if self.served is not None and self.served.control.session_id == session_id:
+            self.served = None
         super().on_session_stop(session_id)
 
     def feed(self, payload: bytes) -> bool:
         """One camera frame message: into the session this robot's tracker serves, if any (False: none, or the
         frame is above the session's admitted rate)."""
-        relay = self.relay
-        if relay is None:
-            return False
-        if relay.thinning is not None and not relay.thinning.keep(decode(payload, FrameMsg, only=())[0].stamp):
+        served = self.served
+        relayed = None if served is None else served.relay.relay(payload)
+        if relayed is None:
             return False
         self.counters.add("received")
-        frames = keys.key(self.robot, "frames")
-        self.inbox.put((frames, relayed_frame(payload, relay.control.session_id, relay.sent)))
-        relay.sent += 1
-        if relay.sent % RELAY_STATUS_EVERY == 0:  # as the stack's source counts a camera's frames
-            status = StatusMsg(session_id=relay.control.session_id, robot_id=self.robot, frame_index=-1,
-                               stamp=time.time(), service="source", state="relaying", counters={"frames": relay.sent})
+        self.inbox.put((keys.key(self.robot, "frames"), relayed))
+        if served.relay.status_due:  # as the stack's source counts a camera's frames
+            status = StatusMsg(session_id=served.control.session_id, robot_id=self.robot, frame_index=-1,
+                               stamp=time.time(), service="source", state="relaying",
+                               counters={"frames": served.relay.sent})
             self.publish(keys.key(self.robot, "status"), encode(status))
         return True
 
@@ -173,9 +169,9 @@ class EdgeTracker(TrackerService):
     def _watch_link(self) -> None:
         """Say when the server stages go out of reach (the link to the stack, or the stack's replicas): on the
         console at once, and on the session's status once the stack hears the robot again."""
-        relay = self.relay
+        served = self.served
         online = all(self.replicas[name].alive() for name in self.server_stages)
-        if relay is None or online == self.online:
+        if served is None or online == self.online:
             return
         stages = ", ".join(self.server_stages)
         if not online:
@@ -186,14 +182,14 @@ class EdgeTracker(TrackerService):
             detail = (f"the stack was out of reach for {time.monotonic() - self.offline_since:.1f} s: tracked in the "
                       f"local map meanwhile, without new keyframes; keyframes from its {stages} again")
             log.info("%s", detail)
-            self.report(relay.control, "online", detail)
+            self.report(served.control, "online", detail)
             self.offline_since = None
         self.online = online
 
     def end_sessions(self, timeout: float) -> None:
         """End every session still served here as the gateway's stop would, on the service's own thread (its final
         path goes out), waiting up to ``timeout`` s for them to be handed to the finishing thread."""
-        self.relay = None
+        self.served = None
         for session_id in list(self.serving):
             stop = ControlMsg(session_id=session_id, robot_id=self.robot, frame_index=-1, stamp=time.time(),
                               command="stop", tracker=self.replica)
@@ -226,7 +222,7 @@ def run_edge(bus: BusConfig, robot: str, payloads, server_stages: tuple[str, ...
     fed, frames, t0 = 0, 0, time.monotonic()
     try:
         hint_at = time.monotonic() + WAIT_HINT_S
-        while tracker.relay is None and thread.is_alive():
+        while tracker.served is None and thread.is_alive():
             time.sleep(0.05)  # frames go out when a session wants them: a replay starts with its session
             if time.monotonic() > hint_at:
                 hint_at = float("inf")

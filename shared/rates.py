@@ -155,3 +155,33 @@ class PeerShare:
         if own <= worst or worst + self.margin >= 1.0:  # served no better than the others: no cap
             return None
         return max(1.0, (worst + self.margin) * camera_hz)
+
+
+#: a camera session's status reports the frames relayed so far every this many frames
+RELAY_STATUS_EVERY = 15
+
+
+class CameraRelay:
+    """A camera's frames (``twohr/<robot>/camera`` messages) into one session, at the rate the session was admitted
+    at (``rate`` Hz, 0 = the camera's): numbered, stamped with the session's id, the images untouched. The stack's
+    source relays a camera session this way, and a robot's own tracker its camera (``twohr camera --edge``)."""
+
+    def __init__(self, session_id: str, rate: float = 0.0) -> None:
+        self.session_id = session_id
+        self.thinning = RateThinning(rate) if rate > 0 else None
+        self.sent = 0
+
+    def relay(self, payload: bytes) -> bytes | None:
+        """The session's frame message for this camera frame, or None for a frame above the admitted rate."""
+        from .messages import FrameMsg, decode, relayed_frame
+
+        if self.thinning is not None and not self.thinning.keep(decode(payload, FrameMsg, only=())[0].stamp):
+            return None
+        relayed = relayed_frame(payload, self.session_id, self.sent)
+        self.sent += 1
+        return relayed
+
+    @property
+    def status_due(self) -> bool:
+        """Whether the frames relayed so far are due on the session's status (every :data:`RELAY_STATUS_EVERY`)."""
+        return self.sent > 0 and self.sent % RELAY_STATUS_EVERY == 0

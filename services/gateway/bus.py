@@ -345,7 +345,7 @@ class GatewayBus:
             self._linked_since = now
         for name, since in list(self._gone.items()):
             service, _, replica = name.partition(" ")  # "tracker <replica>": one tracker of several
-            back = replica in self.alive.get(service, set()) if replica else self.missing_services().count(name) == 0
+            back = replica in self.alive.get(service, set()) if replica else name not in self.missing_services()
             if back or since < self._linked_since:
                 del self._gone[name]
             elif now - since >= self.settings.liveliness_grace:

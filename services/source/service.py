@@ -19,15 +19,13 @@ from twohr import keys
 from twohr.bus import BusConfig, bus_from_args
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
-from twohr.messages import ControlMsg, FrameMsg, PoseMsg, StatusMsg, decode, relayed_frame
+from twohr.messages import ControlMsg, PoseMsg, StatusMsg, decode
 from twohr.paths import resolve_under_roots
-from twohr.rates import RateThinning
+from twohr.rates import CameraRelay
 from twohr.service import Service, one_line_errors, service_parser
 
 from .core import Pacer, frame_payloads
 
-#: a camera session's status reports the frames relayed so far every this many frames
-RELAY_STATUS_EVERY = 15
 #: a paced replay waits at most this long for its first frame's answer before it plays on regardless
 FIRST_ANSWER_TIMEOUT_S = 15.0
 
@@ -40,7 +38,7 @@ class Playback:
     answered: int = 0
     progress: threading.Condition = field(default_factory=threading.Condition)
     thread: threading.Thread | None = None
-    thinning: RateThinning | None = None  # a camera session admitted at a lower rate
+    relay: CameraRelay | None = None  # a camera session's: its camera's frames into it
 
 
 class SourceService(Service):
@@ -81,7 +79,7 @@ class SourceService(Service):
 
     def _start(self, control: ControlMsg) -> None:
         self._stop(control.robot_id)
-        playback = Playback(control, thinning=RateThinning(control.rate) if control.rate > 0 else None)
+        playback = Playback(control, relay=None if control.sequence else CameraRelay(control.session_id, control.rate))
         self.playbacks[control.robot_id] = playback
         if control.sequence:
             playback.thread = threading.Thread(target=self._play, args=(playback,), daemon=True,
@@ -141,13 +139,13 @@ class SourceService(Service):
         playback = self.playbacks.get(robot)
         if playback is None or playback.control.sequence:
             return  # no live session for this robot
-        if playback.thinning is not None and not playback.thinning.keep(decode(payload, FrameMsg, only=())[0].stamp):
+        relayed = playback.relay.relay(payload)
+        if relayed is None:
             return  # the session was admitted at a lower rate than its camera's
-        control = playback.control
-        self.publish(keys.key(robot, "frames"), relayed_frame(payload, control.session_id, playback.sent))
-        playback.sent += 1
-        if playback.sent % RELAY_STATUS_EVERY == 0:
-            self.report(control, "relaying", frames=playback.sent)
+        self.publish(keys.key(robot, "frames"), relayed)
+        playback.sent = playback.relay.sent
+        if playback.relay.status_due:
+            self.report(playback.control, "relaying", frames=playback.sent)
 
 
 @one_line_errors("source")
