@@ -16,8 +16,8 @@ from twohr.geometry import (
     so3_log,
     umeyama,
 )
+from twohr.pose import depth_residual
 from twohr_services.tracker.bundle_adjustment import normal_equations, schur_layout, solve_schur
-from twohr_services.tracker.pose import depth_residual
 
 
 def random_rotations(n, seed=0):

@@ -273,8 +273,8 @@ def loops_against_ground_truth(loops: list[dict], ground_truth) -> dict:
     import numpy as np
 
     from twohr.config import SAME_PLACE_DEG, SAME_PLACE_M
+    from twohr.pose import pose_difference
     from twohr.trajectory import interpolate_poses
-    from twohr_services.tracker.pose import pose_difference
 
     false_accepts = 0
     for loop in loops:

@@ -44,7 +44,7 @@ def _cache(args: argparse.Namespace, frames: list[int]):
 
 
 def _train(args: argparse.Namespace) -> int:
-    from twohr_services.tracker.places import Vocabulary, vocabulary_dir, vocabulary_path
+    from twohr.places import Vocabulary, vocabulary_dir, vocabulary_path
 
     frames = _frames(args)
     cache = _cache(args, frames)
@@ -90,7 +90,7 @@ def model_card(card: dict) -> str:
 
 
 def _list(args: argparse.Namespace) -> int:
-    from twohr_services.tracker.places import Vocabulary, VocabularyError, vocabulary_dir
+    from twohr.places import Vocabulary, VocabularyError, vocabulary_dir
 
     print(f"{'name':28} {'words':>6} {'frames':>10}  trained on")
     for path in sorted(vocabulary_dir().glob("*.npz")):
@@ -106,8 +106,8 @@ def _list(args: argparse.Namespace) -> int:
 def _eval(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from twohr_services.tracker.places import Vocabulary, vocabulary_path
-    from twohr_services.tracker.pose import pose_difference
+    from twohr.places import Vocabulary, vocabulary_path
+    from twohr.pose import pose_difference
 
     vocabulary = Vocabulary.load(vocabulary_path(args.name))
     frames = _frames(args)

@@ -7,7 +7,7 @@ order b made them, is looked for in a's map as the loop closer looks for an olde
 
 - **Candidates** from a bag of words built *online* from a's own keyframes (k-means over their landmarks'
   descriptors: no training data shipped), a's keyframes ranked by cosine against b's keyframe;
-- **verified** by :func:`twohr_services.tracker.loops.verify`: descriptor matches, RANSAC PnP of b's keypoints on a's
+- **verified** by :func:`twohr.places.verify`: descriptor matches, RANSAC PnP of b's keypoints on a's
   landmarks, the pose refined with depth, and the loop closer's view-change gate;
 - each verified match gives one transform of b's map frame into a's; **a merge** needs ``k`` of them that agree
   (within ``agree_m`` and ``agree_deg`` of their median).
@@ -24,10 +24,9 @@ import numpy as np
 
 from twohr.config import PipelineConfig
 from twohr.geometry import invert_pose, rotation_angle
+from twohr.places import LoopCandidate, LoopQuery, PlaceIndex, Vocabulary, verify
 from twohr.trajectory import Trajectory
-from twohr_services.tracker.loops import LoopCandidate, LoopQuery, verify
 from twohr_services.tracker.map import Map
-from twohr_services.tracker.places import PlaceIndex, Vocabulary
 
 #: words of the vocabulary built from a robot's keyframes (a room's map has tens to hundreds of keyframes)
 ONLINE_WORDS = 128

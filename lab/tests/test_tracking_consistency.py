@@ -8,6 +8,7 @@ import pytest
 
 from twohr.dataset import CAMERA_PRESETS, RGBDSequence
 from twohr.geometry import huber_loss, invert_pose, make_pose, rotation_angle, so3_exp
+from twohr.pose import observation_residuals
 from twohr_lab.tracking.consistency import (
     Tracks,
     build_tracks,
@@ -16,7 +17,6 @@ from twohr_lab.tracking.consistency import (
     initial_points,
     main,
 )
-from twohr_services.tracker.pose import observation_residuals
 
 K = CAMERA_PRESETS["bonn"].matrix
 

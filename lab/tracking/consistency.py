@@ -7,7 +7,7 @@ Feature tracks are built over the run's keyframes independently of the pipeline 
 fundamental-matrix RANSAC per pair, pairs up to ``--max-gap`` keyframes apart joined into tracks; people masked by
 YOLO). Then, for each candidate trajectory, every keyframe's camera *centre* is held at the candidate's while the
 rotations and the 3-D points settle. The cost is the one the tracker's bundle adjustment minimises (the residuals of
-``twohr_services.tracker.pose.observation_residuals``: pixels and the inverse-depth residual with ``--depth-noise``
+``twohr.pose.observation_residuals``: pixels and the inverse-depth residual with ``--depth-noise``
 as ``tracker.depth_noise``; Huber loss at ``--huber`` px), and so is the solver (Levenberg-Marquardt with the points
 eliminated by the same Schur complement). The cost that remains says how well the candidate's translations explain
 the observations.
@@ -34,9 +34,9 @@ import numpy as np
 from twohr.config import TrackerConfig
 from twohr.errors import TwohrError
 from twohr.geometry import depth_at_pixels, huber_loss, huber_weights, skew, so3_exp_batch, umeyama
+from twohr.pose import observation_residuals
 from twohr.trajectory import interpolate_poses, read_tum
 from twohr_services.tracker.bundle_adjustment import normal_equations, schur_layout, solve_schur
-from twohr_services.tracker.pose import observation_residuals
 
 from ..stamp import write_study
 from .sensitivity import DEFAULT_SEQUENCE

@@ -27,8 +27,8 @@ from twohr.evaluation import evaluate
 from twohr.features import drop_masked, mutual_nn
 from twohr.geometry import backproject, invert_pose
 from twohr.paths import DEV_SEQUENCE
+from twohr.pose import pnp_ransac, sample_depth
 from twohr.trajectory import Trajectory
-from twohr_services.tracker.pose import pnp_ransac, sample_depth
 from twohr_services.tracker.tracking import Tracker
 from twohr_services.tracker.trajectory import AnchoredTrajectory
 

@@ -9,8 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from twohr.geometry import huber_loss, huber_weights
-
-from .pose import apply_update, observation_residuals, pose_jacobian
+from twohr.pose import apply_update, observation_residuals, pose_jacobian
 
 
 @dataclass

@@ -30,12 +30,12 @@ from twohr.dataset import CameraIntrinsics
 from twohr.features import masked
 from twohr.geometry import backproject, invert_pose, project, transform_points
 from twohr.mapfile import MapArrays
+from twohr.places import LoopQuery
+from twohr.pose import estimate_pose, sample_depth
 
 from .keyframe_policy import VERY_WEAK, Evidence, close_points
-from .loops import LoopQuery
 from .map import MapSnapshot
 from .motion import MotionModel
-from .pose import estimate_pose, sample_depth
 from .trajectory import TrackResult
 
 

@@ -27,12 +27,13 @@ from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics, Frame
 from twohr.mapfile import MapArrays
 from twohr.messages import MessageError
+from twohr.places import Loop, LoopQuery, LoopVerdict, verify
 from twohr.trajectory import Trajectory
 from twohr.workers import Worker
 
 from .flow import FrameTracker, MapUpdate
 from .keyframe_policy import KeyframeQueue, may_queue, weakness
-from .loops import Loop, LoopLog, LoopQuery, LoopVerdict, verify
+from .loops import LoopLog
 from .map import Map, MapSnapshot
 from .mapper import Detected, KeyframeJob, Mapper
 from .stages import FrameStats, KeyframeLog, Stages

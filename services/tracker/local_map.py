@@ -17,10 +17,10 @@ from twohr.dataset import CameraIntrinsics
 from twohr.errors import TwohrError
 from twohr.features import Keypoints
 from twohr.geometry import invert_pose, project, transform_points
+from twohr.pose import MatchFn, PoseEstimate, estimate_pose, inliers_of, refine_pose
 
 from .map import Map
 from .motion import MotionModel
-from .pose import MatchFn, PoseEstimate, estimate_pose, inliers_of, refine_pose
 
 
 class TrackerInputError(TwohrError, ValueError):

@@ -3,12 +3,12 @@
 Three steps, split by the thread they may run on:
 
 1. :meth:`LoopClosing.query` (mapping worker, after a keyframe joins the map): the keyframe's bag of words
-   (:mod:`.places`) is searched among keyframes at least ``min_separation`` keyframes older that share no more
+   (:mod:`twohr.places`) is searched among keyframes at least ``min_separation`` keyframes older that share no more
    than a few landmarks with it; the best candidates come back as a :class:`LoopQuery`, a copy of what
    verification needs, and the keyframe joins the index.
-2. :func:`verify` (its own worker, reads no map): the keyframe's landmark descriptors are matched to the landmarks
-   of each candidate and its neighbours, and RANSAC PnP must find ``min_inliers`` inliers: that gives the
-   keyframe's pose in the candidate's frame (:class:`Loop`), or a reason for rejecting it.
+2. :func:`twohr.places.verify` (its own worker, reads no map): the keyframe's landmark descriptors are matched
+   to the landmarks of each candidate and its neighbours, and RANSAC PnP must find ``min_inliers`` inliers: that
+   gives the keyframe's pose in the candidate's frame (:class:`~twohr.places.Loop`), or a reason for rejecting it.
 3. :meth:`LoopClosing.close` (mapping worker): a pose graph (gtsam) over the keyframe chain plus the loop edge
    spreads the correction along the path; every landmark moves with the keyframe that first observed it; the
    loop's matched landmarks are fused (the keyframe's duplicates retired); bundle adjustment over the whole map
@@ -19,74 +19,19 @@ from __future__ import annotations
 
 import importlib.util
 import logging
-import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from twohr.config import LoopClosingConfig, TrackerConfig
+from twohr.config import LoopClosingConfig
 from twohr.errors import TwohrError
-from twohr.features import Matches
 from twohr.geometry import invert_pose
+from twohr.places import Loop, LoopCandidate, LoopQuery, PlaceIndex, Vocabulary
+from twohr.pose import pose_difference
 
 from .map import Map
-from .places import PlaceIndex, Vocabulary
-from .pose import matched_pnp, pose_difference, refine_pose
 
-MatchFn = Callable[[np.ndarray, np.ndarray], Matches]
 log = logging.getLogger("twohr.loops")
-
-
-@dataclass
-class LoopCandidate:
-    """An older keyframe that looks like the query, with the landmarks it and its neighbours observe."""
-
-    keyframe_id: int
-    score: float
-    landmark_ids: np.ndarray
-    positions: np.ndarray
-    descriptors: np.ndarray
-    pose: np.ndarray
-    """the candidate keyframe's camera-to-world pose"""
-
-
-@dataclass
-class LoopQuery:
-    """What verification needs of a keyframe and its candidates: copies, so that the map may change meanwhile."""
-
-    keyframe_id: int
-    stamp: float
-    xy: np.ndarray
-    depth: np.ndarray
-    landmark_ids: np.ndarray
-    descriptors: np.ndarray
-    candidates: list[LoopCandidate]
-
-
-@dataclass
-class Loop:
-    """A verified loop: keyframe ``keyframe_id`` seen again from candidate ``candidate_id``'s part of the map, at
-    camera-to-world pose ``relative`` in the candidate keyframe's frame (relative, so that bundle adjustment moving
-    both meanwhile does not matter); ``pairs`` (M, 2) the inlier (keyframe's landmark, candidate's landmark)
-    pairs."""
-
-    keyframe_id: int
-    candidate_id: int
-    score: float
-    relative: np.ndarray
-    pairs: np.ndarray
-    stamp: float = 0.0
-    candidate_stamp: float = 0.0
-
-
-@dataclass
-class LoopVerdict:
-    """The outcome of verifying one query: a :class:`Loop`, or None and why not."""
-
-    loop: Loop | None
-    reason: str
-    ms: float = 0.0
 
 
 @dataclass
@@ -102,39 +47,6 @@ class LoopLog:
     def as_dict(self) -> dict:
         return {"detected": self.detected, "accepted": self.accepted, "rejected": self.rejected,
                 "closed": self.closed, "loops": self.loops}
-
-
-def verify(query: LoopQuery, K: np.ndarray, conf: LoopClosingConfig, tracking: TrackerConfig,
-           match: MatchFn) -> LoopVerdict:
-    """Geometric verification of a query's candidates (best first): descriptor matches, RANSAC PnP of the
-    keyframe's keypoints against the candidates' landmarks, then the pose refined on the inliers with their depth
-    (as tracking refines a frame's pose). Pure: reads only the query."""
-    t0 = time.perf_counter()
-    best_inliers, best_reason = 0, ""
-    for candidate in query.candidates:
-        matched = matched_pnp(K, match, query.descriptors, query.xy, candidate.descriptors, candidate.positions,
-                              conf.min_inliers, tracking.ransac_reprojection_px, tracking.ransac_iterations)
-        if matched is None:
-            continue
-        T_cw, a, b, inliers = matched
-        found = int(inliers.sum())
-        best_inliers = max(best_inliers, found)
-        if T_cw is not None and found >= conf.min_inliers:
-            a, b = a[inliers], b[inliers]
-            T_cw = refine_pose(K, T_cw, candidate.positions[b], query.xy[a], query.depth[a], tracking.depth_noise,
-                               tracking.huber_px)
-            metres, degrees = pose_difference(candidate.pose, invert_pose(T_cw))
-            if metres > conf.max_view_change_m or degrees > conf.max_view_change_deg:
-                # the same landmarks, seen from far apart: a wide-baseline match is the likelier mistake
-                best_reason = f"keyframe {candidate.keyframe_id} seen from {metres:.2f} m, {degrees:.0f} deg away"
-                continue
-            pairs = np.stack([query.landmark_ids[a], candidate.landmark_ids[b]], axis=1)
-            relative = invert_pose(candidate.pose) @ invert_pose(T_cw)
-            loop = Loop(query.keyframe_id, candidate.keyframe_id, candidate.score, relative, pairs, query.stamp)
-            return LoopVerdict(loop, f"{found} inliers against keyframe {candidate.keyframe_id}",
-                               (time.perf_counter() - t0) * 1000)
-    reason = best_reason or f"best {best_inliers} inliers < {conf.min_inliers}"
-    return LoopVerdict(None, reason, (time.perf_counter() - t0) * 1000)
 
 
 class LoopClosing:

@@ -17,12 +17,12 @@ from twohr.config import PipelineConfig
 from twohr.dataset import Frame
 from twohr.features import Keypoints, drop_masked
 from twohr.geometry import invert_pose
+from twohr.places import Loop, LoopQuery, Vocabulary, vocabulary_path
+from twohr.pose import sample_depth
 
 from .flow import MapUpdate, new_corners, on_flat_depth, static_in_reference
-from .loops import Loop, LoopClosing, LoopLog, LoopQuery
+from .loops import LoopClosing, LoopLog
 from .map import MapSnapshot
-from .places import Vocabulary, vocabulary_path
-from .pose import sample_depth
 from .stages import Stages
 from .tracking import Tracker
 from .trajectory import TrackResult

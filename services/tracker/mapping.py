@@ -15,12 +15,12 @@ from scipy.spatial import cKDTree
 
 from twohr.features import Keypoints
 from twohr.geometry import backproject, transform_points
+from twohr.pose import MatchFn, PoseEstimate, sample_depth
 
 from .keyframe_policy import close_points
 from .local_map import LocalMapSearch
 from .map import Keyframe
 from .motion import MotionModel
-from .pose import MatchFn, PoseEstimate, sample_depth
 from .trajectory import TrackResult
 
 

@@ -6,8 +6,7 @@ import numpy as np
 
 from twohr.config import TrackerConfig
 from twohr.geometry import invert_pose, so3_exp_batch, so3_log
-
-from .pose import MotionPrior, pose_difference, scale_motion
+from twohr.pose import MotionPrior, pose_difference, scale_motion
 
 #: Nominal frame interval used when stamps do not advance (seconds).
 NOMINAL_FRAME_DT = 1 / 30

@@ -12,9 +12,9 @@ import numpy as np
 
 from twohr.features import Keypoints, Matches
 from twohr.geometry import invert_pose
+from twohr.pose import MatchFn, PoseEstimate, match_each, pnp_on_matches
 
 from .local_map import LocalMapSearch
-from .pose import MatchFn, PoseEstimate, match_each, pnp_on_matches
 from .trajectory import TrackResult
 
 

@@ -31,13 +31,13 @@ from twohr.config import TrackerConfig
 from twohr.dataset import CameraIntrinsics
 from twohr.features import Keypoints
 from twohr.geometry import invert_pose
+from twohr.pose import MatchFn, PoseEstimate, sample_depth
 
 from .keyframe_policy import Evidence, weakness
 from .local_map import LocalMapSearch, TrackerInputError
 from .map import Map
 from .mapping import LocalMapping
 from .motion import MotionModel
-from .pose import MatchFn, PoseEstimate, sample_depth
 from .relocalisation import Relocaliser
 from .trajectory import TrackResult
 

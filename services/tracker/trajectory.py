@@ -15,10 +15,10 @@ import numpy as np
 
 from twohr.config import TrackerConfig
 from twohr.geometry import invert_pose
+from twohr.pose import inliers_of, refine_pose
 from twohr.trajectory import Trajectory, interpolate_poses, smooth_trajectory
 
 from .map import MapSnapshot
-from .pose import inliers_of, refine_pose
 
 #: Statuses whose pose was measured (the others coast on the motion model or wait for a first frame).
 TRACKED_STATUSES = ("init", "tracking", "relocalised", "reinitialised")

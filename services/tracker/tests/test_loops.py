@@ -1,13 +1,13 @@
-"""Place recognition (:mod:`twohr_services.tracker.places`) and loop closing (:mod:`twohr_services.tracker.loops`)."""
+"""Place recognition (:mod:`twohr.places`) and loop closing (:mod:`twohr_services.tracker.loops`)."""
 
 import numpy as np
 import pytest
 
 from twohr.config import LoopClosingConfig
 from twohr.geometry import make_pose, so3_exp
+from twohr.places import PlaceIndex, Vocabulary, VocabularyError, vocabulary_path
+from twohr.pose import pose_difference
 from twohr_services.tracker.loops import optimise_pose_graph
-from twohr_services.tracker.places import PlaceIndex, Vocabulary, VocabularyError, vocabulary_path
-from twohr_services.tracker.pose import pose_difference
 
 
 def _unit(v):
@@ -113,7 +113,8 @@ def test_loops_on_real_frames_are_found_verified_and_closed(dev_sequence, tmp_pa
 def test_fusion_follows_chains_and_skips_retired_originals_and_the_world_moves_with_the_correction():
     from twohr.config import TrackerConfig
     from twohr.dataset import CameraIntrinsics
-    from twohr_services.tracker.loops import Loop, LoopClosing
+    from twohr.places import Loop
+    from twohr_services.tracker.loops import LoopClosing
     from twohr_services.tracker.map import Map
     from twohr_services.tracker.motion import MotionModel
 

@@ -16,9 +16,9 @@ from twohr.dataset import RGBDSequence
 from twohr.evaluation import evaluate
 from twohr.mapfile import MapFileError, read_header, read_map, verify_bytes
 from twohr.models import get_spec
+from twohr.pose import pose_difference
 from twohr.trajectory import Trajectory, read_tum
 from twohr_services.tracker.mapfiles import load_map, save_map
-from twohr_services.tracker.pose import pose_difference
 from twohr_services.tracker.tracking import Tracker
 
 from .test_tracking import SYNTHETIC, feed, truth_in_first_camera

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from twohr.geometry import invert_pose, project, so3_exp_batch, so3_log, transform_points
+from twohr.pose import MotionPrior, pnp_ransac, pose_difference, refine_pose, sample_depth
 from twohr_services.tracker.bundle_adjustment import bundle_adjust
-from twohr_services.tracker.pose import MotionPrior, pnp_ransac, pose_difference, refine_pose, sample_depth
 
 K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
 

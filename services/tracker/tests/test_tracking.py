@@ -11,9 +11,9 @@ from twohr.errors import TwohrError
 from twohr.evaluation import evaluate
 from twohr.features import Keypoints
 from twohr.geometry import invert_pose
+from twohr.pose import pose_difference
 from twohr.trajectory import Trajectory
 from twohr_services.tracker.map import hold_gauge
-from twohr_services.tracker.pose import pose_difference
 from twohr_services.tracker.tracking import Tracker, TrackerInputError
 from twohr_services.tracker.trajectory import TrackResult
 

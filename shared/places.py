@@ -6,6 +6,9 @@ frames) and kept as one ``.npz`` file with its model card beside it. A keyframe'
 histogram of the words of its described landmarks, L2-normalised, so that the dot product of two vectors (their
 cosine) says how alike two places look. :class:`PlaceIndex` holds the vectors of a map's keyframes; faiss is not
 needed at the size of a room's map (hundreds of keyframes: one matrix product).
+
+:func:`verify` checks a candidate place geometrically: descriptor matches, RANSAC PnP, the pose refined with depth,
+and a view-change gate. The tracker's loop closer and the map server's search across robots share it.
 """
 
 from __future__ import annotations
@@ -13,14 +16,22 @@ from __future__ import annotations
 import json
 import os
 import re
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from twohr.config import LoopClosingConfig, TrackerConfig
 from twohr.errors import TwohrError
+from twohr.features import Matches
+from twohr.geometry import invert_pose
 from twohr.models import cache_dir
+from twohr.pose import matched_pnp, pose_difference, refine_pose
+
+MatchFn = Callable[[np.ndarray, np.ndarray], Matches]
 
 VOCABULARY_FORMAT = 1
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
@@ -148,3 +159,87 @@ class PlaceIndex:
 def _unit(vectors: np.ndarray) -> np.ndarray:
     vectors = np.asarray(vectors, np.float32)
     return vectors / np.maximum(np.linalg.norm(vectors, axis=1, keepdims=True), 1e-12)
+
+
+@dataclass
+class LoopCandidate:
+    """An older keyframe that looks like the query, with the landmarks it and its neighbours observe."""
+
+    keyframe_id: int
+    score: float
+    landmark_ids: np.ndarray
+    positions: np.ndarray
+    descriptors: np.ndarray
+    pose: np.ndarray
+    """the candidate keyframe's camera-to-world pose"""
+
+
+@dataclass
+class LoopQuery:
+    """What verification needs of a keyframe and its candidates: copies, so that the map may change meanwhile."""
+
+    keyframe_id: int
+    stamp: float
+    xy: np.ndarray
+    depth: np.ndarray
+    landmark_ids: np.ndarray
+    descriptors: np.ndarray
+    candidates: list[LoopCandidate]
+
+
+@dataclass
+class Loop:
+    """A verified loop: keyframe ``keyframe_id`` seen again from candidate ``candidate_id``'s part of the map, at
+    camera-to-world pose ``relative`` in the candidate keyframe's frame (relative, so that bundle adjustment moving
+    both meanwhile does not matter); ``pairs`` (M, 2) the inlier (keyframe's landmark, candidate's landmark)
+    pairs."""
+
+    keyframe_id: int
+    candidate_id: int
+    score: float
+    relative: np.ndarray
+    pairs: np.ndarray
+    stamp: float = 0.0
+    candidate_stamp: float = 0.0
+
+
+@dataclass
+class LoopVerdict:
+    """The outcome of verifying one query: a :class:`Loop`, or None and why not."""
+
+    loop: Loop | None
+    reason: str
+    ms: float = 0.0
+
+
+def verify(query: LoopQuery, K: np.ndarray, conf: LoopClosingConfig, tracking: TrackerConfig,
+           match: MatchFn) -> LoopVerdict:
+    """Geometric verification of a query's candidates (best first): descriptor matches, RANSAC PnP of the
+    keyframe's keypoints against the candidates' landmarks, then the pose refined on the inliers with their depth
+    (as tracking refines a frame's pose). Pure: reads only the query."""
+    t0 = time.perf_counter()
+    best_inliers, best_reason = 0, ""
+    for candidate in query.candidates:
+        matched = matched_pnp(K, match, query.descriptors, query.xy, candidate.descriptors, candidate.positions,
+                              conf.min_inliers, tracking.ransac_reprojection_px, tracking.ransac_iterations)
+        if matched is None:
+            continue
+        T_cw, a, b, inliers = matched
+        found = int(inliers.sum())
+        best_inliers = max(best_inliers, found)
+        if T_cw is not None and found >= conf.min_inliers:
+            a, b = a[inliers], b[inliers]
+            T_cw = refine_pose(K, T_cw, candidate.positions[b], query.xy[a], query.depth[a], tracking.depth_noise,
+                               tracking.huber_px)
+            metres, degrees = pose_difference(candidate.pose, invert_pose(T_cw))
+            if metres > conf.max_view_change_m or degrees > conf.max_view_change_deg:
+                # the same landmarks, seen from far apart: a wide-baseline match is the likelier mistake
+                best_reason = f"keyframe {candidate.keyframe_id} seen from {metres:.2f} m, {degrees:.0f} deg away"
+                continue
+            pairs = np.stack([query.landmark_ids[a], candidate.landmark_ids[b]], axis=1)
+            relative = invert_pose(candidate.pose) @ invert_pose(T_cw)
+            loop = Loop(query.keyframe_id, candidate.keyframe_id, candidate.score, relative, pairs, query.stamp)
+            return LoopVerdict(loop, f"{found} inliers against keyframe {candidate.keyframe_id}",
+                               (time.perf_counter() - t0) * 1000)
+    reason = best_reason or f"best {best_inliers} inliers < {conf.min_inliers}"
+    return LoopVerdict(None, reason, (time.perf_counter() - t0) * 1000)
