@@ -34,6 +34,7 @@ from twohr.keys import (
     edge_replica,
     health_key,
     key,
+    merged_key,
     snapshot_key,
 )
 
@@ -108,11 +109,12 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
     """Every role's grants; ROS 2 keys are granted in ``ros2_domain`` only."""
     ros2 = ros2_keys(ros2_domain)
     # what twohr hands to the outside: camera drivers, other robots, viewers, ROS 2 nodes, `twohr health`
-    client = Grants(publish=_robots("camera") + ros2, subscribe=_robots("pose", "path", "status", "landmarks") + ros2,
+    client = Grants(publish=_robots("camera") + ros2,
+                    subscribe=_robots("pose", "path", "status", "landmarks") + [merged_key()] + ros2,
                     ask=[f"{MAPS_PREFIX}/*"], watch_liveliness=True)
     return {
         # every stream: the session table follows poses and statuses, the live view shows the rest
-        "gateway": Grants(publish=_robots("control"), subscribe=[f"{PREFIX}/*/*", snapshot_key()],
+        "gateway": Grants(publish=_robots("control"), subscribe=[f"{PREFIX}/*/*", snapshot_key(), merged_key()],
                           serve=[f"{MAPS_PREFIX}/*", f"{MAPS_PREFIX}/*/save", snapshot_key()], watch_liveliness=True),
         "source": Grants(publish=_robots("frames", "status"),
                          subscribe=_robots("control", "pose", "status", "camera")),
@@ -123,14 +125,17 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
                        serve=_robots("rpc/dynamics/*")),
         "matcher": Grants(publish=_robots("matches", "status"), subscribe=_robots("control"),
                           serve=_robots("rpc/match/*")),
-        "tracker": Grants(publish=_robots("pose", "path", "status", "landmarks") + [snapshot_key()],
-                          subscribe=_robots("control", "frames", "pose"),
+        "tracker": Grants(publish=_robots("pose", "path", "status", "landmarks", "keyframes") + [snapshot_key()],
+                          subscribe=_robots("control", "frames", "pose") + [merged_key()],
                           # each keyframe job to one replica of a network service, followed by its liveliness
                           ask=_robots("rpc/detect/*", "rpc/dynamics/*", "rpc/match/*") + [
                               f"{MAPS_PREFIX}/*", f"{MAPS_PREFIX}/*/save", snapshot_key()], watch_liveliness=True),
-        "recorder": Grants(publish=_robots("status"), subscribe=[f"{PREFIX}/*/*"]),
+        # the robots' keyframes in, the merges out; the shared maps saved in the map store
+        "mapserver": Grants(publish=_robots("status") + [merged_key()], subscribe=_robots("control", "keyframes"),
+                            ask=[f"{MAPS_PREFIX}/*", f"{MAPS_PREFIX}/*/save"]),
+        "recorder": Grants(publish=_robots("status"), subscribe=[f"{PREFIX}/*/*", merged_key()]),
         "ros2": Grants(publish=_robots("camera") + ros2,
-                       subscribe=_robots("pose", "path", "status", "landmarks") + ros2),
+                       subscribe=_robots("pose", "path", "status", "landmarks") + [merged_key()] + ros2),
         "client": client,
         # a robot's own router linked to this one: it forwards what its clients may do, no more
         "router": client,
@@ -181,7 +186,7 @@ def role_rules(role: str, grants: Grants) -> list[dict]:
 
 
 #: what a robot's own tracker publishes of its robot, as the stack's tracker does
-TRACKER_RESULTS = ("pose", "path", "status", "landmarks")
+TRACKER_RESULTS = ("pose", "path", "status", "landmarks", "keyframes")
 
 
 def robot_grants(robot: str, ros2_domain: int = 0, edge: bool = False) -> Grants:

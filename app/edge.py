@@ -83,7 +83,7 @@ class EdgeTracker(TrackerService):
         self.local_lock = threading.Lock()
 
     def subscriptions(self) -> list[str]:
-        return []  # its frames come from the camera, in memory
+        return [keys.merged_key()]  # its frames come from the camera, in memory; the shared maps' merges
 
     def control_keys(self) -> list[str]:
         return [keys.key(self.robot, keys.CONTROL)]
@@ -156,11 +156,19 @@ class EdgeTracker(TrackerService):
         self.counters.add("received")
         self.inbox.put((keys.key(self.robot, "frames"), relayed))
         if served.relay.status_due:  # as the stack's source counts a camera's frames
-            status = StatusMsg(session_id=served.control.session_id, robot_id=self.robot, frame_index=-1,
-                               stamp=time.time(), service="source", state="relaying",
-                               counters={"frames": served.relay.sent})
-            self.publish(keys.key(self.robot, "status"), encode(status))
+            self.report_relayed()
         return True
+
+    def report_relayed(self) -> None:
+        """The frames relayed into the session so far, on its status (every few frames, and after the camera's
+        last: the gateway then knows them all)."""
+        served = self.served
+        if served is None:
+            return
+        status = StatusMsg(session_id=served.control.session_id, robot_id=self.robot, frame_index=-1,
+                           stamp=time.time(), service="source", state="relaying",
+                           counters={"frames": served.relay.sent})
+        self.publish(keys.key(self.robot, "status"), encode(status))
 
     def handle(self, key: str, payload: bytes) -> None:
         self._watch_link()
@@ -213,12 +221,12 @@ def run_edge(bus: BusConfig, robot: str, payloads, server_stages: tuple[str, ...
     if not tracker.ready.wait(30):
         stop.set()
         raise TwohrError(f"robot {robot}'s tracker could not join the bus within 30 s")
+    if camera is not None:  # compiled before it says it is ready: a session's first frames find them warm
+        tracker.warm(camera)
     time.sleep(0.5)  # the gateway hears its token before the first session asks for it
     say(f"robot {robot} tracks itself (tracker {tracker.replica}); the stack answers its "
         f"{', '.join(server_stages) or 'nothing'}; start its session with POST /sessions "
         f"{{\"source\": \"camera\", \"robot_id\": \"{robot}\"}}")
-    if camera is not None:
-        tracker.warm(camera)
     fed, frames, t0 = 0, 0, time.monotonic()
     try:
         hint_at = time.monotonic() + WAIT_HINT_S
@@ -234,6 +242,7 @@ def run_edge(bus: BusConfig, robot: str, payloads, server_stages: tuple[str, ...
                 raise TwohrError(f"robot {robot}'s tracker stopped (its log above says why)")
             frames += 1
             fed += tracker.feed(payload)
+        tracker.report_relayed()
         elapsed = max(time.monotonic() - t0, 1e-9)
         deadline = time.monotonic() + linger_s
         while tracker.serving and time.monotonic() < deadline and thread.is_alive():

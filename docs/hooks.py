@@ -159,7 +159,8 @@ def key_rows(keys) -> list[tuple[str, str, str, str]]:
     rows += [(f"{keys.HEALTH_PREFIX}/<service>/<replica>", keys.health_key("*"), "query", keys.HEALTH_PREFIX),
              (f"{keys.ALIVE_PREFIX}/<service>/<replica>", keys.alive_key("*"), "token", keys.ALIVE_PREFIX),
              (keys.map_key("<name>"), keys.map_key("lab"), "query", keys.MAPS_PREFIX),
-             (keys.map_key("<name>", save=True), keys.map_key("lab", save=True), "query", f"{keys.MAPS_PREFIX}/save")]
+             (keys.map_key("<name>", save=True), keys.map_key("lab", save=True), "query", f"{keys.MAPS_PREFIX}/save"),
+             (keys.merged_key("<name>"), keys.merged_key("lab"), "data", f"{keys.MAPS_PREFIX}/merged")]
     # a snapshot is put by the tracker and kept by the gateway, which answers it to the tracker a session moves to
     rows += [(keys.snapshot_key("<robot>"), keys.snapshot_key("robot1"), kind, keys.SNAPSHOT)
              for kind in ("data", "query")]

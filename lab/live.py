@@ -100,12 +100,16 @@ class LiveStack:
 
 def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: int,
                    sample_every_s: float = 10.0, progress: bool = True, camera_runs: int = 1,
-                   config_overrides: dict | None = None, start: int = 0, rate: float = 0.0) -> dict:
+                   config_overrides: dict | None = None, start: int = 0, rate: float = 0.0,
+                   map_request: dict | None = None, posted: threading.Event | None = None,
+                   post_after: threading.Event | None = None) -> dict:
     """One live camera session with ``busy`` busy processes beside the stack; see the module docstring.
     ``camera_runs`` > 1 feeds the session ``frames`` frames that many times, each by a new ``twohr camera`` (a new
     client on the bus whose stamps start again, as a robot's camera driver restarted); ``frames`` then counts all.
     ``config_overrides`` (dotted keys) is the session's pipeline config, as ``POST /sessions`` takes it. ``start``:
-    the sequence's first frame the camera sends; ``rate``: the session's admitted rate (Hz, 0 = the camera's)."""
+    the sequence's first frame the camera sends; ``rate``: the session's admitted rate (Hz, 0 = the camera's).
+    ``map_request``: the session's ``map`` (e.g. ``{"name": "lab", "mode": "share"}``). ``post_after``: the session
+    is started once this event is set (another robot's session first), and ``posted`` is set once it was."""
     from twohr import keys
     from twohr.bus import open_session
 
@@ -133,10 +137,15 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
             edge_camera = start_camera() if stack.edge else None
             if edge_camera is not None and "tracks itself" not in edge_camera.stdout.readline():
                 raise RuntimeError(f"robot {robot}'s own tracker did not start")
+            if post_after is not None and not post_after.wait(120):
+                raise RuntimeError(f"robot {robot}: the session it starts after did not start")
             response = client.post("/sessions", json={"source": "camera", "robot_id": robot, "record": False,
-                                                      "config": config_overrides or {}, "rate": rate})
+                                                      "config": config_overrides or {}, "rate": rate,
+                                                      **({"map": map_request} if map_request else {})})
             response.raise_for_status()
             session_id = response.json()["id"]
+            if posted is not None:
+                posted.set()
             t0 = time.monotonic()
             next_sample = t0
 
@@ -197,7 +206,9 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
            "served": served.headers.get("x-twohr-trajectory"),
            "ate_served": None if looped else _score(sequence, served.text),
            "ate_online": None if looped else _score(sequence, online.text), "rss_mib": rss,
-           "upstream_bytes_per_s": round(sum(b for b, _ in upstream) / max(1e-9, sum(s for _, s in upstream)))}
+           "upstream_bytes_per_s": round(sum(b for b, _ in upstream) / max(1e-9, sum(s for _, s in upstream))),
+           "session_id": session_id, "served_tum": served.text, "frame_id": info.get("frame_id"),
+           "merge": info.get("merge")}
     if looped and len(stamps) > 1:
         minutes = (stamps - stamps[0]) / 60
         per_minute = np.bincount(minutes.astype(int))

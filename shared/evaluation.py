@@ -193,3 +193,19 @@ def _sim3_scale(est: Trajectory, gt: Trajectory) -> float | None:
 def static_trajectory(stamps: np.ndarray) -> Trajectory:
     """A camera that never moves: identity poses at the given stamps (a sanity baseline)."""
     return Trajectory(stamps, np.tile(make_pose(np.eye(3), np.zeros(3)), (len(stamps), 1, 1)))
+
+
+def joint_ate(pairs: list[tuple[Trajectory, Trajectory]], max_dt: float = 0.02) -> tuple[float, list[float]]:
+    """ATE RMSE of several robots' trajectories in one frame (a shared map's): each ``(ground truth, estimate)``
+    associated on its own (``max_dt``), then one SE(3) Umeyama alignment over the pairs of all of them, so that a
+    robot placed wrongly in the shared frame cannot be aligned away on its own. Returns the RMSE over all pairs and
+    each robot's under that one alignment."""
+    paired = [associate_trajectories(gt, est, max_dt) for gt, est in pairs]
+    gt_all = np.concatenate([gt.positions for gt, _ in paired])
+    est_all = np.concatenate([est.positions for _, est in paired])
+    if len(gt_all) < 3:
+        raise ValueError(f"only {len(gt_all)} estimate poses have a ground-truth pose within {max_dt} s")
+    rotation, translation, _ = umeyama(est_all, gt_all)
+    errors = [np.linalg.norm(gt.positions - (est.positions @ rotation.T + translation), axis=1) for gt, est in paired]
+    rmse = float(np.sqrt(np.mean(np.concatenate(errors) ** 2)))
+    return rmse, [float(np.sqrt(np.mean(e ** 2))) if len(e) else float("nan") for e in errors]

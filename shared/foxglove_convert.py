@@ -22,6 +22,7 @@ from .messages import (
     FrameMsg,
     KeypointsMsg,
     LandmarksMsg,
+    MergeMsg,
     PathAssembler,
     PathMsg,
     PoseMsg,
@@ -56,6 +57,13 @@ TOPIC_TYPES: dict[str, type] = {
 
 def camera_frame(robot_id: str) -> str:
     return f"{robot_id}/camera"
+
+
+def drawn_in(frame_id: str) -> str:
+    """The Foxglove frame of poses in ``frame_id``: a robot's submap of a shared map (``lab/b``, before its merge)
+    is its own frame, hung under the world by the merge's transform (:meth:`FoxgloveConverter.merge`); any other is the
+    world."""
+    return frame_id if "/" in frame_id else WORLD
 
 
 def timestamp(seconds: float) -> fm.Timestamp:
@@ -171,11 +179,13 @@ class FoxgloveConverter:
         self.path_every = max(1, path_every)
         self.path_window = max(1, path_window)
         self.paths: dict[str, tuple[collections.deque, collections.deque, list[int]]] = {}
+        self.frames: dict[str, str] = {}  # the frame each robot's path is drawn in
         self.assembler = PathAssembler()
 
     def reset(self, robot_id: str) -> None:
         """Forget a robot's path (a new session starts)."""
         self.paths.pop(robot_id, None)
+        self.frames.pop(robot_id, None)
 
     def frame(self, robot_id: str, stamp: float, camera: CameraIntrinsics, rgb: np.ndarray | None = None,
               encoded: bytes | None = None, encoding: str = "jpeg") -> list[tuple[str, object]]:
@@ -201,27 +211,37 @@ class FoxgloveConverter:
         outlines = mask_outlines(mask) if mask.any() else []
         return [(topics(robot_id)["dynamic_mask"], image_annotations(stamp, outlines=outlines))]
 
-    def pose(self, robot_id: str, stamp: float, position, orientation) -> list[tuple[str, object]]:
+    def pose(self, robot_id: str, stamp: float, position, orientation, frame: str = WORLD
+             ) -> list[tuple[str, object]]:
         """The pose, the transform on /tf and, every ``path_every`` poses, the path so far."""
         names = topics(robot_id)
-        out = [(names["pose"], pose_in_frame(stamp, position, orientation)),
-               (names["tf"], frame_transforms(stamp, WORLD, camera_frame(robot_id), position, orientation))]
+        if self.frames.setdefault(robot_id, frame) != frame:  # merged into a shared map: the path starts again
+            self.frames[robot_id] = frame
+            self.paths.pop(robot_id, None)
+        out = [(names["pose"], pose_in_frame(stamp, position, orientation, frame)),
+               (names["tf"], frame_transforms(stamp, frame, camera_frame(robot_id), position, orientation))]
         positions, orientations, count = self.paths.setdefault(
             robot_id, (collections.deque(maxlen=self.path_window), collections.deque(maxlen=self.path_window), [0]))
         positions.append(list(position))
         orientations.append(list(orientation))
         count[0] += 1
         if (count[0] - 1) % self.path_every == 0:
-            out.append((names["path"], poses_in_frame(stamp, list(positions), list(orientations))))
+            out.append((names["path"], poses_in_frame(stamp, list(positions), list(orientations), frame)))
         return out
 
-    def corrected_path(self, robot_id: str, stamp: float, trajectory: Trajectory, final: bool
+    def corrected_path(self, robot_id: str, stamp: float, trajectory: Trajectory, final: bool, frame: str = WORLD
                        ) -> list[tuple[str, object]]:
         """A tracker's corrected path: the keyframes after bundle adjustment (live), or the refined trajectory of
         every frame (``final``, at the session's end)."""
         rows = trajectory.to_tum_array()
         topic = topics(robot_id)["path_refined" if final else "keyframes"]
-        return [(topic, poses_in_frame(stamp, rows[:, 1:4].tolist(), rows[:, 4:8].tolist()))]
+        return [(topic, poses_in_frame(stamp, rows[:, 1:4].tolist(), rows[:, 4:8].tolist(), frame))]
+
+    def merge(self, merge: MergeMsg) -> list[tuple[str, object]]:
+        """A robot merged into a shared map: its submap's frame placed in the world (the map's frame), so that
+        what it drew before the merge lands where it belongs."""
+        return [(TF_TOPIC, frame_transforms(merge.at, WORLD, f"{merge.map_name}/{merge.robot_id}", merge.position,
+                                            merge.orientation))]
 
     def landmarks(self, robot_id: str, stamp: float, points: np.ndarray) -> list[tuple[str, object]]:
         return [(topics(robot_id)["map"], point_cloud(stamp, points))]
@@ -243,12 +263,15 @@ class FoxgloveConverter:
             _, arrays = decode(payload, only=("mask",))
             return self.dynamic_mask(robot, t, arrays["mask"].astype(bool))
         if isinstance(message, PoseMsg):
-            return self.pose(robot, t, message.position, message.orientation)
+            return self.pose(robot, t, message.position, message.orientation, drawn_in(message.frame_id))
         if isinstance(message, LandmarksMsg):
             _, arrays = decode(payload, only=("points",))
             return self.landmarks(robot, t, arrays["points"])
         if isinstance(message, PathMsg):
             _, arrays = decode(payload)
             trajectory = self.assembler.add(message, arrays)  # the whole path, rebuilt from deltas
-            return [] if trajectory is None else self.corrected_path(robot, t, trajectory, message.final)
+            return [] if trajectory is None else self.corrected_path(robot, t, trajectory, message.final,
+                                                                     drawn_in(message.frame_id))
+        if isinstance(message, MergeMsg):
+            return self.merge(message)
         return []

@@ -6,11 +6,11 @@ import re
 
 PREFIX = "twohr"
 #: The services every session's pipeline needs, in the order a stack starts them (the ros2 bridge is optional).
-PIPELINE_SERVICES = ("source", "detector", "yolo", "matcher", "tracker", "recorder")
+PIPELINE_SERVICES = ("source", "detector", "yolo", "matcher", "tracker", "mapserver", "recorder")
 #: The services that answer the tracker's keyframe jobs: any number of replicas each, on any host of the mesh.
 NETWORK_SERVICES = ("detector", "yolo", "matcher")
 #: Data streams every robot publishes.
-STREAMS = ("frames", "keypoints", "dynamics", "matches", "pose", "landmarks", "path", "status")
+STREAMS = ("frames", "keypoints", "dynamics", "matches", "pose", "landmarks", "path", "status", "keyframes")
 #: Control and request keys (not recorded as data streams).
 CONTROL = "control"
 MATCH_QUERY = "rpc/match"
@@ -55,6 +55,8 @@ CARRIES = {
     SNAPSHOT: "a map file's bytes: the tracker's latest copy of the session's map, every few seconds (the gateway "
               "keeps it, and answers a query on it for the tracker a session moves to when its own died)",
     f"{MAPS_PREFIX}/save": "query carrying a map file: the map store keeps it as the map's next version",
+    "keyframes": "`KeyframesMsg`: a robot's new keyframes for the map server, in a session that shares a map",
+    f"{MAPS_PREFIX}/merged": "`MergeMsg`: a robot placed in a shared map's frame (merged, or the map's first robot)",
 }
 
 #: a robot id, matched whole (``fullmatch``: no newline, no path separator)
@@ -78,6 +80,11 @@ def parse_map_key(key_expr: str, save: bool = False) -> str:
     if str(key_expr) != map_key(name, save) or not name or "*" in name:
         raise ValueError(f"{key_expr}: name one map, {map_key('<name>', save)}")
     return name
+
+
+def merged_key(name: str = "*") -> str:
+    """The key of shared map ``name``'s merge events (``*``: of every map)."""
+    return f"{map_key(name)}/merged"
 
 
 def snapshot_key(robot_id: str = "*") -> str:

@@ -36,16 +36,16 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from .config import DetectorConfig
+from .config import DetectorConfig, PipelineConfig
 from .dataset import CameraIntrinsics
-from .errors import TwohrError, validation_problems
+from .errors import ModelError, TwohrError, validation_problems
 from .keys import ROBOT_PATTERN
-from .models import descriptor_space
+from .models import descriptor_space, get_spec
 
 FORMAT = "twohr-map"
-VERSION = 2
+VERSION = 3
 #: the format versions this twohr reads (version 1 has no owners: the operator's)
-READS = (1, 2)
+READS = (1, 2, 3)
 SUFFIX = ".map"
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
 #: the operator's identity among a map's owners (a robot id cannot start with '@')
@@ -109,6 +109,11 @@ class MapHeader(BaseModel):
     descriptor_dtype: str
     keyframes: int = Field(ge=0)
     landmarks: int = Field(ge=0)
+    cameras: list[CameraIntrinsics] = Field(default_factory=list, description="the cameras of keyframes taken with "
+                                            "another camera than `camera` (a map built by several robots): "
+                                            "keyframe_camera 1 is the first of them")
+    camera_robots: list[str] = Field(default_factory=list, description="a shared map's: the robot whose keyframes "
+                                     "each camera took (`camera` first), '' where not recorded")
 
     @field_validator("owners", "contributors")
     @classmethod
@@ -147,6 +152,13 @@ class MapArrays:
     landmark_accepted: np.ndarray  # (L,) int64
     landmark_rejected: np.ndarray  # (L,) int64
     landmark_bad: np.ndarray  # (L,) bool
+    keyframe_camera: np.ndarray | None = None
+    """(K,) int64: 0 for the header's ``camera``, i for its ``cameras[i - 1]`` (None: every keyframe's is 0; the
+    maps of format 2 and before have no such array)"""
+
+    def __post_init__(self) -> None:
+        if self.keyframe_camera is None:
+            self.keyframe_camera = np.zeros(len(self.keyframe_stamps), np.int64)
 
     def check(self, header: MapHeader) -> None:
         """Raise :class:`MapFileError` where the arrays do not fit each other or the header."""
@@ -156,6 +168,7 @@ class MapArrays:
                 raise MapFileError(f"{field.name} has dtype {getattr(self, field.name).dtype}")
         k, lm = header.keyframes, header.landmarks
         shapes = {"keyframe_poses": (k, 4, 4), "keyframe_stamps": (k,), "keyframe_culled": (k,),
+                  "keyframe_camera": (k,),
                   "keyframe_first": (k + 1,), "landmark_positions": (lm, 3),
                   "landmark_descriptors": (lm, header.descriptor_dim), "landmark_accepted": (lm,),
                   "landmark_rejected": (lm,), "landmark_bad": (lm,)}
@@ -172,6 +185,8 @@ class MapArrays:
         if str(self.landmark_descriptors.dtype) != header.descriptor_dtype:
             raise MapFileError(f"descriptors are {self.landmark_descriptors.dtype}, the header says "
                                f"{header.descriptor_dtype}")
+        if np.any((self.keyframe_camera < 0) | (self.keyframe_camera > len(header.cameras))):
+            raise MapFileError(f"a keyframe names a camera the header does not have ({len(header.cameras) + 1})")
         if np.any((self.keypoint_landmark < -1) | (self.keypoint_landmark >= lm)):
             raise MapFileError("a keypoint observes a landmark the map does not have")
         for name in ("keyframe_poses", "keyframe_stamps", "landmark_positions", "keypoint_xy", "keypoint_depth"):
@@ -184,7 +199,8 @@ class MapArrays:
 #: the dtype kinds each array may have (f float, i/u integer, b bool)
 ARRAY_KINDS = {"keyframe_poses": "f", "keyframe_stamps": "f", "keyframe_culled": "b", "keyframe_first": "iu",
                "keypoint_xy": "f", "keypoint_depth": "f", "keypoint_landmark": "i", "landmark_positions": "f",
-               "landmark_descriptors": "fu", "landmark_accepted": "iu", "landmark_rejected": "iu", "landmark_bad": "b"}
+               "landmark_descriptors": "fu", "landmark_accepted": "iu", "landmark_rejected": "iu", "landmark_bad": "b",
+               "keyframe_camera": "iu"}
 
 
 @dataclass
@@ -193,6 +209,26 @@ class MapFile:
 
     header: MapHeader
     arrays: MapArrays
+
+
+def arrays_file(arrays: MapArrays, camera: CameraIntrinsics, config: PipelineConfig, name: str, built_by: str = "",
+                parent: MapHeader | None = None, cameras: list[CameraIntrinsics] | None = None,
+                camera_robots: list[str] | None = None) -> MapFile:
+    """A map's arrays (a tracker's map, a copy taken earlier, a shared map's) as a map file named ``name``;
+    ``cameras`` and ``camera_robots``: see :class:`MapHeader`."""
+    try:
+        sha256 = get_spec(descriptor_space(config.detector.model)).sha256
+    except ModelError:
+        sha256 = ""
+    header = MapHeader(name=name, built_by=built_by,
+                       parent=None if parent is None else f"{parent.name}@{parent.created:.3f}",
+                       camera=camera, detector_model=config.detector.model, detector_sha256=sha256,
+                       detector_config=config.detector.model_dump(mode="json"),
+                       descriptor_dim=arrays.landmark_descriptors.shape[1],
+                       descriptor_dtype=str(arrays.landmark_descriptors.dtype),
+                       keyframes=len(arrays.keyframe_stamps), landmarks=len(arrays.landmark_positions),
+                       cameras=cameras or [], camera_robots=camera_robots or [])
+    return MapFile(header, arrays)
 
 
 def encode_map(map_file: MapFile) -> bytes:
@@ -258,6 +294,8 @@ def read_map(source: str | Path | bytes, detector: DetectorConfig | None = None)
         values = {}
         for field in fields(MapArrays):
             member = members.get(f"{field.name}.npy")
+            if member is None and field.name == "keyframe_camera" and header.version < 3:
+                continue  # every keyframe taken with the header's camera
             if member is None:
                 raise MapFileError(f"{path}: {field.name}.npy is missing")
             if member.compress_type != zipfile.ZIP_STORED:  # stored as written: no member can expand in memory

@@ -188,6 +188,44 @@ class PathMsg(Message):
     keyframes: int = Field(0, ge=0, description="keyframes in the whole path once this message is applied")
 
 
+class KeyframesMsg(Message):
+    """A robot's keyframes for the map server, in a session that shares a map (``twohr/<robot>/keyframes``): the
+    current pose of every keyframe so far, ``poses`` (K, 4, 4) float32 camera-to-world in the robot's own frame and
+    ``stamps`` (K,) float64, and for the keyframes from ``first`` on, the keypoints that observe a described landmark:
+    ``keypoint_first`` (n + 1,) int64 (where each new keyframe's begin), ``xy`` (P, 2) float32, ``depth`` (P,)
+    float32 metres, ``landmark`` (P,) int64 and that landmark's position, ``positions`` (P, 3) float32; and the
+    descriptors of the landmarks not sent before, ``described`` (M,) int64 ids and ``descriptors`` (M, D). The
+    map server keeps what came, so each descriptor crosses the wire once."""
+
+    schema_name: ClassVar[str] = "twohr.Keyframes"
+    required_arrays: ClassVar[tuple[str, ...]] = ("poses", "stamps", "keypoint_first", "xy", "depth", "landmark",
+                                                  "positions", "described", "descriptors")
+    map_name: str = Field(description="the shared map the session builds")
+    first: int = Field(ge=0, description="the index of the first keyframe whose keypoints this message carries")
+    camera: CameraIntrinsics
+    final: bool = Field(False, description="the session's last: its keyframes as the final bundle adjustment left them")
+
+
+class MergeMsg(Message):
+    """A robot placed in a shared map's frame (``twohr/maps/<name>/merged``): the map server found its keyframes in
+    the map (``merged``), its session started the map (``defines``: its frame is the map's), or it localizes in the
+    stored map (``joined``); ``refined``: a merged robot's transform moved, its later matches averaged in.
+    ``position`` and ``orientation`` give the transform of the robot's own frame into the
+    map's; from now on its poses carry frame ``map_name``. The header names the robot and its session; ``stamp`` is
+    the stamp of the keyframe that completed the merge."""
+
+    schema_name: ClassVar[str] = "twohr.Merge"
+    map_name: str
+    kind: Literal["defines", "joined", "merged", "refined"]
+    position: list[float] = Field(min_length=3, max_length=3)
+    orientation: list[float] = Field(min_length=4, max_length=4, description="quaternion x, y, z, w")
+    into: list[str] = Field(default_factory=list, description="the robots whose keyframes it was found among")
+    inliers: list[int] = Field(default_factory=list, description="the inliers of each agreeing match")
+    keyframes: int = Field(0, ge=0, description="the robot's keyframes when it was merged")
+    at: float = Field(description="wall-clock time of the event")
+    ms: float = Field(0.0, ge=0, description="the map server's time for the search that merged it")
+
+
 class StatusMsg(Message):
     """Session lifecycle and service health: ``state`` is started, running, finished, stopped or error."""
 
@@ -213,7 +251,7 @@ class ControlMsg(Message):
     record_frames: bool = Field(False, description="also record the raw RGB-D frames verbatim, for exact replay")
     start: int = Field(0, ge=0, description="a replay's first frame")
     map_name: str = Field("", description="the map the session builds, localizes in or extends ('' = none)")
-    map_mode: Literal["", "build", "localize", "extend"] = ""
+    map_mode: Literal["", "build", "localize", "extend", "share"] = ""
     config: PipelineConfig = Field(default_factory=PipelineConfig)
     tracker: str = Field("", description="the tracker replica that serves the session, as the gateway placed it "
                          "('' = every tracker that gets it: a stack with one)")
@@ -222,7 +260,7 @@ class ControlMsg(Message):
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.schema_name: cls
     for cls in (FrameMsg, ImageMsg, KeypointsMsg, DynamicsMsg, MatchesMsg, MatchRequestMsg, PoseMsg, LandmarksMsg,
-                PathMsg, StatusMsg, ControlMsg)
+                PathMsg, StatusMsg, ControlMsg, KeyframesMsg, MergeMsg)
 }
 
 

@@ -402,6 +402,8 @@ def check_robot(key: str, payload) -> None:
         robot, _ = keys.parse(key)
     except ValueError:
         return  # not a per-robot key (health, liveliness)
+    if robot in keys.RESERVED_ROBOT_IDS:
+        return  # a map's key (twohr/maps/<name>/...): its messages are about any robot of the map
     message, _ = split(payload)
     if message.robot_id != robot:
         raise MessageError(f"a message for robot {message.robot_id!r} on {key}")

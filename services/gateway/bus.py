@@ -20,7 +20,17 @@ from twohr.errors import TwohrError
 from twohr.evaluation import evaluate
 from twohr.keys import PIPELINE_SERVICES
 from twohr.mapfile import OPERATOR, MapAccessError, MapFileError, MapMissingError, MapStore
-from twohr.messages import ControlMsg, MessageError, PathMsg, PoseMsg, StatusMsg, decode, encode, path_trajectory
+from twohr.messages import (
+    ControlMsg,
+    MergeMsg,
+    MessageError,
+    PathMsg,
+    PoseMsg,
+    StatusMsg,
+    decode,
+    encode,
+    path_trajectory,
+)
 from twohr.service import declare_publisher
 
 from .admission import least_loaded_tracker, stack_trackers
@@ -73,6 +83,7 @@ class GatewayBus:
             self.session.declare_subscriber(keys.all_robots("path"), self._on_path),
             # each session's latest map snapshot, kept here for the tracker it moves to when its own dies
             self.session.declare_subscriber(keys.snapshot_key(), self._on_snapshot),
+            self.session.declare_subscriber(keys.merged_key(), self._decoded(MergeMsg, self.table.on_merge)),
             self.session.declare_queryable(keys.snapshot_key(), self._serve_snapshot),
             self.session.liveliness().declare_subscriber(keys.alive_key("*"), self._on_liveliness,
                                                          history=True)]
@@ -174,9 +185,12 @@ class GatewayBus:
         session_id = query.attachment.to_bytes().decode(errors="replace")[:64]
         session = self.table.get(session_id)
         wanted = None if session is None else session.request.map
-        if wanted is None or wanted.name != name or wanted.mode not in ("build", "extend"):
-            raise MapAccessError(f"session {session_id!r} is no session of this gateway that builds or extends map "
-                                 f"{name}")
+        # a shared map is saved by the map server, and a robot of it that never merged as map <name>.<robot>
+        names = (wanted.name, f"{wanted.name}.{session.request.robot_id}") if wanted and wanted.mode == "share" else (
+            () if wanted is None else (wanted.name,))
+        if wanted is None or name not in names or wanted.mode not in ("build", "extend", "share"):
+            raise MapAccessError(f"session {session_id!r} is no session of this gateway that builds, extends or "
+                                 f"shares map {name}")
         return session
 
     def missing_services(self) -> list[str]:
@@ -211,7 +225,8 @@ class GatewayBus:
             try:
                 message, _ = decode(sample.payload.to_bytes(), schema)
                 robot, _ = keys.parse(sample.key_expr)
-                if robot != message.robot_id:
+                # a map's key (twohr/maps/<name>/merged) speaks of any robot of the map: only the map server's
+                if robot != message.robot_id and robot not in keys.RESERVED_ROBOT_IDS:
                     raise MessageError(f"a message for robot {message.robot_id!r} on {sample.key_expr}")
             except (MessageError, ValueError) as exc:
                 log.warning("dropped %s on %s: %s", schema.__name__, sample.key_expr, exc)

@@ -12,8 +12,9 @@ import numpy as np
 from pydantic import BaseModel, Field, model_validator
 
 from twohr.config import PipelineConfig
+from twohr.geometry import invert_pose, make_pose, quat_to_rot, rot_to_quat
 from twohr.mapfile import NAME_PATTERN, OPERATOR
-from twohr.messages import ID_PATTERN, PathMsg, PoseMsg, StatusMsg
+from twohr.messages import ID_PATTERN, MergeMsg, PathMsg, PoseMsg, StatusMsg
 from twohr.trajectory import Trajectory
 
 SessionState = Literal["starting", "running", "finished", "stopped", "failed"]
@@ -25,11 +26,13 @@ class MapRequest(BaseModel):
     """The map a session builds, localizes in or extends (by name, in the gateway's map store)."""
 
     name: str = Field(pattern=NAME_PATTERN, description="the map's name, also the frame id of the session's poses")
-    mode: Literal["build", "localize", "extend"] = Field(
+    mode: Literal["build", "localize", "extend", "share"] = Field(
         "localize", description="build: a new map, saved under the name when the session ends; localize: track in "
-        "the map (not saved); extend: track in it, add keyframes, save as its next version. Any robot may localize "
-        "in any map; build or extend of an existing map needs its robot to own it (to have built it) or to hold "
-        "the operator's grant (403 otherwise)")
+        "the map (not saved); extend: track in it, add keyframes, save as its next version; share: build it with "
+        "every other robot sharing it at the same time (the map server merges each robot into the map's frame once "
+        "its places are found there; saved as the next version when the last such session ends). Any robot may "
+        "localize in any map; build, extend or share of an existing map needs its robot to own it (to have built "
+        "it) or to hold the operator's grant (403 otherwise)")
 
     model_config = {"extra": "forbid"}
 
@@ -81,6 +84,24 @@ class PoseOut(BaseModel):
     status: str
 
 
+class MergeOut(BaseModel):
+    """A robot placed in a shared map's frame (``twohr/maps/<name>/merged``)."""
+
+    kind: Literal["defines", "joined", "merged"] = Field(
+        description="merged: its places were found in the map; defines: its frame is the map's; joined: it tracks "
+        "in the stored map")
+    frame_id: str = Field(description="the map's frame, its poses' from then on")
+    at: float = Field(description="wall-clock time of the merge")
+    into: list[str] = Field(default_factory=list, description="the robots it was found among")
+    inliers: list[int] = Field(default_factory=list, description="the inliers of each agreeing match")
+    keyframes: int = Field(0, description="the robot's keyframes when it was merged")
+    refinements: int = Field(0, description="times its transform was refined since, later matches averaged in "
+                             "(position, orientation and inliers are the latest)")
+    ms: float = Field(0.0, description="the map server's time for the search that merged it")
+    position: list[float] = Field(description="the transform of the robot's own frame into the map's")
+    orientation: list[float]
+
+
 class SessionInfo(BaseModel):
     """What ``GET /sessions/{id}`` returns."""
 
@@ -120,6 +141,10 @@ class SessionInfo(BaseModel):
                          "('' = the stack's one tracker)")
     moves: int = Field(0, description="times the session moved to another tracker because its own died (it goes on "
                        "in its map's latest snapshot, its poses in the same frame)")
+    frame_id: str = Field("", description="the frame of its latest pose: the map's, '' for the robot's own, "
+                          "<map>/<robot> in a shared map until the robot was merged")
+    merge: MergeOut | None = Field(None, description="a session that shares a map: when and how its robot was placed "
+                                   "in the map's frame")
 
 
 class PoseRecord:
@@ -134,12 +159,26 @@ class PoseRecord:
     def __len__(self) -> int:
         return self._count
 
-    def append(self, pose: PoseMsg) -> None:
+    def append(self, pose: PoseMsg, T: np.ndarray | None = None) -> None:
+        """Keep a pose (``T``: moved by this transform first, a pose published before its robot was merged)."""
+        if T is not None:
+            placed = T @ make_pose(quat_to_rot(np.array(pose.orientation)), np.array(pose.position))
+            pose = pose.model_copy(update={"position": placed[:3, 3].tolist(),
+                                           "orientation": rot_to_quat(placed[:3, :3]).tolist()})
         if self._count == len(self._rows):
             self._rows = np.concatenate([self._rows, np.zeros_like(self._rows)])
         self._rows[self._count] = [pose.frame_index, pose.stamp, *pose.position, *pose.orientation]
         self._count += 1
         self.latest = pose
+
+    def move(self, T: np.ndarray) -> None:
+        """Every pose kept so far moved by ``T`` (its robot was merged into a shared map's frame)."""
+        rows = self._rows[:self._count]
+        if not len(rows):
+            return
+        poses = T @ Trajectory.from_tum_array(rows[:, 1:9]).poses
+        rows[:, 2:5] = poses[:, :3, 3]
+        rows[:, 5:9] = [rot_to_quat(pose[:3, :3]) for pose in poses]
 
     def distinct_frames(self) -> int:
         """How many different frames got a pose."""
@@ -189,6 +228,9 @@ class Session:
     snapshot: bytes | None = None
     """the latest snapshot of its map its tracker sent (a map file's bytes), while it is active"""
     moves: int = 0
+    merge: MergeOut | None = None
+    """where a session that shares a map was placed in the map's frame"""
+    merge_T: np.ndarray | None = None
 
     def trajectory(self) -> Trajectory:
         """The poses as published (online), ordered by frame."""
@@ -239,11 +281,33 @@ class SessionTable:
             if session is None or session.request.robot_id != pose.robot_id:
                 return
             now = time.time()
-            session.poses.append(pose)
+            # a pose of the robot's own frame that crossed its merge on the way: moved as the earlier ones were
+            late = session.merge_T is not None and pose.frame_id != session.merge.frame_id
+            session.poses.append(pose, session.merge_T if late else None)
             session.first_pose_at = session.first_pose_at or now
             session.last_pose_at = now
             if session.state == "starting":
                 session.state = "running"
+
+    def on_merge(self, merge: MergeMsg) -> None:
+        """A session's robot placed in a shared map's frame: its poses so far are moved there."""
+        with self.lock:
+            session = self.sessions.get(merge.session_id)
+            if session is None or session.request.robot_id != merge.robot_id or session.request.map is None or (
+                    session.request.map.name != merge.map_name):
+                return
+            T = make_pose(quat_to_rot(np.array(merge.orientation)), np.array(merge.position))
+            # the poses kept so far are in the robot's own frame, or (refined) in the map's by the earlier transform
+            session.poses.move(T if session.merge_T is None else T @ invert_pose(session.merge_T))
+            session.merge_T = T
+            if merge.kind == "refined" and session.merge is not None:
+                session.merge = session.merge.model_copy(update={
+                    "inliers": merge.inliers, "position": merge.position, "orientation": merge.orientation,
+                    "refinements": session.merge.refinements + 1})
+                return
+            session.merge = MergeOut(kind=merge.kind, frame_id=merge.map_name, at=merge.at, into=merge.into,
+                                     inliers=merge.inliers, keyframes=merge.keyframes, ms=merge.ms,
+                                     position=merge.position, orientation=merge.orientation)
 
     def on_path(self, path: PathMsg, trajectory: Trajectory) -> Session | None:
         """A corrected path from the tracker; returns the session when it is the final, refined trajectory."""

@@ -17,7 +17,7 @@ from pathlib import Path
 from twohr import keys
 from twohr.bus import BusConfig, bus_from_args
 from twohr.mcapfile import recover
-from twohr.messages import ControlMsg, PathMsg, decode, split
+from twohr.messages import ControlMsg, MergeMsg, PathMsg, decode, split
 from twohr.service import Service, one_line_errors, service_parser
 
 from .core import RecordingOptions, SessionRecorder
@@ -38,6 +38,7 @@ class RecorderService(Service):
         self.posed: set[str] = set()  # open sessions with a pose recorded: the tracker will send a final path
         self.max_session_bytes = max_session_bytes
         self.open: dict[str, SessionRecorder] = {}
+        self.sharing: dict[str, str] = {}  # sessions that share a map: its name
         self.closing: dict[str, float] = {}
 
     def on_start(self) -> None:
@@ -47,13 +48,16 @@ class RecorderService(Service):
                 self.log.warning("recovered %s, left unfinalised by a crash: %d messages kept", path, kept)
 
     def subscriptions(self) -> list[str]:
-        return [keys.all_robots(stream) for stream in (*keys.STREAMS, keys.CONTROL)]
+        # and the merges of shared maps, in the recording of every session that shares the map
+        return [keys.all_robots(stream) for stream in (*keys.STREAMS, keys.CONTROL)] + [keys.merged_key()]
 
     def handle(self, key: str, payload: bytes) -> None:
         _, stream = keys.parse(key)
         now = time.time_ns()
         if stream == keys.CONTROL:
             control, _ = decode(payload, ControlMsg)
+            if control.command == "start" and control.map_mode == "share":
+                self.sharing[control.session_id] = control.map_name
             if control.command == "start" and control.record:
                 self._close(control.session_id)
                 options = self.options.model_copy(update={
@@ -71,6 +75,11 @@ class RecorderService(Service):
                 self.closing[control.session_id] = time.monotonic() + wait
             return
         message, _ = split(payload)
+        if isinstance(message, MergeMsg):
+            for session_id, name in self.sharing.items():
+                if name == message.map_name and session_id in self.open:
+                    self.open[session_id].write(key, payload, now)
+            return
         recorder = self.open.get(message.session_id)
         if recorder is not None:
             recorder.write(key, payload, now)
@@ -93,6 +102,7 @@ class RecorderService(Service):
 
     def _close(self, session_id: str) -> None:
         self.closing.pop(session_id, None)
+        self.sharing.pop(session_id, None)
         self.posed.discard(session_id)
         recorder = self.open.get(session_id)
         if recorder is not None:

@@ -9,11 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from twohr import models
 from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics
-from twohr.errors import ModelError
-from twohr.mapfile import NAME_PATTERN, MapArrays, MapFile, MapFileError, MapHeader, read_map, write_map
+from twohr.mapfile import NAME_PATTERN, MapFile, MapFileError, MapHeader, arrays_file, read_map, write_map
 
 from .map import Map
 
@@ -31,23 +29,6 @@ def map_file(world: Map, config: PipelineConfig, name: str, built_by: str = "",
              parent: MapHeader | None = None) -> MapFile:
     """``world`` as a map file named ``name``, with what it was built with."""
     return arrays_file(world.arrays(), world.camera, config, name, built_by, parent)
-
-
-def arrays_file(arrays: MapArrays, camera: CameraIntrinsics, config: PipelineConfig, name: str, built_by: str = "",
-                parent: MapHeader | None = None) -> MapFile:
-    """A map's arrays (:meth:`Map.arrays`, a copy taken earlier) as a map file named ``name``."""
-    try:
-        sha256 = models.get_spec(models.descriptor_space(config.detector.model)).sha256
-    except ModelError:
-        sha256 = ""
-    header = MapHeader(name=name, built_by=built_by,
-                       parent=None if parent is None else f"{parent.name}@{parent.created:.3f}",
-                       camera=camera, detector_model=config.detector.model, detector_sha256=sha256,
-                       detector_config=config.detector.model_dump(mode="json"),
-                       descriptor_dim=arrays.landmark_descriptors.shape[1],
-                       descriptor_dtype=str(arrays.landmark_descriptors.dtype),
-                       keyframes=len(arrays.keyframe_stamps), landmarks=len(arrays.landmark_positions))
-    return MapFile(header, arrays)
 
 
 def save_map(path: str | Path, world: Map, config: PipelineConfig, built_by: str = "",

@@ -34,16 +34,18 @@ from twohr.config import PipelineConfig
 from twohr.dataset import Frame
 from twohr.errors import TwohrError
 from twohr.features import Keypoints, Matches
-from twohr.geometry import rot_to_quat
-from twohr.mapfile import MapArrays, MapFile, MapFileError, MapHeader, encode_map, read_map
+from twohr.geometry import make_pose, quat_to_rot, rot_to_quat, transform_points
+from twohr.mapfile import MapArrays, MapFile, MapFileError, MapHeader, arrays_file, encode_map, read_map
 from twohr.messages import (
     ControlMsg,
     DynamicsMsg,
     FrameMsg,
+    KeyframesMsg,
     KeypointsMsg,
     LandmarksMsg,
     MatchesMsg,
     MatchRequestMsg,
+    MergeMsg,
     PathDeltas,
     PathMsg,
     PoseMsg,
@@ -64,10 +66,12 @@ from twohr.service import (
     one_line_errors,
     service_parser,
 )
+from twohr.sharing import KeyframeSender
 from twohr.trajectory import Trajectory
 
-from .mapfiles import arrays_file, map_file, usable_map
+from .mapfiles import map_file, usable_map
 from .schedule import Schedule, build_schedule
+from .sharing import SharedFrame
 from .stages import FrameStats, Stages, keyframe_job_latency
 from .trajectory import TrackResult
 
@@ -197,6 +201,10 @@ class SessionTrack:
     map_name: str = ""  # the session's map: its poses are in this frame ("" = the robot's own)
     map_mode: str = ""
     lost: int = 0  # frames tracked as lost in a row
+    shared: SharedFrame | None = None
+    """a session that shares a map: where its poses go (its own frame until the map server places it)"""
+    sender: KeyframeSender | None = None
+    """a session that shares a map: what the map server has of its map"""
     parent: MapHeader | None = None
     """the header of the map it localizes in or extends, as fetched (the map's next version names it); the file's
     arrays are not kept: the schedule's map was built from them"""
@@ -204,6 +212,12 @@ class SessionTrack:
     snapshot_keyframes: int = 0  # keyframes in the map then (or in the map the session started in)
     stamp_shift: float = 0.0  # added to the camera's stamps since they went back in time
     last_stamp: float = float("-inf")
+
+    @property
+    def frame_id(self) -> str:
+        """The frame its poses are published in: the map's (``''``: the robot's own), or in a shared map
+        ``<map>/<robot>`` until the map server placed the robot in the map's."""
+        return self.map_name if self.shared is None else self.shared.frame_id
 
     def session_stamp(self, stamp: float) -> float:
         """The stamp the session uses for a camera stamp: the camera's own, shifted on when it went back in time (a
@@ -239,6 +253,7 @@ class TrackerService(Service):
         self.elsewhere: dict[str, str] = {}  # session -> robot, of the sessions placed on other tracker replicas
         self.paced: dict[str, bool] = {}
         self.maps: dict[str, ControlMsg] = {}  # sessions with a map, by id: their start (name, mode)
+        self.placed: dict[str, np.ndarray] = {}  # sessions placed in a shared map before their first frame
         self.loaded: dict[str, MapFile] = {}  # the maps fetched for them, until their first frame builds the Map
         self.finishing = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracker-finishing")
         """the ends of sessions, one after another, off the per-frame thread"""
@@ -276,8 +291,10 @@ class TrackerService(Service):
         return super().health() | {"robots": robots, "jobs": {name: r.stats() for name, r in self.replicas.items()}}
 
     def subscriptions(self) -> list[str]:
-        # beside other trackers, every robot's poses too: how well each is served (PeerShare)
-        return [keys.all_robots("frames")] + ([keys.all_robots("pose")] if self.peers is not None else [])
+        # beside other trackers, every robot's poses too: how well each is served (PeerShare); the map server's
+        # merges of the shared maps
+        return [keys.all_robots("frames"), keys.merged_key()] + (
+            [keys.all_robots("pose")] if self.peers is not None else [])
 
     def run(self, stop: threading.Event | None = None) -> None:
         """Serve until ``stop`` is set; sessions still finishing then finish, their final paths and maps sent before
@@ -297,6 +314,7 @@ class TrackerService(Service):
         self.serving.pop(session_id, None)
         self.paced.pop(session_id, None)
         self.loaded.pop(session_id, None)
+        self.placed.pop(session_id, None)
         self.fair.forget(session_id)
         control = self.maps.pop(session_id, None)
         track = self.tracks.pop(session_id, None)
@@ -324,8 +342,11 @@ class TrackerService(Service):
         finally:
             track.schedule.close()
         header = track.last_header
+        if track.shared is not None:  # its last keyframes first: the map server saves the map once they came
+            self._send_keyframes(track, header, track.schedule.map.arrays(), final=True)
+            refined = Trajectory(refined.stamps, track.shared.place(refined.poses))
         message = PathMsg(session_id=session_id, robot_id=header.robot_id, frame_index=header.frame_index,
-                          stamp=header.stamp, final=True, frame_id=track.map_name)
+                          stamp=header.stamp, final=True, frame_id=track.frame_id)
         self.publish(keys.key(header.robot_id, "path"), encode(message, path_arrays(refined)))
         latency = keyframe_job_latency(track.schedule.keyframe_log)
         working = track.schedule.map.working_set()
@@ -349,6 +370,9 @@ class TrackerService(Service):
             stored = self.loaded.get(header.session_id)
             world = None if stored is None else usable_map(stored, config, header.camera, f"map {stored.header.name}")
             control = self.maps.get(header.session_id)
+            shared = None
+            if control is not None and control.map_mode == "share":
+                shared = SharedFrame(control.map_name, header.robot_id, self.placed.pop(header.session_id, None))
             self.tracks[header.session_id] = SessionTrack(
                 # a replay paced by poses (rate 0) waits for late keyframe jobs as `twohr run` does; a camera does not
                 build_schedule(config, header.camera, stages, live=self.paced.get(header.session_id, True),
@@ -356,14 +380,19 @@ class TrackerService(Service):
                 map_name=control.map_name if control else "", map_mode=control.map_mode if control else "",
                 # a snapshot (a moved session's) names no parent: its map's next version names none
                 parent=stored.header if stored is not None and (control is None or control.command != "move")
-                else None, snapshot_keyframes=0 if world is None else len(world.keyframes))
+                else None, snapshot_keyframes=0 if world is None else len(world.keyframes), shared=shared,
+                # a stored map's keyframes are the map server's already
+                sender=None if shared is None else KeyframeSender(0 if world is None else len(world.keyframes)))
             self.loaded.pop(header.session_id, None)  # the session tracks in the Map built from it
         return self.tracks[header.session_id]
 
-    def _fetch_map(self, control: ControlMsg) -> MapFile:
-        """The map a session localizes in or extends, from the map store over the bus."""
+    def _fetch_map(self, control: ControlMsg) -> MapFile | None:
+        """The map a session localizes in, extends or shares, from the map store over the bus (None: a shared map
+        not stored yet)."""
         key = keys.map_key(control.map_name)
         for reply in self.session.get(key, timeout=MAP_TIMEOUT_S):
+            if reply.ok is None and control.map_mode == "share":
+                return None
             if reply.ok is None:
                 raise TwohrError(f"map {control.map_name}: {reply.err.payload.to_bytes().decode(errors='replace')}")
             return read_map(reply.ok.payload.to_bytes(), detector=control.config.detector)
@@ -411,6 +440,9 @@ class TrackerService(Service):
         camera, a frame that waited too long while newer ones queued is dropped on its header, before any image
         is decoded: fresh data wins (a paced source does not wait for poses, so nothing stalls), but never more
         than ``max_skipped_frames`` in a row, so the optical flow keeps short steps while it catches up."""
+        if key.startswith(keys.MAPS_PREFIX):
+            self._on_merge(payload)
+            return
         header, _ = decode(payload, FrameMsg, only=())
         config = self.config_for(header.session_id)
         try:
@@ -442,7 +474,7 @@ class TrackerService(Service):
             self.fair.tracked(waited_ms, keyframes_late=bool(log) and log[-1].lag_frames > FAIR_KEYFRAME_LAG)
         track.health.add(dropped=False)
         if result.posed:
-            self._publish_pose(header, result, stats, track.map_name)
+            self._publish_pose(header, result, stats, track)
         else:  # no pose before the camera is found in the map: the frame is answered on the session's status
             self.report(header, "relocalising", f"looking for the camera in map {track.map_name}",
                         frame=header.frame_index)
@@ -494,11 +526,14 @@ class TrackerService(Service):
         track.map_sent = snapshot.version
         ids = dict(session_id=header.session_id, robot_id=header.robot_id, frame_index=header.frame_index,
                    stamp=header.stamp)
-        if len(snapshot.points):
+        points, poses = snapshot.points, snapshot.keyframe_poses
+        if track.shared is not None:
+            points, poses = transform_points(track.shared.place(np.eye(4)), points), track.shared.place(poses)
+        if len(points):
             self.publish(keys.key(header.robot_id, "landmarks"),
-                         encode(LandmarksMsg(**ids), {"points": snapshot.points.astype(np.float32)}))
-        fields, arrays = track.path_deltas.next(Trajectory(snapshot.keyframe_stamps, snapshot.keyframe_poses))
-        path = PathMsg(**ids, final=False, frame_id=track.map_name, **fields)
+                         encode(LandmarksMsg(**ids), {"points": points.astype(np.float32)}))
+        fields, arrays = track.path_deltas.next(Trajectory(snapshot.keyframe_stamps, poses))
+        path = PathMsg(**ids, final=False, frame_id=track.frame_id, **fields)
         self.publish(keys.key(header.robot_id, "path"), encode(path, arrays))
 
     def _keep_snapshot(self, track: SessionTrack, header: FrameMsg) -> None:
@@ -506,11 +541,16 @@ class TrackerService(Service):
         gateway on ``twohr/<robot>/map/snapshot`` as a map file (encoded and sent on the snapshot thread): where this
         process dies, the tracker the session moves to starts from it (:meth:`_fetch_snapshot`)."""
         now = time.monotonic()
-        if self.snapshots is None or now - track.snapshot_at < SNAPSHOT_EVERY_S or (
-                len(track.schedule.map.keyframes) <= track.snapshot_keyframes):
+        due = self.snapshots is not None and now - track.snapshot_at >= SNAPSHOT_EVERY_S and (
+            len(track.schedule.map.keyframes) > track.snapshot_keyframes)
+        if not due and track.sender is None:
             return  # a map that gained no keyframe is sent no more (a stored one is in the map store already)
-        arrays = track.schedule.map_copy()
+        arrays = track.schedule.map_copy()  # a session that shares its map asks for a copy after every job
         if arrays is None:
+            return
+        if track.sender is not None:
+            self._send_keyframes(track, header, arrays)
+        if not due:
             return
         track.snapshot_at, track.snapshot_keyframes = now, len(arrays.keyframe_stamps)
         self.snapshots.submit(self._send_snapshot, arrays, track, header, self.config_for(header.session_id))
@@ -541,10 +581,42 @@ class TrackerService(Service):
                 return None
         return None
 
-    def _publish_pose(self, header: FrameMsg, result: TrackResult, stats: FrameStats, frame_id: str = "") -> None:
+    def _send_keyframes(self, track: SessionTrack, header: FrameMsg, arrays: MapArrays, final: bool = False) -> None:
+        """The keyframes of a shared map's session that the map server has not had yet (``final``: the session's
+        last message, its keyframes as the final bundle adjustment left them)."""
+        batch = track.sender.next(arrays, final=final)
+        if batch is None:
+            return
+        first, blobs = batch
+        message = KeyframesMsg(session_id=header.session_id, robot_id=header.robot_id, frame_index=header.frame_index,
+                               stamp=header.stamp, map_name=track.shared.map_name, first=first, camera=header.camera,
+                               final=final)
+        payload = encode(message, blobs)
+        track.sender.bytes_sent += len(payload)
+        self.publish(keys.key(header.robot_id, "keyframes"), payload)
+
+    def _on_merge(self, payload: bytes) -> None:
+        """The map server placed a robot in a shared map's frame: a session of this tracker's puts its poses there
+        from now on, and sends its path again at once, every keyframe moved (its earlier poses with them)."""
+        merge, _ = decode(payload, MergeMsg)
+        control = self.maps.get(merge.session_id)
+        if control is None or control.map_mode != "share" or control.map_name != merge.map_name:
+            return  # not a session of this tracker's
+        T = make_pose(quat_to_rot(np.array(merge.orientation)), np.array(merge.position))
+        track = self.tracks.get(merge.session_id)
+        if track is None:  # placed before its first frame: its schedule starts placed
+            self.placed[merge.session_id] = T
+            return
+        track.shared.T = T
+        track.path_deltas = PathDeltas()  # the next path message is whole
+        track.map_sent = -1
+        self._publish_map(track, track.last_header)
+
+    def _publish_pose(self, header: FrameMsg, result: TrackResult, stats: FrameStats, track: SessionTrack) -> None:
+        placed = result.pose if track.shared is None else track.shared.place(result.pose)
         pose = PoseMsg(session_id=header.session_id, robot_id=header.robot_id, frame_index=header.frame_index,
-                       stamp=header.stamp, frame_id=frame_id, position=result.pose[:3, 3].tolist(),
-                       orientation=rot_to_quat(result.pose[:3, :3]).tolist(), status=result.status,
+                       stamp=header.stamp, frame_id=track.frame_id, position=placed[:3, 3].tolist(),
+                       orientation=rot_to_quat(placed[:3, :3]).tolist(), status=result.status,
                        num_keypoints=stats.keypoints, num_matches=result.num_matches, num_inliers=result.num_inliers,
                        is_keyframe=result.is_keyframe, frame_sent_at=header.sent_at,
                        elapsed_ms={"detector": stats.ms_detector, "yolo": stats.ms_yolo, "tracker": stats.ms_tracker})
@@ -590,8 +662,12 @@ class TrackerService(Service):
             self.report(control, "moved", f"tracker {self.replica} serves the session now, " + (
                 f"in its map as last kept ({snapshot.header.keyframes} keyframes)" if snapshot is not None else
                 "in a new map: no snapshot of its map was kept (its poses are in a new frame)"))
-        elif control.map_mode in ("localize", "extend"):
-            self.loaded[control.session_id] = self._fetch_map(control)
+        elif control.map_mode in ("localize", "extend", "share"):
+            stored = self._fetch_map(control)
+            if stored is not None:
+                self.loaded[control.session_id] = stored
+                if control.map_mode == "share":  # a stored shared map: its frame is the robot's from the start
+                    self.placed[control.session_id] = np.eye(4)
         # paced by the camera (a real-rate replay or a live camera): the source never waits for poses
         self.paced[control.session_id] = control.rate > 0 or not control.sequence
 

@@ -49,7 +49,8 @@ def validate_models(config: PipelineConfig) -> None:
 
 def check_map(wanted: MapRequest, config: PipelineConfig, maps: Path | None) -> None:
     """A session's map must be usable before the session starts: a store for it (``maps``), and for localize and
-    extend a readable map built with the session's detector model (422 otherwise, one line)."""
+    extend a readable map built with the session's detector model, for share one where the map is stored (422
+    otherwise, one line)."""
     if maps is None:
         raise TwohrError("map: this gateway has no map store (start it with twohr up --maps DIR)")
     store = MapStore(maps)
@@ -59,6 +60,8 @@ def check_map(wanted: MapRequest, config: PipelineConfig, maps: Path | None) -> 
     try:
         path = store.latest_file(wanted.name)
     except MapMissingError:
+        if wanted.mode == "share":
+            return  # a new shared map: the first robot's frame will be its frame
         raise TwohrError(f"map: no map named {wanted.name!r} in the map store (GET /maps lists them)") from None
     read_map(path, detector=config.detector)
 
@@ -119,6 +122,7 @@ def session_info(session: Session, recordings: Path) -> SessionInfo:
         record=session.request.record,
         recording=f"/sessions/{session.id}/recording" if recording.is_file() else None,
         map=session.request.map, start=session.request.start, tracker=session.tracker, moves=session.moves,
+        frame_id=latest.frame_id if latest else "", merge=session.merge,
     )
 
 
@@ -150,10 +154,11 @@ def create_session(request: SessionRequest, settings: Settings, bus: Bus, table:
             raise HTTPException(status.HTTP_409_CONFLICT, f"robot {request.robot_id} already runs a session")
         admit(request, table, settings.max_robots)
         tracker = tracker_for(request, set(bus.alive.get("tracker", ())), table)
-        if keys.edge_robot(tracker) is not None and request.map is not None and request.map.mode != "localize":
+        if keys.edge_robot(tracker) is not None and request.map is not None and request.map.mode not in (
+                "localize", "share"):
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY,
-                                f"robot {request.robot_id} tracks itself (twohr camera --edge): it may localize in a "
-                                f"stored map, but {request.map.mode} needs the stack's tracker (twohr camera without "
+                                f"robot {request.robot_id} tracks itself (twohr camera --edge): it may localize in or "
+                                f"share a map, but {request.map.mode} needs the stack's tracker (twohr camera without "
                                 "--edge)")
         session = Session(id=uuid.uuid4().hex[:12], request=request, folder=folder, started_by=identity(who.robot),
                           tracker=tracker, config=config)

@@ -35,7 +35,8 @@ async function startSession(event) {
   if ($("max-frames").value) body.max_frames = Number($("max-frames").value);
   if ($("start-frame").value) body.start = Number($("start-frame").value);
   const map = $("map-name").value === "__new__" ? $("new-map").value.trim() : $("map-name").value;
-  if (map) body.map = { name: map, mode: $("map-name").value === "__new__" ? "build" : $("map-mode").value };
+  const newMode = $("map-mode").value === "share" ? "share" : "build";  // a new map is built, alone or shared
+  if (map) body.map = { name: map, mode: $("map-name").value === "__new__" ? newMode : $("map-mode").value };
   try {
     const info = await (await api("POST", "/sessions", body)).json();
     say(`started session ${info.id}`);
@@ -128,10 +129,12 @@ function newRow(info) {
 
 async function updateTrajectory(info, row) {
   const known = trajectories.get(info.id);
-  if (known && known.frames === info.frames) return;
+  // fetched again when it grew, was refined, or moved into a shared map's frame
+  const version = `${info.frames} ${info.trajectory} ${info.merge ? info.merge.kind + info.merge.refinements : ""}`;
+  if (known && known.version === version) return;
   const text = await (await api("GET", `/sessions/${info.id}/trajectory`)).text();
   const points = parseTum(text);
-  trajectories.set(info.id, { frames: info.frames, points });
+  trajectories.set(info.id, { version, points });
   drawTrajectory(row.querySelector("svg"), points);
 }
 
@@ -159,11 +162,87 @@ function render(info) {
   return updateTrajectory(info, row);
 }
 
+const ROBOT_COLOURS = ["#2f6fde", "#e67e22", "#8e44ad", "#16a085", "#c0392b", "#7f8c8d"];
+
+// every robot of a shared map in the map's frame, one polyline each, on one top view
+function drawSharedMap(figure, name, members) {
+  const w = 320, h = 200, pad = 8, ns = "http://www.w3.org/2000/svg";
+  const svg = figure.querySelector("svg");
+  svg.innerHTML = "";
+  const drawn = members.filter((m) => m.merge && (trajectories.get(m.id) || { points: [] }).points.length > 1);
+  const all = drawn.flatMap((m) => trajectories.get(m.id).points);
+  const caption = figure.querySelector("figcaption");
+  caption.innerHTML = "";
+  const title = document.createElement("strong");
+  title.textContent = `map ${name}`;
+  caption.append(title);
+  members.forEach((m, i) => {
+    const line = document.createElement("div");
+    line.className = "member";
+    line.dataset.robot = m.robot_id;
+    line.style.color = ROBOT_COLOURS[i % ROBOT_COLOURS.length];
+    const merge = m.merge;
+    const when = merge ? new Date(merge.at * 1000).toLocaleTimeString() : "";
+    line.textContent = `${m.robot_id}: ` + (merge === null ? `own frame ${name}/${m.robot_id}, not merged yet`
+      : merge.kind === "defines" ? `defines frame ${name}`
+      : merge.kind === "joined" ? `tracks in the stored map since ${when}`
+      : `merged at ${when} into ${merge.into.join(", ")} (keyframe ${merge.keyframes}, inliers `
+        + `${merge.inliers.join(", ")}${merge.refinements ? `, refined ${merge.refinements}×` : ""})`);
+    caption.append(line);
+  });
+  if (all.length < 2) return;
+  const xs = all.map((p) => p[1]), zs = all.map((p) => p[3]);
+  const minX = Math.min(...xs), maxX = Math.max(...xs), minZ = Math.min(...zs), maxZ = Math.max(...zs);
+  const scale = Math.min((w - 2 * pad) / Math.max(maxX - minX, 1e-3), (h - 2 * pad) / Math.max(maxZ - minZ, 1e-3));
+  const px = (p) => [pad + (p[1] - minX) * scale, h - pad - (p[3] - minZ) * scale];
+  for (const m of drawn) {
+    const line = document.createElementNS(ns, "polyline");
+    line.setAttribute("class", "robot-path");
+    line.dataset.robot = m.robot_id;
+    line.setAttribute("points", trajectories.get(m.id).points.map((p) => px(p).map((v) => v.toFixed(1)).join(","))
+      .join(" "));
+    line.setAttribute("fill", "none");
+    line.setAttribute("stroke", ROBOT_COLOURS[members.indexOf(m) % ROBOT_COLOURS.length]);
+    line.setAttribute("stroke-width", "1.5");
+    svg.appendChild(line);
+  }
+}
+
+// the latest sessions of each shared map: those of its robots in the map's frame are drawn together
+function renderSharedMaps(sessions) {
+  const groups = new Map();
+  for (const info of sessions) {
+    if (!info.map || info.map.mode !== "share") continue;
+    const byRobot = groups.get(info.map.name) || new Map();
+    const seen = byRobot.get(info.robot_id);
+    if (!seen || seen.created < info.created) byRobot.set(info.robot_id, info);
+    groups.set(info.map.name, byRobot);
+  }
+  const box = $("shared-maps");
+  for (const [name, byRobot] of groups) {
+    let figure = box.querySelector(`figure[data-map="${CSS.escape(name)}"]`);
+    if (!figure) {
+      figure = document.createElement("figure");
+      figure.dataset.map = name;
+      const svg = document.createElementNS("http://www.w3.org/2000/svg", "svg");
+      svg.setAttribute("class", "shared-map");
+      svg.setAttribute("width", "320");
+      svg.setAttribute("height", "200");
+      figure.append(svg, document.createElement("figcaption"));
+      box.append(figure);
+    }
+    const members = [...byRobot.values()].sort((a, b) => a.created - b.created);
+    drawSharedMap(figure, name, members.filter((m) => m.merge !== null).concat(members.filter((m) => !m.merge)));
+  }
+  $("no-shared").classList.toggle("hidden", groups.size > 0);
+}
+
 async function refresh() {
   try {
     const sessions = await (await api("GET", "/sessions")).json();
     $("empty").classList.toggle("hidden", sessions.length > 0);
     await Promise.all(sessions.map(render));
+    renderSharedMaps(sessions);
   } catch (e) { say(`cannot list sessions: ${e.message}`, true); }
 }
 

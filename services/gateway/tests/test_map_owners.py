@@ -19,6 +19,7 @@ from twohr.bus import open_session
 from twohr.dataset import CameraIntrinsics
 from twohr.mapfile import (
     OPERATOR,
+    VERSION,
     MapAccessError,
     MapFileError,
     MapStore,
@@ -137,11 +138,11 @@ def test_a_version_1_map_still_loads_and_is_the_operators(tmp_path, tiny_map):
     with pytest.raises(MapAccessError, match="owned by @operator"):
         store.save(map_bytes(tiny_map, "old", 1.0), builder="a", may_replace=lambda owners: "a" in owners)
     assert store.numbers("old") == [1] and (tmp_path / "old.map").read_bytes() == old
-    # granted: its version is the next one, in format 2, still the operator's, a among its contributors; version 1
-    # is kept byte for byte
+    # granted: its version is the next one, in the current format, still the operator's, a among its contributors;
+    # version 1 is kept byte for byte
     entry = store.save(map_bytes(tiny_map, "old", 1.0), builder="a", may_replace=lambda owners: True)
     assert (entry.version, entry.owners, entry.contributors) == (2, [OPERATOR], ["a"])
-    assert read_header(tmp_path / "old.map").version == 2
+    assert read_header(tmp_path / "old.map").version == VERSION
     assert store.version_path("old", 1).read_bytes() == old
     # a version-1 header that claims owners is not one twohr wrote
     claims = as_version_1(map_bytes(tiny_map, "odd"), owners=["a"])
