@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from twohr.keys import PIPELINE_SERVICES
 from twohr_app.fleet import write_private
 
 ROBOT = "far1"
@@ -339,7 +340,7 @@ def test_no_credentials_no_join_on_the_robot_host(hosts):
         assert done.returncode == 2, f"a client with {why} joined: {done.stdout}"
         assert "cannot join the Zenoh bus" in done.stdout
     # the same host with the right client config gets in: every service answers it across the link
-    assert len(health(hosts)) == 6
+    assert len(health(hosts)) == len(PIPELINE_SERVICES)
 
 
 def test_a_router_with_a_wrong_password_cannot_link(hosts):

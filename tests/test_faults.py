@@ -64,7 +64,7 @@ def test_access_control_grants_each_stream_to_one_kind_of_publisher():
     publishers = {stream: sorted(role for role, g in grants.items() if keys.all_robots(stream) in g.publish)
                   for stream in (*keys.STREAMS, keys.CONTROL, keys.RAW_CAMERA) if stream != "status"}
     assert publishers == {"pose": ["tracker"], "landmarks": ["tracker"], "path": ["tracker"], "control": ["gateway"],
-                          "frames": ["source"],
+                          "frames": ["source"], "keyframes": ["tracker"],
                           "keypoints": ["detector"], "dynamics": ["yolo"], "matches": ["matcher"],
                           "camera": ["client", "ros2", "router"]}
     assert "client" not in [r for r, g in grants.items() if keys.all_robots("status") in g.publish]

@@ -146,7 +146,7 @@ def test_the_stack_runs_without_the_ca_key_on_the_names_its_keys_were_made_for(c
         roles[role] = env["TWOHR_ZENOH_KEYS"]
         assert "TWOHR_API_TOKEN" not in env and custody["operator"].encode() not in b" ".join(argv), role
     assert roles == {role: str(keys / "services" / role) for role in
-                     ("source", "detector", "yolo", "matcher", "tracker", "recorder", "gateway")}, roles
+                     ("source", "detector", "yolo", "matcher", "tracker", "mapserver", "recorder", "gateway")}, roles
 
 
 def test_healthz_tells_anyone_only_whether_the_stack_is_up_and_https_refuses_tls_1_2(custody):
