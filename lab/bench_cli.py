@@ -52,6 +52,17 @@ def _bench(args: argparse.Namespace) -> int:
         table = fleet.format_table(result)
         (out / "fleet.md").write_text(f"{stamp_line(args.argv)}\n\n{table}\n")
         print(table)
+    elif args.share:
+        import numpy as np
+
+        from . import comap
+
+        rows = comap.share_runs(sequence, runs=args.runs, progress=not args.quiet)
+        report["share"] = {"rows": rows, "joint_ate_median": float(np.median([r["joint_ate"] for r in rows])),
+                           "joint_ate_at_most_0_025": sum(r["joint_ate"] <= 0.025 for r in rows)}
+        table = comap.format_table(rows)
+        (out / "share.md").write_text(f"{stamp_line(args.argv)}\n\n{table}\n")
+        print(table)
     elif args.live or args.soak:
         from . import live
 
@@ -231,6 +242,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--zenoh-config", default=None, metavar="FILE", help="with --gateway: the Zenoh client config "
                    "(endpoint and credentials) of that system, e.g. the one twohr up writes")
     p.add_argument("--api-token", default=None, help="with --gateway: its HTTP API token")
+    p.add_argument("--share", action="store_true", help="two live robots that track themselves build one map at "
+                   "once (map mode share): when and where the map server merges the second, its cost, the bytes "
+                   "each way, the frames posed in the map's frame and the joint ATE, --runs times (share.md)")
     p.add_argument("--live", action="store_true", help="live camera sessions over twohr up (twohr camera --replay "
                    "at 30 Hz, --frames frames, default 300; --set overrides go to the sessions), --runs times for each "
                    "count of busy processes in --busy: "

@@ -668,3 +668,60 @@ def _header(archive: zipfile.ZipFile, path) -> MapHeader:
         return MapHeader.model_validate(raw)
     except ValidationError as exc:
         raise MapFileError(f"{path}: header.json: {validation_problems(exc)}") from None
+
+
+def without_robot(map_file: MapFile, robot: str) -> MapFile:
+    """A shared map without robot ``robot``'s keyframes (a revoked robot's, say): the keyframes its cameras took
+    (``camera_robots``) go, and the landmarks only they observed; :class:`MapFileError` where the map has no
+    keyframe of that robot, or nothing would be left."""
+    header, arrays = map_file.header, map_file.arrays
+    robots = header.camera_robots or [""] * (1 + len(header.cameras))
+    gone_cameras = [i for i, name in enumerate(robots) if name == robot]
+    keep = ~np.isin(arrays.keyframe_camera, gone_cameras)
+    if keep.all():
+        raise MapFileError(f"map {header.name} holds no keyframe of robot {robot!r} (its robots: "
+                           f"{', '.join(sorted(set(r for r in robots if r))) or 'not recorded'})")
+    if not keep.any():
+        raise MapFileError(f"map {header.name} holds robot {robot!r}'s keyframes alone: nothing would be left")
+    first = arrays.keyframe_first
+    parts = [np.arange(first[k], first[k + 1]) for k in np.flatnonzero(keep)]
+    rows = np.concatenate(parts) if parts else np.zeros(0, np.int64)
+    observed = arrays.keypoint_landmark[rows]
+    landmarks = np.unique(observed[observed >= 0])
+    renumber = np.full(len(arrays.landmark_positions), -1, np.int64)
+    renumber[landmarks] = np.arange(len(landmarks))
+    cameras = [c for i, c in enumerate([header.camera, *header.cameras]) if i not in gone_cameras]
+    camera_index = np.cumsum([i not in gone_cameras for i in range(len(robots))]) - 1
+    kept = MapArrays(
+        keyframe_poses=arrays.keyframe_poses[keep], keyframe_stamps=arrays.keyframe_stamps[keep],
+        keyframe_culled=arrays.keyframe_culled[keep],
+        keyframe_first=np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int64),
+        keypoint_xy=arrays.keypoint_xy[rows], keypoint_depth=arrays.keypoint_depth[rows],
+        keypoint_landmark=np.where(observed >= 0, renumber[np.maximum(observed, 0)], -1),
+        landmark_positions=arrays.landmark_positions[landmarks],
+        landmark_descriptors=arrays.landmark_descriptors[landmarks],
+        landmark_accepted=arrays.landmark_accepted[landmarks], landmark_rejected=arrays.landmark_rejected[landmarks],
+        landmark_bad=arrays.landmark_bad[landmarks], keyframe_camera=camera_index[arrays.keyframe_camera[keep]])
+    kept_header = header.model_copy(update={
+        "camera": cameras[0], "cameras": cameras[1:],
+        "camera_robots": [r for i, r in enumerate(robots) if i not in gone_cameras] if header.camera_robots else [],
+        "keyframes": int(keep.sum()), "landmarks": len(landmarks),
+        "built_by": f"{header.built_by}; robot {robot}'s keyframes removed", "created": time.time()})
+    return MapFile(kept_header, kept)
+
+
+def write_ply(path: str | Path, points: np.ndarray, sources: np.ndarray | None = None) -> int:
+    """Points (N, 3) as a binary little-endian PLY point cloud (``sources``: an integer per point, written as
+    property ``source``: which robot's keyframes made it), written atomically; returns its size in bytes."""
+    points = np.asarray(points, np.float32).reshape(-1, 3)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")] + ([("source", "<i4")] if sources is not None else [])
+    rows = np.zeros(len(points), dtype=fields)
+    rows["x"], rows["y"], rows["z"] = points.T
+    if sources is not None:
+        rows["source"] = sources
+    header = ["ply", "format binary_little_endian 1.0", "comment twohr map landmarks (world frame, metres)",
+              f"element vertex {len(points)}", "property float x", "property float y", "property float z"]
+    header += ["property int source"] if sources is not None else []
+    data = ("\n".join(header + ["end_header"]) + "\n").encode() + rows.tobytes()
+    write_bytes_atomically(path, data)
+    return len(data)

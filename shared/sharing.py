@@ -31,15 +31,12 @@ class KeyframeSender:
             return None
         first = min(self.keyframes, count)
         descriptors = arrays.landmark_descriptors
-        usable = ~arrays.landmark_bad & np.any(descriptors != 0, axis=1)
-        splits, parts = [0], []
-        for k in range(first, count):
-            ids = arrays.keypoint_landmark[arrays.keyframe_first[k]:arrays.keyframe_first[k + 1]]
-            keep = np.flatnonzero(ids >= 0)
-            keep = keep[usable[ids[keep]]] + arrays.keyframe_first[k]
-            parts.append(keep)
-            splits.append(splits[-1] + len(keep))
-        rows = np.concatenate(parts) if parts else np.zeros(0, np.int64)
+        start, end = arrays.keyframe_first[first], arrays.keyframe_first[count]
+        ids = arrays.keypoint_landmark[start:end]
+        observed = np.flatnonzero(ids >= 0)  # of the new keyframes' keypoints: those on a described, good landmark
+        seen = ids[observed]
+        rows = start + observed[~arrays.landmark_bad[seen] & np.any(descriptors[seen] != 0, axis=1)]
+        splits = np.searchsorted(rows, arrays.keyframe_first[first:count + 1])
         landmark = arrays.keypoint_landmark[rows]
         changed = [i for i in np.unique(landmark).tolist() if self.descriptors.get(i) != descriptors[i].tobytes()]
         for i in changed:
@@ -47,7 +44,7 @@ class KeyframeSender:
         self.keyframes = count
         return first, {
             "poses": arrays.keyframe_poses.astype(np.float32), "stamps": arrays.keyframe_stamps.astype(np.float64),
-            "keypoint_first": np.array(splits, np.int64), "xy": arrays.keypoint_xy[rows].astype(np.float32),
+            "keypoint_first": splits.astype(np.int64), "xy": arrays.keypoint_xy[rows].astype(np.float32),
             "depth": arrays.keypoint_depth[rows].astype(np.float32), "landmark": landmark.astype(np.int64),
             "positions": arrays.landmark_positions[landmark].astype(np.float32),
             "described": np.array(changed, np.int64),

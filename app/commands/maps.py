@@ -1,5 +1,6 @@
-"""``twohr maps``: the maps in a map store folder (``twohr up --maps DIR``) or in files: list, show, verify, and roll
-a map back to an earlier version (on the folder, when no stack serves it; a running stack's operator uses
+"""``twohr maps``: the maps in a map store folder (``twohr up --maps DIR``) or in files: list, show, verify, export
+the landmarks as a point cloud, roll a map back to an earlier version or take one robot's keyframes out of a shared
+map (both on the folder, when no stack serves it; a running stack's operator rolls back with
 ``POST /maps/NAME/rollback?version=N``)."""
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ def _target(args: argparse.Namespace, item: str) -> Path:
     from twohr.mapfile import MapStore
 
     path = Path(item)
-    return path if path.suffix == ".map" or path.exists() else MapStore(args.maps).path(item)
+    return path if path.suffix == ".map" or path.is_file() else MapStore(args.maps).path(item)
 
 
 def _show(args: argparse.Namespace) -> int:
@@ -101,6 +102,47 @@ def _rollback(args: argparse.Namespace) -> int:
     return 0
 
 
+def _export(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from twohr.mapfile import read_map, write_ply
+
+    stored = read_map(_target(args, args.map))
+    arrays, header = stored.arrays, stored.header
+    source = np.full(len(arrays.landmark_positions), -1, np.int64)  # the camera of the first keyframe to see it
+    for k in range(len(arrays.keyframe_stamps)):
+        ids = arrays.keypoint_landmark[arrays.keyframe_first[k]:arrays.keyframe_first[k + 1]]
+        ids = ids[ids >= 0]
+        source[ids[source[ids] < 0]] = arrays.keyframe_camera[k]
+    good = ~arrays.landmark_bad
+    out = Path(args.out or f"runs/maps/{header.name}.ply")
+    size = write_ply(out, arrays.landmark_positions[good], source[good])
+    robots = header.camera_robots or ["?"] * (1 + len(header.cameras))
+    print(f"wrote {out}: {int(good.sum())} landmarks of map {header.name} (frame {header.frame_id}), {size} bytes; "
+          f"property source: " + ", ".join(f"{i} = {r or 'not recorded'}" for i, r in enumerate(robots)))
+    return 0
+
+
+def _remove_robot(args: argparse.Namespace) -> int:
+    from twohr.errors import TwohrError
+    from twohr.mapfile import OPERATOR, MapStore, encode_map, read_map, without_robot
+    from twohr_services.gateway.audit import AuditLog
+
+    from ..supervisor import audit_file
+
+    if not Path(args.maps).is_dir():
+        raise TwohrError(f"no map store folder {args.maps}")
+    store = MapStore(args.maps, parse_map_versions(args.map_versions))
+    kept = without_robot(read_map(store.latest_file(args.map)), args.robot)
+    entry = store.save(encode_map(kept), args.map, builder=OPERATOR)
+    audit = Path(args.audit) if args.audit else audit_file(args.maps)
+    AuditLog(audit).record("map.remove_robot", OPERATOR, map=args.map, version=entry.version, robot=args.robot,
+                           detail=f"robot {args.robot}'s keyframes removed (twohr maps remove-robot)")
+    print(f"map {args.map}: version {entry.version} without robot {args.robot}'s keyframes ({entry.keyframes} "
+          f"keyframes, {entry.landmarks} landmarks left); logged in {audit}")
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("maps", help="saved maps: list a map store, show or verify map files",
                        description="Maps saved by `twohr run --save-map FILE` or by sessions with a map "
@@ -121,7 +163,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     rollback.add_argument("--audit", default=None, metavar="FILE", help="the audit trail the rollback is appended "
                           "to (default MAPS/audit.jsonl: the stack's, as twohr up --maps MAPS and compose keep it)")
     rollback.set_defaults(func=_rollback)
-    for action in (listing, show, verify, rollback):
+    export = actions.add_parser("export", help="a map's landmarks as a point cloud for other tools (PLY)")
+    export.add_argument("map", help="a .map file, or a map's name in --maps")
+    export.add_argument("--ply", action="store_true", required=True, help="write a binary PLY: x y z in the map's "
+                        "frame (metres), and which robot's keyframes made each point (property source)")
+    export.add_argument("--out", default=None, metavar="FILE", help="the PLY file (default runs/maps/NAME.ply)")
+    export.set_defaults(func=_export)
+    remove = actions.add_parser("remove-robot", help="a shared map's next version without one robot's keyframes "
+                                "(a revoked robot's, say), on the folder when no stack serves it")
+    remove.add_argument("map", help="the map's name in --maps")
+    remove.add_argument("robot", help="the robot whose keyframes go (twohr maps show MAP: camera_robots)")
+    remove.add_argument("--map-versions", default=10, metavar="N", help="versions of each map to keep, as twohr "
+                        "up --map-versions (default 10)")
+    remove.add_argument("--audit", default=None, metavar="FILE", help="the audit trail it is appended to (default "
+                        "MAPS/audit.jsonl)")
+    remove.set_defaults(func=_remove_robot)
+    for action in (listing, show, verify, rollback, export, remove):
         action.add_argument("--maps", default="maps", help="the map store folder (default ./maps)")
     listing.set_defaults(func=_list)
     show.set_defaults(func=_show)

@@ -35,7 +35,8 @@ log = logging.getLogger("twohr.gateway")
 STACK = "@stack"
 #: the audit events, by what happened
 Action = Literal["session.start", "session.stop", "session.finish", "session.fail", "session.move", "map.save",
-                 "map.upload", "map.rollback", "map.delete", "map.grant", "map.ungrant", "robot.add", "robot.revoke"]
+                 "map.upload", "map.rollback", "map.delete", "map.grant", "map.ungrant", "map.remove_robot",
+                 "robot.add", "robot.revoke"]
 SEEN_FILE = ".audit-seen.json"
 #: the router's list of the robots and replicas not revoked, in its key folder
 ROUTER_LIST = "robots.json"

@@ -6,7 +6,7 @@ the map was stored before, the stored map's). Every other robot's new keyframes 
 of the robots already in the map's frame:
 
 - **candidates** come from a bag of words built online from the map's own keyframes (k-means over their landmarks'
-  descriptors, :data:`ONLINE_WORDS` words, built again each time the map grew by half): no vocabulary trained
+  descriptors, :data:`ONLINE_WORDS` words, built again each time the map doubled): no vocabulary trained
   on other images ships with the product;
 - each candidate is **verified** as the loop closer verifies a loop (:func:`twohr.places.verify`: descriptor
   matches, RANSAC PnP of the keyframe's keypoints on the candidate's landmarks, the pose refined with depth, the
@@ -40,9 +40,14 @@ VOCABULARY_SAMPLE = 6_000
 #: the map is searched once it has this many keyframes (fewer make too few words)
 MIN_MAP_KEYFRAMES = 4
 #: a new vocabulary once the map has this many times the keyframes it was built from
-REBUILD_GROWTH = 1.5
+REBUILD_GROWTH = 2.0
 #: a merged robot's transform is refined by its later matches until this many agree
-REFINE_MATCHES = 8
+REFINE_MATCHES = 5
+#: once merged, every this-many-th keyframe of the robot is searched (the search's RANSAC PnP is most of the map
+#: server's CPU, on cores the robots' trackers need)
+REFINE_EVERY = 2
+#: the best places by bag of words that are verified for one keyframe
+CANDIDATES = 2
 #: and said again when the refinement moves it this far
 REFINE_MOVE_M = 0.003
 REFINE_MOVE_DEG = 0.15
@@ -306,6 +311,8 @@ class SharedMap:
         while submap.searched < len(submap):
             keyframe = submap.searched
             submap.searched += 1
+            if submap.T is not None and keyframe % REFINE_EVERY:
+                continue
             match = self._find(key, submap, keyframe)
             if match is not None:
                 found.append(match)
@@ -342,7 +349,7 @@ class SharedMap:
         self.indexed.append((key, keyframe))
         self.placed.add((key, keyframe))
 
-    def _find(self, mine: str, submap: Submap, keyframe: int, candidates: int = 3) -> CrossMatch | None:
+    def _find(self, mine: str, submap: Submap, keyframe: int, candidates: int = CANDIDATES) -> CrossMatch | None:
         """One keyframe looked for among the other robots' in the map: the best ``candidates`` by bag of words,
         each verified; the first that passes gives the match."""
         seen = submap.observations[keyframe]

@@ -53,6 +53,7 @@ class OpenMap:
     config: PipelineConfig
     sessions: dict[str, SharedSession] = field(default_factory=dict)
     merged_into: list[str] = field(default_factory=list)  # submap keys, in the order they entered the map's frame
+    work_s: float = 0.0  # the map server's thread's CPU on this map (its keyframes taken in, searched, merged)
 
 
 class MapServerService(Service):
@@ -100,6 +101,7 @@ class MapServerService(Service):
         if name is None or name != message.map_name:
             raise UnknownSession(message.session_id)
         opened = self.maps[name]
+        began = time.thread_time()
         session = opened.sessions[message.session_id]
         session.bytes_in += len(payload)
         session.final = session.final or message.final
@@ -109,6 +111,7 @@ class MapServerService(Service):
         session.keyframes = len(opened.shared.submaps[message.robot_id])
         if event is not None:
             self._merged(opened, event)
+        opened.work_s += time.thread_time() - began
 
     def process_one(self, timeout: float = 0.2) -> bool:
         handled = super().process_one(timeout)
@@ -167,11 +170,14 @@ class MapServerService(Service):
                 if self._save(own, export(shared, [key]), opened, control, f"robot {submap.robot}"):
                     self.report(control, "not merged", f"robot {submap.robot}'s places were never found in map "
                                 f"{name}: its {len(submap)} keyframes are saved as map {own}")
+        self.log.info("map %s closed: %.2f s of this thread's CPU on its %d keyframes", name, opened.work_s,
+                      sum(len(s) for s in shared.submaps.values()))
         for session in opened.sessions.values():
             self.report(session.control, "shared", f"map {name}: {session.keyframes} keyframes in, "
                         f"{session.bytes_in} bytes in, {session.bytes_out} bytes out ({session.corrections} "
                         "refinements of its transform)", keyframes=session.keyframes, bytes_in=session.bytes_in,
-                        bytes_out=session.bytes_out, corrections=session.corrections)
+                        bytes_out=session.bytes_out, corrections=session.corrections,
+                        map_cpu_ms=round(opened.work_s * 1000))
 
     def _save(self, name: str, exported, opened: OpenMap, control: ControlMsg, built_by: str) -> bool:
         """One map file saved in the map store on behalf of ``control``'s session; False (and said) where not."""

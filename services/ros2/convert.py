@@ -15,7 +15,7 @@ import numpy as np
 from twohr.dataset import CameraIntrinsics
 from twohr.geometry import invert_pose, make_pose, quat_to_rot, rot_to_quat
 from twohr.keys import LIVE_SESSION
-from twohr.messages import FrameMsg, MessageError, PathMsg, PoseMsg, StatusMsg
+from twohr.messages import FrameMsg, MergeMsg, MessageError, PathMsg, PoseMsg, StatusMsg
 from twohr.trajectory import Trajectory
 
 from . import msgs
@@ -118,6 +118,15 @@ class PoseOutputs:
             state = self.robots[robot_id] = RobotState(session_id, deque(maxlen=self.config.path_max_poses),
                                                        online=deque(maxlen=self.config.correction_window))
         return state
+
+    def merge(self, merge: MergeMsg) -> list[tuple[str, msgs.TFMessage]]:
+        """A robot placed in a shared map: its submap's frame ``<map>/<robot>`` (where its odom hung before the
+        merge) under the map's frame, by the merge's transform; its later poses come in the map's frame itself."""
+        header = _header(merge.at, merge.map_name)
+        child = f"{merge.map_name}/{merge.robot_id}"
+        placed = _pose_of(_matrix(merge.position, merge.orientation))
+        tf = msgs.TFMessage(transforms=[_transform(header, child, placed)])
+        return [(self.topics(merge.robot_id)[msgs.TFMessage], tf)]
 
     def messages(self, pose: PoseMsg) -> list[tuple[str, object]]:
         """``(topic, message)`` pairs for one pose, in publishing order."""

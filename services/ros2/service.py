@@ -29,7 +29,7 @@ from twohr import keys
 from twohr.bus import BusConfig, bus_from_args
 from twohr.config import read_yaml_mapping
 from twohr.errors import ConfigError, validation_problems
-from twohr.messages import PathAssembler, PathMsg, PoseMsg, StatusMsg, decode, encode
+from twohr.messages import MergeMsg, PathAssembler, PathMsg, PoseMsg, StatusMsg, decode, encode
 from twohr.service import Service, declare_publisher, one_line_errors, service_parser
 
 from . import msgs
@@ -100,7 +100,7 @@ class Ros2Service(Service):
                 self.inputs[prefix] = (role, cls)
 
     def subscriptions(self) -> list[str]:
-        return ([keys.all_robots("pose"), keys.all_robots("path"), keys.all_robots("status")]
+        return ([keys.all_robots("pose"), keys.all_robots("path"), keys.all_robots("status"), keys.merged_key()]
                 + [prefix + "*" for prefix in self.inputs])
 
     def _node(self, namespace: str) -> RosNode:
@@ -120,7 +120,10 @@ class Ros2Service(Service):
 
     def handle(self, key: str, payload: bytes) -> None:
         if key.startswith(keys.PREFIX + "/"):
-            if key.endswith("/path"):
+            if key.startswith(keys.MAPS_PREFIX + "/"):  # a robot merged into a shared map
+                merge, _ = decode(payload, MergeMsg)
+                robot, outputs = merge.robot_id, self.outputs.merge(merge)
+            elif key.endswith("/path"):
                 path, arrays = decode(payload, PathMsg)
                 trajectory = self.paths.add(path, arrays)  # the whole path, rebuilt from deltas
                 if trajectory is None:

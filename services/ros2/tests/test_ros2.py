@@ -11,7 +11,7 @@ from pydantic import ValidationError
 
 from twohr.dataset import RGBDSequence
 from twohr.geometry import make_pose, quat_to_rot, rot_to_quat
-from twohr.messages import MessageError, PathMsg, PoseMsg, StatusMsg
+from twohr.messages import MergeMsg, MessageError, PathMsg, PoseMsg, StatusMsg
 from twohr.trajectory import Trajectory
 from twohr_services.ros2 import msgs
 from twohr_services.ros2.config import Ros2CameraInput, Ros2Config
@@ -356,6 +356,24 @@ def test_a_session_in_a_named_map_publishes_poses_tf_and_corrections_in_that_map
     # a session without a map: the configured map frame
     plain = outputs.corrections(*correction_of({10: online_matrix(online[10])}, online, robot="r2"))[0][1]
     assert plain.header.frame_id == "map"
+
+
+def test_a_robot_of_a_shared_map_hangs_under_its_submap_until_merged_and_under_the_map_after():
+    """Before its merge a robot's poses are in frame ``lab/r1`` (map -> odom from it); the merge publishes
+    ``lab -> lab/r1``; after it, map -> odom comes from ``lab`` itself."""
+    outputs = PoseOutputs(Ros2Config())
+    first, second = list(poses(2))
+    before = by_topic(outputs.messages(first.model_copy(update={"frame_id": "lab/r1"})))
+    assert before["/r1/tf"].transforms[0].header.frame_id == "lab/r1"
+    T = make_pose(quat_to_rot(np.array([0.0, 0.0, 0.3826834, 0.9238795])), [1.0, 2.0, 0.0])
+    merge = MergeMsg(session_id="s1", robot_id="r1", frame_index=-1, stamp=1.0, map_name="lab", kind="merged",
+                     position=T[:3, 3].tolist(), orientation=rot_to_quat(T[:3, :3]).tolist(), at=2.0)
+    (topic, tf), = outputs.merge(merge)
+    link = tf.transforms[0]
+    assert topic == "/r1/tf" and (link.header.frame_id, link.child_frame_id) == ("lab", "lab/r1")
+    assert (link.transform.translation.x, link.transform.translation.y) == (1.0, 2.0)
+    after = by_topic(outputs.messages(second.model_copy(update={"frame_id": "lab"})))
+    assert after["/r1/tf"].transforms[0].header.frame_id == "lab"
 
 
 def test_robot_state_stays_bounded_and_old_keyframes_do_not_anchor():
