@@ -61,8 +61,9 @@ class BusLiveView:
         self.ready = threading.Condition()
         self.malformed = 0
         self.stopping = False
-        self.subscribers = [session.declare_subscriber(keys.all_robots(stream), self._on_sample)
-                            for stream in (*STREAMS, keys.CONTROL)]
+        # and the shared maps' merges: a robot's submap frame hung under the map's (FoxgloveConverter.merge)
+        self.subscribers = [session.declare_subscriber(key, self._on_sample) for key in (
+            *(keys.all_robots(stream) for stream in (*STREAMS, keys.CONTROL)), keys.merged_key())]
         self.thread = threading.Thread(target=self._run, name="live-view", daemon=True)
         self.thread.start()
 

@@ -51,6 +51,8 @@ CANDIDATES = 2
 #: and said again when the refinement moves it this far
 REFINE_MOVE_M = 0.003
 REFINE_MOVE_DEG = 0.15
+#: a robot's landmark and the stored map's landmark of the same row are one where they lie this close (m)
+FUSE_M = 0.1
 #: the submap of the stored map a shared map started from (no robot id is empty)
 STORED = ""
 
@@ -121,12 +123,14 @@ class MergeEvent:
 
 class Submap:
     """One robot's keyframes in its own frame; ``T`` (None until merged) takes them into the map's frame.
-    ``camera``: the robot's (None until its first keyframes came)."""
+    ``camera``: the robot's (None until its first keyframes came). Its keyframes are numbered from its first sent
+    one: a robot that tracks in the stored map sends none of the stored map's keyframes (``offset`` of them)."""
 
     def __init__(self, robot: str, session: str, camera: CameraIntrinsics | None = None) -> None:
         self.robot, self.session, self.camera = robot, session, camera
-        self.poses = np.zeros((0, 4, 4))
-        self.stamps = np.zeros(0)
+        self.offset = 0
+        self.all_poses = np.zeros((0, 4, 4))
+        self.all_stamps = np.zeros(0)
         self.observations: list[Observations] = []
         self.descriptors: dict[int, np.ndarray] = {}
         """the latest descriptor of each landmark id the robot sent"""
@@ -136,20 +140,33 @@ class Submap:
         """the matches its transform is the mean of"""
         self.searched = 0
         """its keyframes looked for in the map so far"""
+        self.joined = False
+        """it tracks in the stored map (its frame is the map's, its landmark ids the stored map's rows)"""
         self.bytes_in = 0
 
     def __len__(self) -> int:
         return len(self.observations)
 
+    @property
+    def poses(self) -> np.ndarray:
+        """(K, 4, 4) the current camera-to-world pose of each of its keyframes, in its own frame."""
+        return self.all_poses[self.offset:self.offset + len(self)]
+
+    @property
+    def stamps(self) -> np.ndarray:
+        return self.all_stamps[self.offset:self.offset + len(self)]
+
     def add(self, batch: KeyframeBatch) -> int:
         """Take a batch; returns how many keyframes were new."""
         for landmark_id, descriptor in zip(batch.described.tolist(), batch.descriptors, strict=True):
             self.descriptors[landmark_id] = descriptor
-        self.poses, self.stamps = batch.poses.astype(np.float64), batch.stamps.astype(np.float64)
+        self.all_poses, self.all_stamps = batch.poses.astype(np.float64), batch.stamps.astype(np.float64)
+        if not self.observations:
+            self.offset = batch.first
         new = 0
         for k in range(len(batch.keypoint_first) - 1):
             index = batch.first + k
-            if index < len(self.observations):
+            if index < self.offset + len(self.observations):
                 continue  # sent again (a repeated message)
             part = slice(batch.keypoint_first[k], batch.keypoint_first[k + 1])
             ids = batch.landmark[part].astype(np.int64)
@@ -160,7 +177,7 @@ class Submap:
                 (0, batch.descriptors.shape[1] if batch.descriptors.ndim == 2 else 0), np.float32)
             self.observations.append(Observations(
                 batch.xy[part][known].astype(np.float64), batch.depth[part][known].astype(np.float64), ids,
-                transform_points(invert_pose(self.poses[index]), world), descriptors))
+                transform_points(invert_pose(self.all_poses[index]), world), descriptors))
             new += 1
         return new
 
@@ -247,6 +264,7 @@ class SharedMap:
         first = not any(s.T is not None for r, s in self.submaps.items() if r != robot)
         if self.stored is not None or first:
             submap.T = np.eye(4)
+            submap.joined = self.stored is not None
             return MergeEvent(robot, session, "joined" if self.stored is not None else "defines", submap.T)
         return None
 
@@ -420,6 +438,9 @@ def export(shared: SharedMap, keys: list[str]) -> Exported:
             continue
         T = submap.T if submap.T is not None else np.eye(4)
         fused = {(key, int(mine)): (m.into, int(theirs)) for m in submap.matches for mine, theirs in m.pairs}
+        # a robot that tracks in the stored map observes its landmarks by their rows (unless its tracker filled a
+        # retired row with a new landmark: kept apart where the two lie more than FUSE_M apart)
+        stored_rows = len(stored.arrays.landmark_positions) if stored is not None and submap.joined else 0
         cameras.append(submap.camera)
         robots.append(submap.robot)
         camera = len(cameras) - 1
@@ -429,6 +450,9 @@ def export(shared: SharedMap, keys: list[str]) -> Exported:
             ids = np.empty(len(seen.landmark), np.int64)
             for i, landmark_id in enumerate(seen.landmark.tolist()):
                 row = rows.get((key, landmark_id), rows.get(fused.get((key, landmark_id), ("", -1))))
+                if row is None and landmark_id < stored_rows and np.linalg.norm(
+                        positions[landmark_id] - world[i]) <= FUSE_M:
+                    row = rows[(key, landmark_id)] = landmark_id
                 if row is None:
                     row = rows[(key, landmark_id)] = len(positions)
                     positions.append(world[i])

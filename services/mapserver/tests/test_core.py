@@ -13,7 +13,7 @@ from twohr.features import mutual_nn
 from twohr.geometry import invert_pose, make_pose, project, so3_exp, transform_points
 from twohr.mapfile import MapArrays, arrays_file, encode_map, read_map, without_robot
 from twohr.sharing import KeyframeSender
-from twohr_services.mapserver.core import KeyframeBatch, SharedMap, export, pose_gap
+from twohr_services.mapserver.core import STORED, KeyframeBatch, SharedMap, export, pose_gap
 
 CAMERA = CameraIntrinsics(fx=400, fy=400, cx=319.5, cy=239.5, width=640, height=480)
 #: robot b's frame in robot a's (the map's): what the merge must find
@@ -37,9 +37,10 @@ def camera_path(count: int, start: float) -> list[np.ndarray]:
 
 
 def robot_map(points: np.ndarray, descriptors: np.ndarray, poses_world: list[np.ndarray],
-              T_world_robot: np.ndarray) -> MapArrays:
+              T_world_robot: np.ndarray, rows_of: np.ndarray | None = None) -> MapArrays:
     """The map a robot would have: its keyframes at ``poses_world`` (in its own frame, ``T_world_robot`` being its
-    frame in the world), each observing the points in view with depth; a landmark per point seen."""
+    frame in the world), each observing the points in view with depth; a landmark per point seen, its row first in
+    ``rows_of`` (the points of a map it tracks in keep that map's rows)."""
     seen_ids, xy_all, depth_all, first = [], [], [], [0]
     for pose in poses_world:
         camera_points = transform_points(invert_pose(pose), points)
@@ -51,6 +52,8 @@ def robot_map(points: np.ndarray, descriptors: np.ndarray, poses_world: list[np.
         depth_all.append(camera_points[visible, 2])
         first.append(first[-1] + len(visible))
     used = np.unique(np.concatenate(seen_ids))
+    if rows_of is not None:  # the map's points first, in its rows; the new ones after
+        used = np.concatenate([rows_of, np.setdiff1d(used, rows_of)])
     row = {int(i): r for r, i in enumerate(used)}
     T_robot_world = invert_pose(T_world_robot)
     landmarks = len(used)
@@ -121,3 +124,26 @@ def test_a_robot_that_sees_other_places_is_never_merged():
     for batch in keyframes_of(robot_map(elsewhere, other, camera_path(10, 0.0), T_AB)):
         assert shared.add("c", batch, CAMERA) is None
     assert shared.submaps["c"].T is None and shared.submaps["c"].matches == []
+
+
+def test_a_robot_that_shares_a_stored_map_tracks_in_its_frame_and_the_map_grows_by_its_keyframes_alone():
+    points, descriptors = world(0)
+    base_poses = camera_path(10, 0.0)
+    base = robot_map(points, descriptors, base_poses, np.eye(4))
+    stored = read_map(encode_map(arrays_file(base, CAMERA, PipelineConfig(), "lab", camera_robots=["a"])))
+    shared = SharedMap("lab", mutual_nn, stored=stored)
+    assert shared.join("c", "s4").kind == "joined"
+    # c's tracker holds the stored map and adds 4 keyframes; the stored map's points keep their rows
+    used_by_base = np.array(sorted({int(i) for i in range(len(points))
+                                    if np.any(np.all(np.isclose(base.landmark_positions, points[i]), axis=1))}))
+    grown = robot_map(points, descriptors, base_poses + camera_path(4, 1.4), np.eye(4), rows_of=used_by_base)
+    sender = KeyframeSender(keyframes=10)  # the stored keyframes are the map server's already
+    first, parts = sender.next(grown)
+    assert first == 10 and shared.add("c", KeyframeBatch(first=first, **parts), CAMERA) is None
+    exported = export(shared, [STORED, "c"])
+    assert exported.robots == ["a", "c"] and exported.arrays.keyframe_camera.tolist() == [0] * 10 + [1] * 4
+    np.testing.assert_array_equal(exported.arrays.keyframe_poses[:10], base.keyframe_poses)
+    # the stored landmarks c saw again are not doubled: only the points new to the map add rows
+    new_points = len(grown.landmark_positions) - len(base.landmark_positions)
+    assert len(exported.arrays.landmark_positions) == len(base.landmark_positions) + new_points, (
+        len(exported.arrays.landmark_positions), len(base.landmark_positions), new_points)
