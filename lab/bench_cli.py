@@ -90,6 +90,8 @@ def _bench(args: argparse.Namespace) -> int:
             rows = [row for tls in links for row in live.live_runs(
                 sequence, frames, busy, repeats, progress=not args.quiet, camera_runs=args.camera_runs,
                 config_overrides=overrides, tls=tls, tracking=tracking)]
+        # each session's served trajectory stays out of bench.json: its ATE is there
+        rows = [{key: value for key, value in row.items() if key != "served_tum"} for row in rows]
         report["live"] = {"rows": rows, "robots": live.robot_summary(rows)}
         table = live.format_table(rows)
         if args.soak:
