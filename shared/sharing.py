@@ -20,7 +20,7 @@ class KeyframeSender:
 
     keyframes: int = 0
     descriptors: dict[int, bytes] = field(default_factory=dict)
-    """a digest of each descriptor sent, by landmark id"""
+    """each descriptor as last sent, by landmark id (bounded as the map's landmark rows are)"""
     bytes_sent: int = 0
 
     def next(self, arrays: MapArrays, final: bool = False) -> tuple[int, dict[str, np.ndarray]] | None:
