@@ -7,7 +7,7 @@ over ground a maps. Per run: when b was merged (seconds after its session starte
 server's search that merged it (ms) and its CPU over the run, the bytes each robot sent the map server and got back,
 the bytes of b's path sent again in the map's frame (the correction), the frames each robot had posed in the map's
 frame, and the joint ATE (each robot's refined trajectory against its own ground truth, one SE(3) Umeyama
-alignment over both, 0.02 s association) beside each robot's own.
+alignment over both, 0.02 s association) beside each robot's own; and every stack service's RSS after each run.
 """
 
 from __future__ import annotations
@@ -17,16 +17,7 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
-
 FRAMES_A, FRAMES_B = 320, 400
-
-
-def _tum(text: str):
-    from twohr.trajectory import Trajectory
-
-    rows = [[float(v) for v in line.split()] for line in text.splitlines() if line.strip() and line[0] != "#"]
-    return Trajectory.from_tum_array(np.array(rows).reshape(-1, 8))
 
 
 class _Listener:
@@ -63,7 +54,7 @@ def share_runs(sequence, runs: int = 3, progress: bool = True) -> list[dict]:
     from twohr.evaluation import joint_ate
     from twohr_app.supervisor import start_system
 
-    from .live import _stack, camera_session, process_cpu_s
+    from .live import _stack, camera_session, process_cpu_s, rss_mib
     from .tracking.backwards import backwards
 
     rows = []
@@ -107,6 +98,8 @@ def share_runs(sequence, runs: int = 3, progress: bool = True) -> list[dict]:
                 cpu = process_cpu_s(system)
                 rows.append(_row(name, robots, found, shared, listener, cpu.get("mapserver", 0) - cpu0.get(
                     "mapserver", 0), system, port, joint_ate))
+                rows[-1]["stack_rss_mib"] = {child.name: rss_mib(child.proc.pid)  # after the run: growth over runs
+                                             for child in system.group.children}
                 if progress:
                     print(format_table(rows[-1:]), flush=True)
             for subscriber in subscribers:
@@ -121,10 +114,12 @@ def _row(name: str, robots: dict, found: dict, shared: dict, listener: _Listener
          port: int, joint_ate) -> dict:
     import httpx
 
+    from twohr.trajectory import parse_tum
+
     pairs, posed = [], {}
     for robot, row in found.items():
         sequence, frames = robots[robot]
-        served = _tum(row["served_tum"])
+        served = parse_tum(row["served_tum"], f"robot {robot}'s served trajectory")
         posed[robot] = round(100 * len(served) / frames, 1)
         pairs.append((sequence.ground_truth(sequence.default_gt_extrinsic()), served))
     ate, each = joint_ate(pairs)

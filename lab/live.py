@@ -64,19 +64,13 @@ def _busy(count: int) -> list[subprocess.Popen]:
 
 def _score(sequence, text: str) -> float | None:
     from twohr.evaluation import evaluate
-    from twohr.trajectory import read_tum
+    from twohr.trajectory import parse_tum
 
-    with tempfile.NamedTemporaryFile("w", suffix=".txt", delete=False) as handle:
-        handle.write(text)
-    try:
-        trajectory = read_tum(handle.name)
-        if len(trajectory) < 3:
-            return None
-        extrinsic = sequence.default_gt_extrinsic()
-        return round(float(evaluate(sequence.ground_truth(extrinsic), trajectory, gt_extrinsic=extrinsic)[0].ate.rmse),
-                     4)
-    finally:
-        os.unlink(handle.name)
+    trajectory = parse_tum(text, "the served trajectory")
+    if len(trajectory) < 3:
+        return None
+    extrinsic = sequence.default_gt_extrinsic()
+    return round(float(evaluate(sequence.ground_truth(extrinsic), trajectory, gt_extrinsic=extrinsic)[0].ate.rmse), 4)
 
 
 @dataclass

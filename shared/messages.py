@@ -225,6 +225,13 @@ class MergeMsg(Message):
     at: float = Field(description="wall-clock time of the event")
     ms: float = Field(0.0, ge=0, description="the map server's time for the search that merged it")
 
+    @property
+    def transform(self) -> np.ndarray:
+        """(4, 4) the robot's own frame into the map's."""
+        from .geometry import make_pose, quat_to_rot
+
+        return make_pose(quat_to_rot(np.array(self.orientation)), np.array(self.position))
+
 
 class StatusMsg(Message):
     """Session lifecycle and service health: ``state`` is started, running, finished, stopped or error."""

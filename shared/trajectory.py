@@ -66,25 +66,31 @@ def read_tum(path: str | Path) -> Trajectory:
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"trajectory file not found: {path}")
+    return parse_tum(path.read_text(), str(path))
+
+
+def parse_tum(text: str, where: str = "trajectory") -> Trajectory:
+    """A TUM trajectory from its text (a file's, or an HTTP reply's), ordered by stamp; :class:`DatasetError` names
+    ``where`` and the line for anything that is not ``timestamp tx ty tz qx qy qz qw``."""
     rows = []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    for lineno, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
         fields = line.replace(",", " ").split()
         if len(fields) != 8:
-            raise DatasetError(f"{path}:{lineno}: expected 'timestamp tx ty tz qx qy qz qw', got {len(fields)}")
+            raise DatasetError(f"{where}:{lineno}: expected 'timestamp tx ty tz qx qy qz qw', got {len(fields)}")
         try:
             row = [float(f) for f in fields]
         except ValueError as exc:
-            raise DatasetError(f"{path}:{lineno}: {exc}") from None
+            raise DatasetError(f"{where}:{lineno}: {exc}") from None
         if not np.isfinite(row).all():
-            raise DatasetError(f"{path}:{lineno}: a value is not a finite number: {line!r}")
+            raise DatasetError(f"{where}:{lineno}: a value is not a finite number: {line!r}")
         if np.linalg.norm(row[4:]) < 1e-9:
-            raise DatasetError(f"{path}:{lineno}: the quaternion qx qy qz qw is zero, not a rotation")
+            raise DatasetError(f"{where}:{lineno}: the quaternion qx qy qz qw is zero, not a rotation")
         rows.append(row)
     if not rows:
-        raise DatasetError(f"trajectory file has no poses: {path}")
+        raise DatasetError(f"trajectory file has no poses: {where}")
     data = np.array(rows)
     order = np.argsort(data[:, 0], kind="stable")
     return Trajectory.from_tum_array(data[order])

@@ -26,7 +26,7 @@ from playwright.sync_api import expect, sync_playwright
 from twohr.bus import free_port
 from twohr.dataset import RGBDSequence
 from twohr.evaluation import joint_ate
-from twohr.trajectory import Trajectory
+from twohr.trajectory import parse_tum
 from twohr_app.supervisor import start_system
 from twohr_lab.live import _stack, camera_session, process_cpu_s
 from twohr_lab.tracking.backwards import backwards
@@ -43,11 +43,6 @@ def sharing_stack(tmp_path_factory, dev_sequence):
     yield {"system": system, "scratch": scratch, "router": router, "port": port,
            "url": f"http://127.0.0.1:{port}", "maps": scratch / "maps"}
     system.stop()
-
-
-def _tum(text: str) -> Trajectory:
-    rows = [[float(v) for v in line.split()] for line in text.splitlines() if line.strip() and line[0] != "#"]
-    return Trajectory.from_tum_array(np.array(rows))
 
 
 def twohr(*args: str) -> subprocess.CompletedProcess:
@@ -87,7 +82,7 @@ def test_two_robots_sharing_a_map_are_merged_into_one_frame(sharing_stack, dev_s
     pairs, posed = [], {}
     for robot, row in rows.items():
         sequence, frames = robots[robot]
-        served = _tum(row["served_tum"])
+        served = parse_tum(row["served_tum"], f"robot {robot}'s served trajectory")
         posed[robot] = 100 * len(served) / frames
         pairs.append((sequence.ground_truth(sequence.default_gt_extrinsic()), served))
     ate, each = joint_ate(pairs)

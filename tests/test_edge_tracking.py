@@ -199,7 +199,9 @@ def edge_keys(tmp_path_factory) -> tuple[Path, dict[str, Path]]:
 def test_a_robots_own_tracker_publishes_its_own_results_and_no_other_robots(edge_keys):
     """Robots e and f run their own trackers (``keys add --edge``), p does not. Each own tracker publishes its robot's
     poses and status, hears its sessions start, asks the detector for its own keyframes and holds its tracker token;
-    f cannot do any of that for e, and p cannot publish a pose at all."""
+    f cannot do any of that for e, and p cannot publish a pose at all. Of a shared map: e sends its own keyframes to
+    the map server, f cannot send them for e nor p its own, and only the map server announces a merge (e hears it,
+    e's forged one never lands)."""
     from twohr.bus import BusConfig
     from twohr.identity import load_identity
     from twohr.keys import alive_key, edge_replica, replica_query
@@ -217,8 +219,15 @@ def test_a_robots_own_tracker_publishes_its_own_results_and_no_other_robots(edge
     sessions = []
     try:
         gateway, detector = _client(fleet.identity("gateway")), _client(fleet.identity("detector"))
+        mapserver = _client(fleet.identity("mapserver"))
         e, f, p = (_client(load_identity(bundles[name])) for name in "efp")
-        sessions += [gateway, detector, e, f, p]
+        sessions += [gateway, detector, mapserver, e, f, p]
+        shared: list[tuple[str, bytes]] = []
+        mapserver.declare_subscriber("twohr/*/keyframes", lambda s: shared.append((str(s.key_expr),
+                                                                                   s.payload.to_bytes())))
+        merges: dict[str, list[bytes]] = {"e": [], "gateway": []}
+        e.declare_subscriber("twohr/maps/*/merged", lambda s: merges["e"].append(s.payload.to_bytes()))
+        gateway.declare_subscriber("twohr/maps/*/merged", lambda s: merges["gateway"].append(s.payload.to_bytes()))
         results: list[tuple[str, bytes]] = []
         gateway.declare_subscriber("twohr/*/pose", lambda s: results.append((str(s.key_expr), s.payload.to_bytes())))
         gateway.declare_subscriber("twohr/*/status", lambda s: results.append((str(s.key_expr),
@@ -246,6 +255,11 @@ def test_a_robots_own_tracker_publishes_its_own_results_and_no_other_robots(edge
         f.put("twohr/e/pose", b"f forging e's pose")
         f.put("twohr/f/pose", b"f's pose")
         p.put("twohr/p/pose", b"p may not publish poses")
+        e.put("twohr/e/keyframes", b"e's keyframes")
+        f.put("twohr/e/keyframes", b"f forging e's keyframes")
+        p.put("twohr/p/keyframes", b"p tracks on the stack: its tracker sends them")
+        e.put("twohr/maps/lab/merged", b"e announcing its own merge")
+        mapserver.put("twohr/maps/lab/merged", b"e merged")
         asked = {name: [r.ok.payload.to_bytes() for r in session.get(replica_query(robot, "rpc/detect", "d1"),
                                                                      timeout=2.0) if r.ok is not None]
                  for name, session, robot in (("e", e, "e"), ("e for f", e, "f"), ("p", p, "p"))}
@@ -257,6 +271,9 @@ def test_a_robots_own_tracker_publishes_its_own_results_and_no_other_robots(edge
                                    ("twohr/f/pose", b"f's pose")], results
         assert trackers == [edge_replica("e")], trackers  # once: f's token for e and p's own never reach it
         assert controls == {"e": [b"start"], "f": []}, controls
+        assert shared == [("twohr/e/keyframes", b"e's keyframes")], shared
+        # e hears the map server's merge; its own put reaches no one else (its session delivers it to itself alone)
+        assert merges["gateway"] == [b"e merged"] and b"e merged" in merges["e"], merges
         assert asked == {"e": [b"kp"], "e for f": [], "p": [], "e saves": []}, asked
         assert replicas_seen == {"e": ["twohr/_alive/detector/d1"], "p": []}, replicas_seen
         for token in [*tokens, detector_token]:

@@ -296,7 +296,7 @@ class SessionTable:
             if session is None or session.request.robot_id != merge.robot_id or session.request.map is None or (
                     session.request.map.name != merge.map_name):
                 return
-            T = make_pose(quat_to_rot(np.array(merge.orientation)), np.array(merge.position))
+            T = merge.transform
             # the poses kept so far are in the robot's own frame, or (refined) in the map's by the earlier transform
             session.poses.move(T if session.merge_T is None else T @ invert_pose(session.merge_T))
             session.merge_T = T

@@ -124,7 +124,7 @@ class PoseOutputs:
         merge) under the map's frame, by the merge's transform; its later poses come in the map's frame itself."""
         header = _header(merge.at, merge.map_name)
         child = f"{merge.map_name}/{merge.robot_id}"
-        placed = _pose_of(_matrix(merge.position, merge.orientation))
+        placed = _pose_of(merge.transform)
         tf = msgs.TFMessage(transforms=[_transform(header, child, placed)])
         return [(self.topics(merge.robot_id)[msgs.TFMessage], tf)]
 

@@ -34,7 +34,7 @@ from twohr.config import PipelineConfig
 from twohr.dataset import Frame
 from twohr.errors import TwohrError
 from twohr.features import Keypoints, Matches
-from twohr.geometry import make_pose, quat_to_rot, rot_to_quat, transform_points
+from twohr.geometry import rot_to_quat, transform_points
 from twohr.mapfile import MapArrays, MapFile, MapFileError, MapHeader, arrays_file, encode_map, read_map
 from twohr.messages import (
     ControlMsg,
@@ -602,7 +602,7 @@ class TrackerService(Service):
         control = self.maps.get(merge.session_id)
         if control is None or control.map_mode != "share" or control.map_name != merge.map_name:
             return  # not a session of this tracker's
-        T = make_pose(quat_to_rot(np.array(merge.orientation)), np.array(merge.position))
+        T = merge.transform
         track = self.tracks.get(merge.session_id)
         if track is None:  # placed before its first frame: its schedule starts placed
             self.placed[merge.session_id] = T
