@@ -26,13 +26,14 @@ from .config import PipelineConfig
 from .dataset import CameraIntrinsics, Frame, depth_in_metres, undistorted
 from .errors import TwohrError
 from .features import Matches
+from .ids import ID_PATTERN as ID_PATTERN
+from .mapmodes import MapMode, MapRequest
 from .trajectory import Trajectory
 
 MAGIC = b"2HR"
-WIRE_VERSION = 1
+WIRE_VERSION = 2  # 2: the control message says who started the session (started_by)
 _PREFIX = struct.Struct("<3sBI")
 _DTYPES = {"uint8", "uint16", "int32", "int64", "float32", "float64", "bool"}
-ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$"
 
 
 #: The world frame of poses: the map's name in a session with a map, '' for the robot's own frame (its first camera).
@@ -258,10 +259,17 @@ class ControlMsg(Message):
     record_frames: bool = Field(False, description="also record the raw RGB-D frames verbatim, for exact replay")
     start: int = Field(0, ge=0, description="a replay's first frame")
     map_name: str = Field("", description="the map the session builds, localizes in or extends ('' = none)")
-    map_mode: Literal["", "build", "localize", "extend", "share"] = ""
+    map_mode: MapMode = Field(MapMode.NONE, description="what the session does with map_name ('' = none)")
+    started_by: str = Field("", max_length=80, description="who started the session: the robot's id, or "
+                            "'@operator' (the map room checks a save's rights and audits it with it)")
     config: PipelineConfig = Field(default_factory=PipelineConfig)
     tracker: str = Field("", description="the tracker replica that serves the session, as the gateway placed it "
                          "('' = every tracker that gets it: a stack with one)")
+
+    @property
+    def map_request(self) -> MapRequest | None:
+        """The session's map as ``POST /sessions`` asked for it (None: it has none)."""
+        return None if self.map_mode is MapMode.NONE else MapRequest(name=self.map_name, mode=self.map_mode)
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

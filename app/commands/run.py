@@ -123,10 +123,11 @@ def print_summary(summary: dict, out: Path) -> None:
 
 def _check_map_options(args: argparse.Namespace) -> None:
     from twohr.errors import TwohrError
+    from twohr.mapmodes import MapMode
 
     if args.map_mode and not args.map:
         raise TwohrError("--map-mode needs --map FILE (the map to localize in or extend)")
-    if args.map and (args.map_mode or "localize") == "localize" and args.save_map:
+    if args.map and not MapMode(args.map_mode or "localize").saves and args.save_map:
         raise TwohrError("--map-mode localize leaves the map as it was: there is nothing to --save-map "
                          "(--map-mode extend saves the map with this run's keyframes as a new file)")
     if args.map and args.save_map and Path(args.map).resolve() == Path(args.save_map).resolve():

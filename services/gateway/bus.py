@@ -20,6 +20,7 @@ from twohr.errors import TwohrError
 from twohr.evaluation import evaluate
 from twohr.keys import PIPELINE_SERVICES
 from twohr.mapfile import OPERATOR, MapAccessError, MapFileError, MapMissingError, MapStore
+from twohr.mapmodes import MapMode
 from twohr.messages import (
     ControlMsg,
     MergeMsg,
@@ -186,9 +187,9 @@ class GatewayBus:
         session = self.table.get(session_id)
         wanted = None if session is None else session.request.map
         # a shared map is saved by the map server, and a robot of it that never merged as map <name>.<robot>
-        names = (wanted.name, f"{wanted.name}.{session.request.robot_id}") if wanted and wanted.mode == "share" else (
+        names = (wanted.name, f"{wanted.name}.{session.request.robot_id}") if wanted and wanted.mode.shared else (
             () if wanted is None else (wanted.name,))
-        if wanted is None or name not in names or wanted.mode not in ("build", "extend", "share"):
+        if wanted is None or name not in names or not wanted.mode.saves:
             raise MapAccessError(f"session {session_id!r} is no session of this gateway that builds, extends or "
                                  f"shares map {name}")
         return session
@@ -211,7 +212,8 @@ class GatewayBus:
                              command=command, sequence=str(session.folder or ""), rate=req.rate,
                              max_frames=req.max_frames, record=req.record, record_descriptors=req.record_descriptors,
                              record_frames=req.record_frames, start=req.start,
-                             map_name=req.map.name if req.map else "", map_mode=req.map.mode if req.map else "",
+                             map_name=req.map.name if req.map else "",
+                             map_mode=req.map.mode if req.map else MapMode.NONE, started_by=session.started_by,
                              config=config or session.config or PipelineConfig(), tracker=session.tracker)
         key = keys.key(req.robot_id, keys.CONTROL)
         if key not in self._publishers:

@@ -13,28 +13,15 @@ from pydantic import BaseModel, Field, model_validator
 
 from twohr.config import PipelineConfig
 from twohr.geometry import invert_pose, make_pose, quat_to_rot, rot_to_quat
-from twohr.mapfile import NAME_PATTERN, OPERATOR
+from twohr.ids import check_robot_id
+from twohr.mapfile import OPERATOR
+from twohr.mapmodes import MapRequest
 from twohr.messages import ID_PATTERN, MergeMsg, PathMsg, PoseMsg, StatusMsg
 from twohr.trajectory import Trajectory
 
 SessionState = Literal["starting", "running", "finished", "stopped", "failed"]
 ACTIVE = ("starting", "running")
 MAX_FRAMES = 10_000_000
-
-
-class MapRequest(BaseModel):
-    """The map a session builds, localizes in or extends (by name, in the gateway's map store)."""
-
-    name: str = Field(pattern=NAME_PATTERN, description="the map's name, also the frame id of the session's poses")
-    mode: Literal["build", "localize", "extend", "share"] = Field(
-        "localize", description="build: a new map, saved under the name when the session ends; localize: track in "
-        "the map (not saved); extend: track in it, add keyframes, save as its next version; share: build it with "
-        "every other robot sharing it at the same time (the map server merges each robot into the map's frame once "
-        "its places are found there; saved as the next version when the last such session ends). Any robot may "
-        "localize in any map; build, extend or share of an existing map needs its robot to own it (to have built "
-        "it) or to hold the operator's grant (403 otherwise)")
-
-    model_config = {"extra": "forbid"}
 
 
 class SessionRequest(BaseModel):
@@ -65,8 +52,7 @@ class SessionRequest(BaseModel):
 
     @model_validator(mode="after")
     def _sequence_matches_source(self) -> SessionRequest:
-        if self.robot_id == "maps":
-            raise ValueError("robot_id 'maps' is the map store's (twohr/maps/...): choose another")
+        check_robot_id(self.robot_id)  # the pattern holds: this refuses a reserved name
         if self.source == "sequence" and self.sequence is None:
             raise ValueError("give a sequence, or \"source\": \"camera\" for a live camera session")
         if self.source == "camera" and self.sequence is not None:

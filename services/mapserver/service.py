@@ -71,7 +71,7 @@ class MapServerService(Service):
         return [keys.all_robots("keyframes")]
 
     def on_session_start(self, control: ControlMsg) -> None:
-        if control.map_mode != "share":
+        if not control.map_mode.shared:
             return
         opened = self.maps.get(control.map_name)
         if opened is None:

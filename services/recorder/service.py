@@ -56,7 +56,7 @@ class RecorderService(Service):
         now = time.time_ns()
         if stream == keys.CONTROL:
             control, _ = decode(payload, ControlMsg)
-            if control.command == "start" and control.map_mode == "share":
+            if control.command == "start" and control.map_mode.shared:
                 self.sharing[control.session_id] = control.map_name
             if control.command == "start" and control.record:
                 self._close(control.session_id)

@@ -36,6 +36,7 @@ from twohr.errors import TwohrError
 from twohr.features import Keypoints, Matches
 from twohr.geometry import rot_to_quat, transform_points
 from twohr.mapfile import MapArrays, MapFile, MapFileError, MapHeader, arrays_file, encode_map, read_map
+from twohr.mapmodes import MapMode
 from twohr.messages import (
     ControlMsg,
     DynamicsMsg,
@@ -199,7 +200,6 @@ class SessionTrack:
     share_hz: float | None = None
     health: SessionHealth = field(default_factory=SessionHealth)
     map_name: str = ""  # the session's map: its poses are in this frame ("" = the robot's own)
-    map_mode: str = ""
     lost: int = 0  # frames tracked as lost in a row
     shared: SharedFrame | None = None
     """a session that shares a map: where its poses go (its own frame until the map server places it)"""
@@ -358,7 +358,7 @@ class TrackerService(Service):
             loops = track.schedule.loop_log
             self.report(header, "loops", f"{loops.closed} loops closed", detected=loops.detected,
                         accepted=loops.accepted, rejected=loops.rejected, closed=loops.closed)
-        if control is not None and control.map_mode in ("build", "extend"):  # after the path: it is waited for
+        if control is not None and control.map_mode.saved_by_tracker:  # after the path: it is waited for
             self._save_map(control, track)
 
     def _track_for(self, header: FrameMsg) -> SessionTrack:
@@ -371,13 +371,13 @@ class TrackerService(Service):
             world = None if stored is None else usable_map(stored, config, header.camera, f"map {stored.header.name}")
             control = self.maps.get(header.session_id)
             shared = None
-            if control is not None and control.map_mode == "share":
+            if control is not None and control.map_mode.shared:
                 shared = SharedFrame(control.map_name, header.robot_id, self.placed.pop(header.session_id, None))
             self.tracks[header.session_id] = SessionTrack(
                 # a replay paced by poses (rate 0) waits for late keyframe jobs as `twohr run` does; a camera does not
                 build_schedule(config, header.camera, stages, live=self.paced.get(header.session_id, True),
                                world=world), header,
-                map_name=control.map_name if control else "", map_mode=control.map_mode if control else "",
+                map_name=control.map_name if control else "",
                 # a snapshot (a moved session's) names no parent: its map's next version names none
                 parent=stored.header if stored is not None and (control is None or control.command != "move")
                 else None, snapshot_keyframes=0 if world is None else len(world.keyframes), shared=shared,
@@ -391,7 +391,7 @@ class TrackerService(Service):
         not stored yet)."""
         key = keys.map_key(control.map_name)
         for reply in self.session.get(key, timeout=MAP_TIMEOUT_S):
-            if reply.ok is None and control.map_mode == "share":
+            if reply.ok is None and control.map_mode.stored_optional:
                 return None
             if reply.ok is None:
                 raise TwohrError(f"map {control.map_name}: {reply.err.payload.to_bytes().decode(errors='replace')}")
@@ -600,7 +600,7 @@ class TrackerService(Service):
         from now on, and sends its path again at once, every keyframe moved (its earlier poses with them)."""
         merge, _ = decode(payload, MergeMsg)
         control = self.maps.get(merge.session_id)
-        if control is None or control.map_mode != "share" or control.map_name != merge.map_name:
+        if control is None or not control.map_mode.shared or control.map_name != merge.map_name:
             return  # not a session of this tracker's
         T = merge.transform
         track = self.tracks.get(merge.session_id)
@@ -651,22 +651,22 @@ class TrackerService(Service):
         stale = self.tracks.pop(control.session_id, None)  # a start repeated: begin again
         if stale is not None:
             stale.schedule.close()
-        if control.map_mode:
+        if control.map_mode is not MapMode.NONE:
             self.maps[control.session_id] = control
         if control.command == "move":
             snapshot = self._fetch_snapshot(control)
-            if snapshot is None and control.map_mode in ("localize", "extend"):  # it had not grown: the stored map
+            if snapshot is None and control.map_mode.resumes_in_stored:  # it had not grown: the stored map
                 snapshot = self._fetch_map(control)
             if snapshot is not None:
                 self.loaded[control.session_id] = snapshot
             self.report(control, "moved", f"tracker {self.replica} serves the session now, " + (
                 f"in its map as last kept ({snapshot.header.keyframes} keyframes)" if snapshot is not None else
                 "in a new map: no snapshot of its map was kept (its poses are in a new frame)"))
-        elif control.map_mode in ("localize", "extend", "share"):
+        elif control.map_mode.reads_stored:
             stored = self._fetch_map(control)
             if stored is not None:
                 self.loaded[control.session_id] = stored
-                if control.map_mode == "share":  # a stored shared map: its frame is the robot's from the start
+                if control.map_mode.shared:  # a stored shared map: its frame is the robot's from the start
                     self.placed[control.session_id] = np.eye(4)
         # paced by the camera (a real-rate replay or a live camera): the source never waits for poses
         self.paced[control.session_id] = control.rate > 0 or not control.sequence

@@ -55,12 +55,12 @@ def check_map(wanted: MapRequest, config: PipelineConfig, maps: Path | None) -> 
         raise TwohrError("map: this gateway has no map store (start it with twohr up --maps DIR)")
     store = MapStore(maps)
     store.path(wanted.name)  # a name the store can keep, in every mode
-    if wanted.mode == "build":
+    if not wanted.mode.reads_stored:
         return
     try:
         path = store.latest_file(wanted.name)
     except MapMissingError:
-        if wanted.mode == "share":
+        if wanted.mode.stored_optional:
             return  # a new shared map: the first robot's frame will be its frame
         raise TwohrError(f"map: no map named {wanted.name!r} in the map store (GET /maps lists them)") from None
     read_map(path, detector=config.detector)
@@ -69,7 +69,7 @@ def check_map(wanted: MapRequest, config: PipelineConfig, maps: Path | None) -> 
 def check_map_rights(wanted: MapRequest, who: Caller, maps: Path | None, grants: Grants) -> None:
     """403 (one line) when a robot's token builds or extends an existing map that its robot neither owns nor holds
     the operator's grant for; localize, a new map's build and the operator's token pass."""
-    if who.robot is None or maps is None or wanted.mode == "localize":
+    if who.robot is None or maps is None or not wanted.mode.needs_rights:
         return
     try:
         owners = MapStore(maps).owners(wanted.name)
@@ -77,7 +77,7 @@ def check_map_rights(wanted: MapRequest, who: Caller, maps: Path | None, grants:
         return  # not a name a map can have: checked_start says so (422)
     if owners is not None and not grants.may_change(identity(who.robot), wanted.name, owners):
         raise HTTPException(status.HTTP_403_FORBIDDEN, f"map {wanted.name!r} is owned by {', '.join(owners)}: robot "
-                            f"{who.robot} may {wanted.mode} it only with the operator's grant (twohr keys grant "
+                            f"{who.robot} may {wanted.mode.value} it only with the operator's grant (twohr keys grant "
                             f"DIR {who.robot} --map {wanted.name}); localize needs none")
 
 
@@ -154,19 +154,19 @@ def create_session(request: SessionRequest, settings: Settings, bus: Bus, table:
             raise HTTPException(status.HTTP_409_CONFLICT, f"robot {request.robot_id} already runs a session")
         admit(request, table, settings.max_robots)
         tracker = tracker_for(request, set(bus.alive.get("tracker", ())), table)
-        if keys.edge_robot(tracker) is not None and request.map is not None and request.map.mode not in (
-                "localize", "share"):
+        if keys.edge_robot(tracker) is not None and request.map is not None and not request.map.mode.edge_allowed:
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY,
-                                f"robot {request.robot_id} tracks itself (twohr camera --edge): it may localize in or "
-                                f"share a map, but {request.map.mode} needs the stack's tracker (twohr camera without "
-                                "--edge)")
+                                f"robot {request.robot_id} tracks itself (twohr camera --edge): it may localize in "
+                                f"or share a map, but {request.map.mode.value} needs the stack's tracker (twohr camera "
+                                "without --edge)")
         session = Session(id=uuid.uuid4().hex[:12], request=request, folder=folder, started_by=identity(who.robot),
                           tracker=tracker, config=config)
         table.add(session)
     bus.send_control(session, "start", config)
     bus.audit.record("session.start", session.started_by, robot=request.robot_id, session=session.id,
                      map=request.map.name if request.map else None,
-                     detail=request.source + (f", {request.map.mode} map {request.map.name}" if request.map else ""))
+                     detail=request.source + (
+                         f", {request.map.mode.value} map {request.map.name}" if request.map else ""))
     return session_info(session, settings.recordings)
 
 
