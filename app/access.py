@@ -6,7 +6,8 @@ user name is its role. The router's access-control list, made here from :data:`G
 that a role was not granted: only the tracker may publish poses, only the gateway may start or stop a
 session, only the pipeline services may report a session's status, and an outside ``client`` (another
 robot, a camera driver, a ROS 2 node, a viewer) may publish camera frames and read results and the map store's maps
-(``twohr/maps/<name>``), nothing more; only the tracker may save a map (``twohr/maps/<name>/save``).
+(``twohr/maps/<name>``), nothing more; only the map server (the map room) serves the maps and the sessions' map
+snapshots, and only the tracker may save a map (``twohr/maps/<name>/save``) or send and fetch a snapshot.
 A client that presents no credentials, or wrong ones, cannot connect at all.
 
 Across hosts, a robot's own router links to the stack's router as the ``router`` role, which may forward what a
@@ -114,8 +115,8 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
                     ask=[f"{MAPS_PREFIX}/*"], watch_liveliness=True)
     return {
         # every stream: the session table follows poses and statuses, the live view shows the rest
-        "gateway": Grants(publish=_robots("control"), subscribe=[f"{PREFIX}/*/*", snapshot_key(), merged_key()],
-                          serve=[f"{MAPS_PREFIX}/*", f"{MAPS_PREFIX}/*/save", snapshot_key()], watch_liveliness=True),
+        "gateway": Grants(publish=_robots("control"), subscribe=[f"{PREFIX}/*/*", merged_key()],
+                          watch_liveliness=True),
         "source": Grants(publish=_robots("frames", "status"),
                          subscribe=_robots("control", "pose", "status", "camera")),
         # the networks answer the tracker's queries only (each answer is published for recordings and views)
@@ -130,9 +131,11 @@ def role_grants(ros2_domain: int = 0) -> dict[str, Grants]:
                           # each keyframe job to one replica of a network service, followed by its liveliness
                           ask=_robots("rpc/detect/*", "rpc/dynamics/*", "rpc/match/*") + [
                               f"{MAPS_PREFIX}/*", f"{MAPS_PREFIX}/*/save", snapshot_key()], watch_liveliness=True),
-        # the robots' keyframes in, the merges out; the shared maps saved in the map store
-        "mapserver": Grants(publish=_robots("status") + [merged_key()], subscribe=_robots("control", "keyframes"),
-                            ask=[f"{MAPS_PREFIX}/*", f"{MAPS_PREFIX}/*/save"]),
+        # the map room: the map store and the sessions' map snapshots served; the robots' keyframes in, the merges
+        # of the shared maps out
+        "mapserver": Grants(publish=_robots("status") + [merged_key()],
+                            subscribe=_robots("control", "keyframes") + [snapshot_key()],
+                            serve=[f"{MAPS_PREFIX}/*", f"{MAPS_PREFIX}/*/save", snapshot_key()]),
         "recorder": Grants(publish=_robots("status"), subscribe=[f"{PREFIX}/*/*", merged_key()]),
         "ros2": Grants(publish=_robots("camera") + ros2,
                        subscribe=_robots("pose", "path", "status", "landmarks") + [merged_key()] + ros2),

@@ -7,7 +7,9 @@ child process (the networks' memory goes with it), and keeps the figure per CPU 
 ``$XDG_CACHE_HOME/twohr/capacity.json``. ``twohr bench --fleet N`` keeps there the robots its replay carried where it
 found a limit (fewer than N), and that figure, measured with many robots' keyframe jobs at once, is taken before the
 start-time estimate. The times are wall-clock (the networks run two threads each): ``USABLE_SHARE`` was set against
-the 2-core live bench, and the formula is not measured beyond 2 cores.
+the 2-core live bench, and the formula is not measured beyond 2 cores. This is the one meaning of ``auto``: the
+gateway run alone (compose) has no networks to time and refuses it in one line (give it the figure printed by
+``python -m twohr_app.capacity``).
 
     robots = floor(2 * cores * USABLE_SHARE / (KEYFRAME_JOBS_PER_S * keyframe_s + NOMINAL_HZ * frame_s)) / 2
 
@@ -26,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel, Field
+
+from twohr.files import AS_OPEN, write_atomic
 
 #: keyframe jobs one robot asks for per second at 30 Hz with the default keyframe policy: `twohr bench --fleet 4
 #: --frames 300` recorded 33 jobs over 10 s of the dev frames (docs/fleet.md, "Capacity")
@@ -88,11 +92,7 @@ def keep(capacity: Capacity) -> None:
     """Keep ``capacity`` for its host (a bench's figure beside the start-time one)."""
     kept = _kept()
     kept[f"{capacity.cpu_model}|{capacity.cores}|{capacity.source}"] = capacity.model_dump()
-    path = cache_file()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(f".{os.getpid()}.tmp")  # two hosts' starts at once each write their own
-    tmp.write_text(json.dumps(kept, indent=1))
-    tmp.replace(path)
+    write_atomic(cache_file(), json.dumps(kept, indent=1), AS_OPEN)
 
 
 def keep_bench(max_robots: int) -> Capacity:

@@ -37,7 +37,8 @@ AUDIT_FILE = "audit.jsonl"
 
 def audit_file(maps: str | Path) -> Path:
     """The audit trail of a stack whose map store is ``maps``: ``<maps>/audit.jsonl``, where ``twohr up`` has the
-    gateway write it, compose keeps it (``/maps/audit.jsonl``) and ``twohr maps rollback`` appends by default."""
+    gateway and the map room write it, compose keeps it (``/maps/audit.jsonl``) and ``twohr maps rollback``
+    appends by default."""
     return Path(maps) / AUDIT_FILE
 
 
@@ -60,9 +61,16 @@ def _stdout_fd() -> int | None:
         return None
 
 
+#: how long children that were still starting get to exit when the stack's start fails (then SIGKILL)
+STARTING_GRACE_S = 1.0
+#: how long a child's last lines, written as it exited, may take to come through its standard error's pipe
+LAST_WORDS_S = 2.0
+
+
 @dataclass
 class Child:
-    """One supervised process: how to start it, and its restart history."""
+    """One supervised process: how to start it, its restart history, and the last line it wrote to its standard
+    error (which passes through this process's, line by line)."""
 
     name: str
     args: list[str]
@@ -71,12 +79,40 @@ class Child:
     started_at: float = 0.0
     restarts: int = 0
     due: float | None = None  # when a crashed child is started again
+    last_line: str = ""
+    relay: threading.Thread | None = None
 
     def start(self) -> None:
         self.proc = subprocess.Popen([sys.executable, "-m", *self.args], env=self.env, preexec_fn=_die_with_parent,
-                                     stdout=_stdout_fd())
+                                     stdout=_stdout_fd(), stderr=subprocess.PIPE)
         self.started_at = time.monotonic()
         self.due = None
+        self.last_line = ""
+        self.relay = threading.Thread(target=self._relay_stderr, args=(self.proc.stderr,),
+                                      name=f"{self.name}-stderr", daemon=True)
+        self.relay.start()
+
+    def _relay_stderr(self, stream) -> None:
+        """Pass the child's standard error on to ours, keeping its last line. It never stops reading before the
+        child closes it (a pipe nobody drains would block the child once full): output to a terminal that is gone
+        is dropped."""
+        with stream:
+            for raw in stream:
+                line = raw.decode(errors="replace")
+                if line.strip():
+                    self.last_line = line.strip()
+                try:
+                    sys.stderr.write(line)
+                    sys.stderr.flush()
+                except (OSError, ValueError):
+                    pass
+
+    def exit_line(self) -> str:
+        """Why the child exited, in one line: its exit code and the last line it wrote to its standard error."""
+        if self.relay is not None:
+            self.relay.join(LAST_WORDS_S)
+        said = f": {self.last_line}" if self.last_line else " and said nothing"
+        return f"{self.name} exited with code {self.proc.returncode} during start-up{said}"
 
 
 @dataclass
@@ -101,8 +137,13 @@ class ProcessGroup:
     def pid(self, name: str) -> int:
         return next(c.proc.pid for c in self.children if c.name == name)
 
-    def dead(self) -> list[tuple[str, int]]:
-        return [(c.name, c.proc.returncode) for c in self.children if c.proc.poll() is not None]
+    def check_started(self) -> None:
+        """RuntimeError (one line: the first to exit, and the last line it wrote) if a child has exited: called while
+        the stack starts, when nothing restarts a child yet and each one is needed."""
+        with self.lock:
+            exited = next((child for child in self.children if child.proc.poll() is not None), None)
+        if exited is not None:
+            raise RuntimeError(exited.exit_line())
 
     def supervise_once(self) -> list[str]:
         """Schedule restarts of crashed children and start those that are due; returns the names restarted."""
@@ -149,13 +190,15 @@ class ProcessGroup:
                 proc.wait()
 
 
-def _wait_http(base: str, timeout: float, fleet: Fleet | None = None) -> None:
+def _wait_http(group: ProcessGroup, base: str, timeout: float, fleet: Fleet | None = None) -> None:
+    """Until the gateway answers ``/healthz``; RuntimeError at once when a child exits meanwhile."""
     import ssl
 
     url = f"{base}/healthz"
     context = ssl.create_default_context(cafile=str(fleet.folder / "ca.crt")) if fleet else None
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
+        group.check_started()
         try:
             with urllib.request.urlopen(url, timeout=1, context=context) as response:
                 if response.status == 200:
@@ -226,8 +269,9 @@ class System:
         """A BusConfig that joins this stack as ``role`` (a service role's key folder on a fleet's keys)."""
         return self.access.bus(role, self.endpoint)
 
-    def stop(self) -> None:
-        self.group.stop()
+    def stop(self, grace: float = 10.0) -> None:
+        """Stop every child (SIGTERM, SIGKILL after ``grace`` s), then the router."""
+        self.group.stop(grace)
         self.router.close()
         self.access.close()
 
@@ -306,14 +350,16 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
     stays None. ``foxglove_port`` turns on the
     gateway's Foxglove live view on ``host`` (with ``keys`` on TLS, and a viewer needs a token);
     ``ros2_domain`` starts the ros2 service, which speaks ROS 2 over rmw_zenoh in that domain. ``maps``: the map
-    store's folder (the gateway serves it, and keeps its audit trail there: :func:`audit_file`). ``replicas``: how
+    store's folder (the map room serves it on the bus, the gateway over HTTP; both keep the audit trail there:
+    :func:`audit_file`). ``replicas``: how
     many processes of each network service to run (:func:`check_replicas`; default one each, and one tracker
     per admitted robot: :func:`trackers_for`). ``max_robots``: the gateway's admission limit (None: none).
-    ``map_versions``: versions of each map the store keeps (None: the gateway's default, 10)."""
+    ``map_versions``: versions of each map the store keeps (None: the store's default, 10)."""
 
     if keys is not None:
         fleet = Fleet(keys)
         check_custody(fleet, router, [host, *(hosts or [])], api_token)
+        fleet.share_grants()  # keys made before the map room read the grants: its copy
         access = StackAccess(keys=fleet)
     else:
         access = StackAccess.generated() if secure else StackAccess()
@@ -327,7 +373,8 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
         for name in PIPELINE_SERVICES:
             extra = {"source": roots, "recorder": ["--recordings", recordings] + (
                 ["--record-descriptors"] if record_descriptors else []),
-                "tracker": ["--shared-cores"] if counts["tracker"] > 1 else []}.get(name, [])
+                "tracker": ["--shared-cores"] if counts["tracker"] > 1 else [],
+                "mapserver": _map_room_args(maps, map_versions, access.keys)}.get(name, [])
             started[name] = start_replicas(system.group, name, counts[name], extra, base_env | access.env(name))
         gateway_args = ["twohr_services.gateway", "--host", host, "--port", str(port), "--recordings", recordings,
                         *roots, "--foxglove-port", str(foxglove_port or 0),
@@ -343,11 +390,10 @@ def start_system(router: str, data_roots: list[str], recordings: str, host: str,
         optional = ["ros2"] if ros2_domain is not None else []
         _wait_ready(system, system.bus("gateway" if access.keys else "client"), [*PIPELINE_SERVICES, *optional],
                     started, timeout)
-        _wait_http(gateway_url(local_host(host), port, access.keys), timeout, access.keys)
-        if system.group.dead():
-            raise RuntimeError(f"processes exited during start-up: {system.group.dead()}")
+        _wait_http(system.group, gateway_url(local_host(host), port, access.keys), timeout, access.keys)
+        system.group.check_started()
     except BaseException:
-        system.stop()
+        system.stop(STARTING_GRACE_S)  # a child still starting has nothing to finish
         raise
     system.group.supervise()
     return system
@@ -362,12 +408,12 @@ def _child_env(router: str, log_level: str) -> dict[str, str]:
 
 def _wait_ready(system: System, bus, names: list[str], started: dict[str, set[str]], timeout: float) -> None:
     """Until every service in ``names``, and each replica ``started`` here, answers its health query (asked as
-    ``bus``); the system then knows its replicas."""
+    ``bus``); the system then knows its replicas. RuntimeError at once when a child exits meanwhile."""
     from twohr.bus import open_session, wait_for_services
 
     client = open_session(bus)
     try:
-        wait_for_services(client, names, timeout=timeout, replicas=started)
+        wait_for_services(client, names, timeout=timeout, replicas=started, check=system.group.check_started)
         system.replicas = started
     finally:
         client.close()
@@ -433,10 +479,9 @@ def join_stack(router: str, services: dict[str, int], keys: str | Path | None, t
         started = {name: start_replicas(system.group, name, count, [], base_env | access.env(name))
                    for name, count in counts.items()}
         _wait_ready(system, access.bus(next(iter(counts)), router), list(counts), started, timeout)
-        if system.group.dead():
-            raise RuntimeError(f"processes exited during start-up: {system.group.dead()}")
+        system.group.check_started()
     except BaseException:
-        system.stop()
+        system.stop(STARTING_GRACE_S)  # a child still starting has nothing to finish
         raise
     system.group.supervise()
     return system
@@ -447,6 +492,18 @@ class _NoRouter:
 
     def close(self) -> None:
         pass
+
+
+def _map_room_args(maps: str | None, map_versions: int | None, fleet: Fleet | None) -> list[str]:
+    """The map room's store: the gateway's folder and audit trail, and on a fleet's keys the operator's map grants
+    in the map room's own key folder (``twohr keys grant`` writes them there too)."""
+    from twohr.mapstore import GRANTS_FILE
+
+    if not maps:
+        return []
+    return ["--maps", maps, "--audit-log", str(audit_file(maps)),
+            *(["--map-versions", str(map_versions)] if map_versions else []),
+            *(["--map-grants", str(fleet.service_folder("mapserver") / GRANTS_FILE)] if fleet else [])]
 
 
 def _gateway_tls_args(fleet: Fleet) -> list[str]:

@@ -161,7 +161,7 @@ def key_rows(keys) -> list[tuple[str, str, str, str]]:
              (keys.map_key("<name>"), keys.map_key("lab"), "query", keys.MAPS_PREFIX),
              (keys.map_key("<name>", save=True), keys.map_key("lab", save=True), "query", f"{keys.MAPS_PREFIX}/save"),
              (keys.merged_key("<name>"), keys.merged_key("lab"), "data", f"{keys.MAPS_PREFIX}/merged")]
-    # a snapshot is put by the tracker and kept by the gateway, which answers it to the tracker a session moves to
+    # a snapshot is put by the tracker and kept by the map room, which answers it to the tracker a session moves to
     rows += [(keys.snapshot_key("<robot>"), keys.snapshot_key("robot1"), kind, keys.SNAPSHOT)
              for kind in ("data", "query")]
     named = {name for *_, name in rows}

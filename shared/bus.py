@@ -16,6 +16,7 @@ import json
 import os
 import socket
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Literal
 
@@ -232,12 +233,16 @@ def merged_health(answers: list[dict]) -> dict:
 
 
 def wait_for_services(session: zenoh.Session, names: list[str], timeout: float = 30.0,
-                      replicas: dict[str, set[str]] | None = None) -> dict[str, dict]:
+                      replicas: dict[str, set[str]] | None = None,
+                      check: Callable[[], None] | None = None) -> dict[str, dict]:
     """Block until every named service answers its health query (and, for a service in ``replicas``, each of
-    those replicas); raises TimeoutError naming the missing ones."""
+    those replicas); raises TimeoutError naming the missing ones. ``check`` is called before each round: what it
+    raises ends the wait at once (a process that was to answer has exited)."""
     deadline = time.monotonic() + timeout
     healthy: dict[str, dict] = {}
     while time.monotonic() < deadline:
+        if check is not None:
+            check()
         for name in names:
             if name not in healthy:
                 answer = query_health(session, name, timeout=0.5)

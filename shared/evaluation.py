@@ -10,8 +10,10 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel, Field
 
+from .config import SAME_PLACE_DEG, SAME_PLACE_M
 from .geometry import invert_pose, make_pose, umeyama
-from .trajectory import Trajectory
+from .pose import pose_difference
+from .trajectory import Trajectory, interpolate_poses
 
 
 class ErrorStats(BaseModel):
@@ -209,3 +211,17 @@ def joint_ate(pairs: list[tuple[Trajectory, Trajectory]], max_dt: float = 0.02) 
     errors = [np.linalg.norm(gt.positions - (est.positions @ rotation.T + translation), axis=1) for gt, est in paired]
     rmse = float(np.sqrt(np.mean(np.concatenate(errors) ** 2)))
     return rmse, [float(np.sqrt(np.mean(e ** 2))) if len(e) else float("nan") for e in errors]
+
+
+def loops_against_ground_truth(loops: list[dict], ground_truth: Trajectory) -> dict:
+    """Each closed loop's two keyframes compared on the ground truth (``gt_distance_m``, ``gt_angle_deg`` added
+    to its entry), and how many are false accepts (not the same place: ``SAME_PLACE_M``, ``SAME_PLACE_DEG``)."""
+    false_accepts = 0
+    for loop in loops:
+        poses, valid = interpolate_poses(ground_truth, np.array([loop["stamp"], loop["candidate_stamp"]]))
+        if not valid.all():
+            continue
+        metres, degrees = pose_difference(poses[0], poses[1])
+        loop.update(gt_distance_m=round(metres, 3), gt_angle_deg=round(degrees, 2))
+        false_accepts += metres > SAME_PLACE_M or degrees > SAME_PLACE_DEG
+    return {"false_accepts": false_accepts}

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
-import re
+# the robot-id pattern and reserved names live in .ids; named here too for the code that reads them as keys'
+from .ids import RESERVED_ROBOT_IDS as RESERVED_ROBOT_IDS
+from .ids import ROBOT_PATTERN as ROBOT_PATTERN
+from .ids import ROS2_RESERVED_NAMES as ROS2_RESERVED_NAMES
+from .ids import check_robot_id
 
 PREFIX = "twohr"
 #: The services every session's pipeline needs, in the order a stack starts them (the ros2 bridge is optional).
@@ -27,8 +31,8 @@ ALIVE_PREFIX = f"{PREFIX}/_alive"
 #: a robot's map snapshot (:func:`snapshot_key`): a key of its own depth, which ``twohr/*/*`` (the recorder, the
 #: live view) does not match
 SNAPSHOT = "map/snapshot"
-#: the map store answers ``twohr/maps/<name>`` with a map file's bytes, and keeps the bytes a query on
-#: ``twohr/maps/<name>/save`` carries as the map's next version
+#: the map room's store answers ``twohr/maps/<name>`` with a map file's bytes, and keeps the bytes a query on
+#: ``twohr/maps/<name>/save`` carries as the map's next version (the protocol: :mod:`twohr.mapclient`)
 MAPS_PREFIX = f"{PREFIX}/maps"
 #: what each key carries, by the name above that makes it (a robot's stream or query, or a prefix); the key table of
 #: the documentation (docs/hooks.py) is made from these names, this text and the roles' grants
@@ -51,21 +55,14 @@ CARRIES = {
     DYNAMICS_QUERY: "query to one replica: a frame message → its fresh dynamic mask (also published on `dynamics`)",
     HEALTH_PREFIX: "query: a service process's counters, its replica name and host",
     ALIVE_PREFIX: "liveliness token, held while the process is connected",
-    MAPS_PREFIX: "query: a map file's bytes from the gateway's map store",
-    SNAPSHOT: "a map file's bytes: the tracker's latest copy of the session's map, every few seconds (the gateway "
+    MAPS_PREFIX: "query: a map file's bytes from the map room's store (the map server)",
+    SNAPSHOT: "a map file's bytes: the tracker's latest copy of the session's map, every few seconds (the map room "
               "keeps it, and answers a query on it for the tracker a session moves to when its own died)",
     f"{MAPS_PREFIX}/save": "query carrying a map file: the map store keeps it as the map's next version",
     "keyframes": "`KeyframesMsg`: a robot's new keyframes for the map server, in a session that shares a map",
     f"{MAPS_PREFIX}/merged": "`MergeMsg`: a robot placed in a shared map's frame (merged, or the map's first robot)",
 }
 
-#: a robot id, matched whole (``fullmatch``: no newline, no path separator)
-ROBOT_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")
-#: robot ids that name something else under ``twohr/``
-RESERVED_ROBOT_IDS = ("maps",)
-#: ROS 2 names a fleet's robot may not take (its ROS 2 namespace ``/<robot>`` would be the topic): ROS 2's global
-#: topics, which the stack's nodes publish, and the root of the ros2 bridge's default camera input (``/camera/...``)
-ROS2_RESERVED_NAMES = ("tf", "tf_static", "clock", "rosout", "parameter_events", "diagnostics", "camera")
 
 
 def map_key(name: str, save: bool = False) -> str:
@@ -89,7 +86,7 @@ def merged_key(name: str = "*") -> str:
 
 def snapshot_key(robot_id: str = "*") -> str:
     """The key of a robot's map snapshot (``*``: of every robot): the tracker's latest copy of the session's map,
-    which the gateway keeps outside the tracker's process and hands to the tracker a session moves to."""
+    which the map room keeps outside the tracker's process and hands to the tracker a session moves to."""
     return f"{PREFIX}/{robot_id}/{SNAPSHOT}"
 
 
@@ -135,10 +132,7 @@ def replica_query(robot_id: str, query: str, replica: str) -> str:
 
 def key(robot_id: str, stream: str) -> str:
     """The key of one robot's stream, e.g. ``twohr/robot1/pose``."""
-    if not ROBOT_PATTERN.fullmatch(robot_id) or robot_id in RESERVED_ROBOT_IDS:
-        raise ValueError(f"invalid robot id {robot_id!r}: use letters, digits, '_' or '-' (at most 64), "
-                         "starting with a letter or digit; 'maps' is the map store's")
-    return f"{PREFIX}/{robot_id}/{stream}"
+    return f"{PREFIX}/{check_robot_id(robot_id)}/{stream}"
 
 
 def all_robots(stream: str) -> str:

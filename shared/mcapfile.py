@@ -15,6 +15,7 @@ from pathlib import Path
 from mcap.reader import NonSeekingReader
 from mcap.writer import CompressionType, Writer
 
+from .files import replacing
 from .paths import open_private
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -41,9 +42,8 @@ def recover(path: str | Path) -> int | None:
     path = Path(path)
     if is_finalised(path):
         return None
-    tmp = path.with_name(path.name + ".recovering")
     kept = 0
-    with open(path, "rb") as src, open_private(tmp) as dst:
+    with replacing(path) as dst, open(path, "rb") as src:
         writer = Writer(dst, compression=CompressionType.ZSTD)
         writer.start(profile="", library="twohr (recovered)")
         schemas: dict[int, int] = {}
@@ -62,7 +62,6 @@ def recover(path: str | Path) -> int | None:
         except Exception:  # noqa: BLE001 - the torn tail ends the readable part, by design
             pass
         writer.finish()
-    os.replace(tmp, path)
     with open_private(partial_marker(path), "w") as marker:
         marker.write(json.dumps({"messages": kept, "recovered_at": time.time()}))
     return kept

@@ -12,7 +12,6 @@ import hashlib
 import logging
 import os
 import shutil
-import tempfile
 import urllib.request
 from functools import cache
 from importlib import resources
@@ -24,6 +23,7 @@ import yaml
 from pydantic import BaseModel, Field
 
 from .errors import ModelError
+from .files import AS_OPEN, replacing
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 log = logging.getLogger("twohr.models")
@@ -150,8 +150,19 @@ def package_file(where: str) -> Path:
     return Path(str(resources.files(package).joinpath(rel)))
 
 
-def _bundled_path(spec: ModelSpec) -> Path | None:
+def bundled_path(spec: ModelSpec) -> Path | None:
+    """The file a model ships as inside an installed package, or None for a model fetched into the cache."""
     return None if spec.bundled is None else package_file(spec.bundled)
+
+
+def local_file(name: str) -> Path:
+    """Where model ``name`` is on this machine without fetching it: shipped in a package (else in the cache), else
+    in a mirror directory; the first when it is in none of them (it may not exist: :func:`verify_file` says so)."""
+    spec = get_spec(name)
+    first = bundled_path(spec) or cache_dir() / spec.file
+    if first.is_file():
+        return first
+    return next((mirror / spec.file for mirror in mirror_dirs() if (mirror / spec.file).is_file()), first)
 
 
 def _build(spec: ModelSpec, target: Path) -> Path:
@@ -163,22 +174,18 @@ def _build(spec: ModelSpec, target: Path) -> Path:
     if spec.recipe == "int8" and spec.calibration is None:
         raise ModelError(f"model {spec.name} is built from {spec.built_from} but names no calibration ranges")
     source = fetch(spec.built_from)
-    # a name of its own: replicas that start together on one cache each build their own copy
-    tmp = Path(tempfile.mkstemp(dir=target.parent, prefix=f"{spec.name}.", suffix=".part.onnx")[1])
     log.info("building %s from %s (%s)", spec.name, spec.built_from, spec.recipe)
     try:
-        if spec.recipe == "coarse_heads":
-            heads_before_upsample(source, tmp)
-        else:
-            quantise_heads_float(source, tmp, package_file(spec.calibration))
-        verify_file(spec, tmp)
+        # a temporary name of its own: replicas that start together on one cache each build their own copy
+        with replacing(target, AS_OPEN, suffix=".part.onnx") as building:
+            built = Path(building.name)  # the recipes write by name
+            if spec.recipe == "coarse_heads":
+                heads_before_upsample(source, built)
+            else:
+                quantise_heads_float(source, built, package_file(spec.calibration))
+            verify_file(spec, built)
     except ImportError as exc:
-        tmp.unlink(missing_ok=True)
         raise ModelError(f"model {spec.name} cannot be built here: {exc}") from None
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    tmp.replace(target)
     return target
 
 
@@ -197,7 +204,7 @@ def verify_file(spec: ModelSpec, path: Path) -> None:
 def fetch(name: str, force: bool = False) -> Path:
     """Make the verified model file available locally and return its path."""
     spec = get_spec(name)
-    bundled = _bundled_path(spec)
+    bundled = bundled_path(spec)
     if bundled is not None:
         verify_file(spec, bundled)
         return bundled
@@ -215,26 +222,24 @@ def fetch(name: str, force: bool = False) -> Path:
             _atomic_copy(source, target)
             return target
     if spec.url:
-        tmp = Path(tempfile.mkstemp(dir=target.parent, suffix=".part")[1])
-        try:
-            with urllib.request.urlopen(spec.url, timeout=60) as response, open(tmp, "wb") as out:
-                shutil.copyfileobj(response, out)
-        except OSError as exc:
-            tmp.unlink(missing_ok=True)
-            raise ModelError(
-                f"model {spec.name}: download from {spec.url} failed ({exc}). {_how_to_get(spec)}"
-            ) from None
-        verify_file(spec, tmp)
-        tmp.replace(target)
+        with replacing(target, AS_OPEN, suffix=".part") as downloading:
+            try:
+                with urllib.request.urlopen(spec.url, timeout=60) as response:
+                    shutil.copyfileobj(response, downloading)
+                downloading.flush()
+            except OSError as exc:
+                raise ModelError(
+                    f"model {spec.name}: download from {spec.url} failed ({exc}). {_how_to_get(spec)}"
+                ) from None
+            verify_file(spec, Path(downloading.name))
         return target
     searched = ", ".join(str(m) for m in mirror_dirs()) or "no mirror directory"
     raise ModelError(f"model {spec.name} not found (searched {searched}). {_how_to_get(spec)}")
 
 
 def _atomic_copy(source: Path, target: Path) -> None:
-    tmp = target.with_suffix(target.suffix + ".part")
-    shutil.copyfile(source, tmp)
-    tmp.replace(target)
+    with replacing(target, AS_OPEN, suffix=".part") as copying, open(source, "rb") as original:
+        shutil.copyfileobj(original, copying)
 
 
 @cache

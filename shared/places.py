@@ -27,6 +27,7 @@ import numpy as np
 from twohr.config import LoopClosingConfig, TrackerConfig
 from twohr.errors import TwohrError
 from twohr.features import Matches
+from twohr.files import AS_OPEN, replacing
 from twohr.geometry import invert_pose
 from twohr.models import cache_dir
 from twohr.pose import matched_pnp, pose_difference, refine_pose
@@ -103,12 +104,9 @@ class Vocabulary:
 
     def save(self, path: Path) -> None:
         """Write the ``.npz`` atomically; the card goes inside, as JSON."""
-        path.parent.mkdir(parents=True, exist_ok=True)
-        temporary = path.with_name(path.name + ".tmp")
-        with open(temporary, "wb") as fh:
+        with replacing(path, AS_OPEN) as fh:
             np.savez(fh, words=self.words, idf=self.idf, format=np.int64(VOCABULARY_FORMAT),
                      card=np.frombuffer(json.dumps(self.card).encode(), np.uint8))
-        temporary.replace(path)
 
     @classmethod
     def load(cls, path: Path) -> Vocabulary:

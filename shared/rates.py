@@ -1,10 +1,52 @@
-"""Frame rates: which frames of a camera to keep at a lower rate, and how a stack's per-frame thread is shared
-fairly between robots when it cannot serve them all at their cameras' rates."""
+"""Frame rates: when a replayed camera's next frame is due, which frames of a camera to keep at a lower rate, and
+a camera's frames relayed into a session at its admitted rate. (How a tracker shares its per-frame thread between
+robots is the tracker's: ``twohr_services.tracker.shares``.)"""
 
 from __future__ import annotations
 
-import collections
+import threading
 import time
+
+
+class ReplayPacer:
+    """Holds a replayed camera's frames back until each is due, counted from the first frame's wait: by the recorded
+    stamps at ``speed`` times the recorded speed (1 real time, 2 twice as fast), or (``fps``) one frame every
+    ``1/fps`` seconds, whatever the stamps say. Neither (0) does not wait. A frame that is late goes at once, and the
+    ones after it keep their own times: lateness does not add up."""
+
+    def __init__(self, speed: float = 0.0, fps: float = 0.0) -> None:
+        if speed and fps:
+            raise ValueError("pace a replay by its stamps (speed) or at a frame rate (fps), not both")
+        self.speed, self.fps = speed, fps
+        self.started: float | None = None  # monotonic time the first frame (since a restart) went
+        self.first_stamp = 0.0
+        self.frames = 0  # frames since then
+
+    def restart(self) -> None:
+        """The next frame is due at once; the ones after it at the pace from there."""
+        self.started = None
+
+    def due(self, stamp: float = 0.0) -> float | None:
+        """The monotonic time the frame stamped ``stamp`` is due (the next frame, at a frame rate), or None: no
+        pace. Each call counts one frame."""
+        if self.speed <= 0 and self.fps <= 0:
+            return None
+        if self.started is None:
+            self.started, self.first_stamp, self.frames = time.monotonic(), stamp, 0
+        after = (stamp - self.first_stamp) / self.speed if self.speed > 0 else self.frames / self.fps
+        self.frames += 1
+        return self.started + after
+
+    def wait(self, stamp: float = 0.0, stop: threading.Event | None = None) -> None:
+        """Return when the frame stamped ``stamp`` is due, or at once when ``stop`` is set."""
+        due = self.due(stamp)
+        delay = 0.0 if due is None else due - time.monotonic()
+        if delay <= 0:
+            return
+        if stop is not None:
+            stop.wait(delay)
+        else:
+            time.sleep(delay)
 
 
 class RateThinning:
@@ -24,137 +66,6 @@ class RateThinning:
             return False
         self.due = (self.due if self.due is not None else stamp) + self.period
         return True
-
-
-class FairShare:
-    """Equal shares of one per-frame thread for the robots it serves.
-
-    It learns each session's camera rate (from its frames' stamps), how long the frames it tracks waited in its
-    queue, and whether the sessions' keyframe jobs come back late (the maps' work starved of CPU). Once per
-    ``window_s``, with two robots or more: while frames wait longer than ``high_ms`` (the thread does not keep up)
-    or keyframe jobs come back late, every session's rate goes down, to the share of what the thread tracked at
-    first, by a fifth after; while they wait less than ``low_ms`` it goes up by 1 Hz, until every camera has its
-    full rate again. The
-    same rate for every session, kept as evenly spaced frames (:class:`RateThinning`): equal shares, and none of
-    the bursts that a queue dropping stale frames makes under overload. Sessions not seen for ``idle_s`` no longer
-    count; one robot alone is never thinned (its queue's own drops serve it)."""
-
-    def __init__(self, window_s: float = 1.0, high_ms: float = 60.0, low_ms: float = 20.0, idle_s: float = 2.0,
-                 smoothing: float = 0.05) -> None:
-        self.window_s, self.high_ms, self.low_ms, self.idle_s = window_s, high_ms, low_ms, idle_s
-        self.smoothing = smoothing
-        self.share_hz: float | None = None  # every session's rate, None: each its camera's
-        self.waits: list[float] = []  # queue waits of the frames tracked in this window (ms)
-        self.late = False  # a keyframe job came back late in this window
-        self.window_start: float | None = None
-        self.sessions: dict[str, list[float]] = {}  # session -> [camera period EMA, last stamp, last seen]
-
-    def saw(self, session_id: str, stamp: float, now: float | None = None) -> None:
-        """A frame of ``session_id`` arrived (stamp: its camera time)."""
-        now = time.monotonic() if now is None else now
-        known = self.sessions.get(session_id)
-        if known is None:
-            self.sessions[session_id] = [0.0, stamp, now]
-            return
-        gap = stamp - known[1]
-        if 0 < gap < 1.0:
-            known[0] = gap if known[0] == 0 else known[0] + self.smoothing * (gap - known[0])
-        known[1], known[2] = stamp, now
-
-    def tracked(self, waited_ms: float, keyframes_late: bool = False, now: float | None = None) -> None:
-        """The thread tracked a frame that had waited ``waited_ms`` in its queue (``keyframes_late``: its session's
-        latest keyframe job came back late); once a window, the share moves."""
-        now = time.monotonic() if now is None else now
-        self.window_start = now if self.window_start is None else self.window_start
-        self.waits.append(waited_ms)
-        self.late |= keyframes_late
-        if now - self.window_start >= self.window_s:
-            self._adjust(now)
-            self.waits, self.late, self.window_start = [], False, now
-
-    def _adjust(self, now: float) -> None:
-        live = self._live(now)
-        if len(live) < 2:
-            self.share_hz = None
-            return
-        wait = sorted(self.waits)[len(self.waits) // 2]
-        full = max(1.0 / period for period, _, _ in live.values())
-        if wait > self.high_ms or self.late:
-            tracked_hz = len(self.waits) / (now - self.window_start) / len(live)
-            self.share_hz = max(1.0, tracked_hz if self.share_hz is None else 0.8 * self.share_hz)
-        elif wait < self.low_ms and self.share_hz is not None:
-            self.share_hz = None if self.share_hz + 1.0 >= full else self.share_hz + 1.0
-
-    def _live(self, now: float) -> dict[str, list[float]]:
-        return {s: v for s, v in self.sessions.items() if now - v[2] < self.idle_s and v[0] > 0}
-
-    def forget(self, session_id: str) -> None:
-        self.sessions.pop(session_id, None)
-
-    def rate(self, session_id: str, now: float | None = None) -> float | None:
-        """Frames per second ``session_id`` may have tracked now, or None while every camera gets its full rate."""
-        live = self._live(time.monotonic() if now is None else now)
-        if self.share_hz is None or session_id not in live or len(live) < 2:
-            return None
-        return min(1.0 / live[session_id][0], self.share_hz)
-
-
-class PeerShare:
-    """Fair shares between trackers on the same cores, each serving its own robots. Every tracker sees every
-    robot's frames and poses go by. A robot it serves that is posed a larger fraction of its frames than the
-    worst-served robot of the others is capped at that robot's fraction plus ``margin`` (of its own camera's rate,
-    as evenly spaced frames), which frees the cores for that one; the worst-served robot is never capped, so shares
-    only go up from there, and as its fraction rises, the cap rises with it. Fractions are over the latest
-    ``window_s``, of robots posed for at least ``settle_s`` (a session's start, its first map, counts for none); a
-    robot with no frame in the window no longer counts."""
-
-    def __init__(self, window_s: float = 6.0, margin: float = 0.05, settle_s: float = 1.0) -> None:
-        self.window_s, self.margin, self.settle_s = window_s, margin, settle_s
-        self.seen: dict[str, tuple[collections.deque[float], collections.deque[float]]] = {}
-        """robot -> times (monotonic s) of its latest frames, and of its latest poses"""
-        self.first_posed: dict[str, float] = {}  # robot -> when it was first posed since it was last seen
-
-    def _add(self, robot: str, which: int, now: float | None) -> None:
-        self.seen.setdefault(robot, (collections.deque(), collections.deque()))[which].append(
-            time.monotonic() if now is None else now)
-
-    def framed(self, robot: str, now: float | None = None) -> None:
-        """A frame of ``robot`` went by."""
-        self._add(robot, 0, now)
-
-    def posed(self, robot: str, now: float | None = None) -> None:
-        """A pose of ``robot`` went by."""
-        now = time.monotonic() if now is None else now
-        self.first_posed.setdefault(robot, now)
-        self._add(robot, 1, now)
-
-    def rates(self, now: float | None = None) -> dict[str, tuple[float, float]]:
-        """``robot -> (frames per second, posed fraction)`` of each robot with frames in the latest window, posed
-        for at least ``settle_s``."""
-        now = time.monotonic() if now is None else now
-        rates = {}
-        for robot, (frames, poses) in list(self.seen.items()):
-            for times in (frames, poses):
-                while times and now - times[0] > self.window_s:
-                    times.popleft()
-            if frames and now - self.first_posed.get(robot, now) >= self.settle_s:
-                rates[robot] = (len(frames) / self.window_s, min(1.0, len(poses) / len(frames)))
-            elif not frames and not poses:
-                del self.seen[robot]
-                self.first_posed.pop(robot, None)
-        return rates
-
-    def cap(self, robot: str, served: set[str], rates: dict[str, tuple[float, float]]) -> float | None:
-        """The rate ``robot`` (one of ``served``, the robots of this tracker) may have tracked now, by ``rates``
-        (:meth:`rates`), or None: no other robot is served worse."""
-        others = [fraction for other, (_, fraction) in rates.items() if other not in served]
-        if robot not in rates or not others:
-            return None
-        camera_hz, own = rates[robot]
-        worst = min(others)
-        if own <= worst or worst + self.margin >= 1.0:  # served no better than the others: no cap
-            return None
-        return max(1.0, (worst + self.margin) * camera_hz)
 
 
 #: a camera session's status reports the frames relayed so far every this many frames

@@ -7,6 +7,7 @@ import json
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -114,7 +115,8 @@ def test_map_versions_are_checked_in_one_place_and_a_rollback_is_audited_beside_
     audit trail (``MAPS/audit.jsonl``, the file ``twohr up --maps MAPS`` has the gateway write), not to a file
     relative to wherever it was run."""
     from twohr.dataset import CameraIntrinsics
-    from twohr.mapfile import MapStore, encode_map
+    from twohr.mapfile import encode_map
+    from twohr.mapstore import MapStore
 
     maps = tmp_path / "maps"
     store = MapStore(maps)
@@ -137,3 +139,24 @@ def test_map_versions_are_checked_in_one_place_and_a_rollback_is_audited_beside_
     logged = [json.loads(line) for line in (maps / "audit.jsonl").read_text().splitlines()]
     assert [(e["action"], e["map"], e["version"]) for e in logged] == [("map.rollback", "lab", 3)]
     assert list(elsewhere.iterdir()) == []
+
+
+def test_twohr_up_stops_at_once_with_the_line_of_a_child_that_cannot_start(tmp_path):
+    """A child that exits while the stack starts (the gateway refuses a short API token) ends ``twohr up`` at once,
+    with that child's last line, not after ``--timeout`` with "the gateway did not answer"."""
+    from twohr.bus import free_port
+
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "twohr_app", "up", "--api-token", "short", "--timeout", "300",
+                           "--router", f"tcp/127.0.0.1:{free_port()}", "--port", str(free_port()),
+                           "--foxglove-port", "0", "--max-robots", "1", "--data-root", str(tmp_path),
+                           "--recordings", str(tmp_path / "recordings"),
+                           "--write-client-config", str(tmp_path / "client.json5")],
+                          capture_output=True, text=True, timeout=240, cwd=tmp_path)
+    took = time.monotonic() - started
+    last = done.stderr.strip().splitlines()[-1]
+    assert done.returncode == 2 and last.startswith("twohr: error: gateway exited with code 2 during start-up: "
+                                                    "gateway: error: "), done.stderr
+    assert "the API token must have at least 16 characters" in last and "did not answer" not in done.stderr
+    assert took < 60, f"twohr up took {took:.0f} s to give up"  # the stack's start, not --timeout's 300 s
+    assert done.stderr.count("the API token must have at least 16 characters") == 2  # the gateway's, and ours

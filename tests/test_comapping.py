@@ -28,7 +28,7 @@ from twohr.dataset import RGBDSequence
 from twohr.evaluation import joint_ate
 from twohr.trajectory import parse_tum
 from twohr_app.supervisor import start_system
-from twohr_lab.live import _stack, camera_session, process_cpu_s
+from twohr_lab.bench.steps.camera_sessions import _stack, camera_session, process_cpu_s
 from twohr_lab.tracking.backwards import backwards
 
 SHARE = {"name": "lab", "mode": "share"}
@@ -104,7 +104,8 @@ def test_two_robots_sharing_a_map_are_merged_into_one_frame(sharing_stack, dev_s
             threading.Event().wait(0.5)
         assert saved is not None, "the shared map was not saved"
         assert saved["keyframes"] >= 20, saved
-    from twohr.mapfile import MapStore, read_map
+    from twohr.mapfile import read_map
+    from twohr.mapstore import MapStore
 
     # the session page draws both robots' paths in one frame, and says when b was merged
     with sync_playwright() as playwright:
@@ -144,7 +145,8 @@ def test_a_share_request_that_cannot_share_is_refused_with_one_line(sharing_stac
     """A name that is no map's, and a stored map of another detector network (its descriptors would not match the
     session's): 422 with one line, before anything starts."""
     from twohr.dataset import CameraIntrinsics
-    from twohr.mapfile import MapStore, encode_map
+    from twohr.mapfile import encode_map
+    from twohr.mapstore import MapStore
 
     other = tiny_map("hall", CameraIntrinsics(fx=500, fy=500, cx=319.5, cy=239.5, width=640, height=480))
     other.header.detector_model = "r2d2_WASF_N16"  # not the default detector's descriptor space

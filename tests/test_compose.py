@@ -67,6 +67,22 @@ def test_every_container_mounts_only_its_own_key():
     assert any(v.endswith(":/maps") for v in services["gateway"]["volumes"])
 
 
+def test_the_map_room_holds_the_map_store_beside_the_gateway():
+    """The map server serves the store on the bus: the same /maps as the gateway's HTTP /maps, as the same user (the
+    one the keys service hands its key folder to), the same audit trail, and the operator's grants from its own key
+    folder (``twohr keys grant`` writes its copy there)."""
+    services = COMPOSE["services"]
+    room, gateway = services["mapserver"], services["gateway"]
+    flags = {flag: room["command"][room["command"].index(flag) + 1] for flag in ("--maps", "--audit-log",
+                                                                                 "--map-grants")}
+    assert flags == {"--maps": "/maps", "--audit-log": gateway["command"][gateway["command"].index("--audit-log") + 1],
+                     "--map-grants": "/run/twohr/keys/grants.json"}
+    assert "${TWOHR_MAPS:-./maps}:/maps" in room["volumes"] and "${TWOHR_MAPS:-./maps}:/maps" in gateway["volumes"]
+    assert room["user"] == gateway["user"] == "${TWOHR_UID:-10001}"
+    keys = services["keys"]["command"]
+    assert keys[keys.index("mapserver=${TWOHR_UID:-10001}") - 1] == "--owner"
+
+
 def test_volumes_match_service_flags():
     services = COMPOSE["services"]
     mounts = {name: {re.sub(r"\$\{[^}]*\}", "HOST", v).split(":")[1] for v in svc.get("volumes", [])}

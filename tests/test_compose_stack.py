@@ -25,7 +25,7 @@ from twohr.errors import TwohrError
 from twohr.foxglove_live import FoxgloveClient
 from twohr.identity import load_identity
 from twohr.keys import PIPELINE_SERVICES
-from twohr_lab.bench import latency_summary, session_latency
+from twohr_lab.bench.steps.bus_sessions import latency_summary, session_latency
 from twohr_services.recorder.core import topic_counts
 
 COMPOSE = os.environ.get("TWOHR_COMPOSE")

@@ -239,7 +239,7 @@ def test_a_robots_own_tracker_publishes_its_own_results_and_no_other_robots(edge
         e.declare_subscriber("twohr/e/control", lambda s: controls["e"].append(s.payload.to_bytes()))
         f.declare_subscriber("twohr/e/control", lambda s: controls["f"].append(s.payload.to_bytes()))
         detector.declare_queryable("twohr/*/rpc/detect/d1", lambda q: q.reply(q.key_expr, b"kp"))
-        gateway.declare_queryable("twohr/maps/*/save", lambda q: q.reply(q.key_expr, b"saved"))
+        mapserver.declare_queryable("twohr/maps/*/save", lambda q: q.reply(q.key_expr, b"saved"))
         replicas_seen: dict[str, list[str]] = {"e": [], "p": []}
         for name, session in (("e", e), ("p", p)):
             session.liveliness().declare_subscriber(alive_key("detector"), lambda s, n=name: replicas_seen[n].append(
@@ -282,3 +282,74 @@ def test_a_robots_own_tracker_publishes_its_own_results_and_no_other_robots(edge
         for session in sessions:
             session.close()
         router.close()
+
+
+def test_a_robots_own_tracker_says_when_its_server_stages_go_and_come_back(zenoh_router, dev_sequence, caplog):
+    """The own tracker composed in this process (the stack's ``TrackerService`` with the camera's inlet and the edge's
+    stages), its three server stages stand-ins that hold their tokens and refuse every job: the detector's token goes
+    while the camera's frames come (said on the console), and comes back (said on the session's status)."""
+    import logging
+
+    from twohr import keys
+    from twohr.bus import BusConfig
+    from twohr.config import PipelineConfig
+    from twohr.messages import ControlMsg, encode
+    from twohr_app.commands.camera import replay_payloads
+    from twohr_app.edge import EdgeTracker
+
+    bus = BusConfig(connect=[zenoh_router])
+    stand_in = open_session(bus)
+    names = ("detector", "yolo", "matcher")
+    refusing = [stand_in.declare_queryable(f"twohr/*/{query}/stand-in", lambda q: q.reply_err(b"a stand-in"))
+                for query in (keys.DETECT_QUERY, keys.DYNAMICS_QUERY, keys.MATCH_QUERY)]
+    tokens = {name: stand_in.liveliness().declare_token(keys.alive_key(name, "stand-in")) for name in names}
+    statuses: list[StatusMsg] = []
+    listener = stand_in.declare_subscriber("twohr/r7/status", lambda s: statuses.append(
+        decode(s.payload.to_bytes(), StatusMsg)[0]))
+    tracker = EdgeTracker(bus, "r7", names)
+    stop = threading.Event()
+    thread = threading.Thread(target=tracker.service.run, args=(stop,), daemon=True)
+    thread.start()
+    frames = replay_payloads(str(dev_sequence), "r7", 0, 40, 0)
+    caplog.set_level(logging.INFO, logger="twohr.edge")
+    try:
+        assert tracker.service.ready.wait(30)
+        stand_in.put(keys.key("r7", keys.CONTROL), encode(ControlMsg(
+            session_id="s7", robot_id="r7", frame_index=-1, stamp=time.time(), command="start",
+            config=PipelineConfig(), tracker=tracker.replica)))
+        deadline = time.monotonic() + 30
+        while tracker.camera.served is None:
+            assert time.monotonic() < deadline, "the session never came to the robot's own tracker"
+            time.sleep(0.05)
+        assert tracker.feed(next(frames)) and "out of reach" not in caplog.text
+        tokens.pop("detector").undeclare()
+        while tracker.stages.replicas["detector"].alive():
+            assert time.monotonic() < deadline, "the detector's token never went"
+            time.sleep(0.05)
+        assert tracker.feed(next(frames))
+        assert "the stack is out of reach: tracking in the local map, no new keyframes from its detector, yolo, " \
+               "matcher until the link is back" in caplog.text
+        assert not [s for s in statuses if s.state == "online"]
+        tokens["detector"] = stand_in.liveliness().declare_token(keys.alive_key("detector", "stand-in"))
+        while not tracker.stages.replicas["detector"].alive():
+            assert time.monotonic() < deadline, "the detector's token never came back"
+            time.sleep(0.05)
+        assert tracker.feed(next(frames))
+        while not (online := [s for s in statuses if s.state == "online"]):
+            assert time.monotonic() < deadline, "the session's status never said the stack was back"
+            time.sleep(0.05)
+        assert online[0].service == "tracker" and online[0].session_id == "s7"
+        assert online[0].detail.startswith("the stack was out of reach for ") and online[0].detail.endswith(
+            "keyframes from its detector, yolo, matcher again"), online[0].detail
+        tracker.end_sessions(timeout=30)
+        assert not tracker.service.sessions and tracker.camera.served is None
+        assert tracker.upstream_bytes() >= tracker.service.published_bytes > 0
+    finally:
+        stop.set()
+        thread.join(timeout=60)
+        listener.undeclare()
+        for queryable in refusing:
+            queryable.undeclare()
+        for token in tokens.values():
+            token.undeclare()
+        stand_in.close()

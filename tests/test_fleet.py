@@ -143,13 +143,15 @@ def test_one_identity_per_robot_and_revocation_while_running(keys, tmp_path, sel
             assert sorted((k, p) for _, k, p in got) == [("twohr/a/camera", b"a's own"), ("twohr/b/camera", b"b's own")]
         assert poses_at_a == ["twohr/b/pose"] and watched == []
         token.undeclare()
-        # a map snapshot goes from the tracker to the gateway only: a robot may neither send one nor ask for one
-        gateway = _client(fleet.identity("gateway"), endpoint)
-        sessions.append(gateway)
-        snapshots: list[tuple[str, bytes]] = []
-        gateway.declare_subscriber("twohr/*/map/snapshot", lambda s: snapshots.append(
-            (str(s.key_expr), s.payload.to_bytes())))
-        gateway.declare_queryable("twohr/*/map/snapshot", lambda q: q.reply(q.key_expr, b"the map"))
+        # a map snapshot goes from the tracker to the map room only: a robot may neither send one nor ask for one,
+        # and the gateway neither keeps nor serves one
+        room, gateway = _client(fleet.identity("mapserver"), endpoint), _client(fleet.identity("gateway"), endpoint)
+        sessions += [room, gateway]
+        snapshots: list[tuple[str, str, bytes]] = []
+        for name, who in (("mapserver", room), ("gateway", gateway)):
+            who.declare_subscriber("twohr/*/map/snapshot", lambda s, n=name: snapshots.append(
+                (n, str(s.key_expr), s.payload.to_bytes())))
+            who.declare_queryable("twohr/*/map/snapshot", lambda q, n=name: q.reply(q.key_expr, f"{n}'s map".encode()))
         time.sleep(1.0)
         b.put("twohr/a/map/snapshot", b"b's forged map of a")
         b.put("twohr/b/map/snapshot", b"b's own map")
@@ -157,8 +159,8 @@ def test_one_identity_per_robot_and_revocation_while_running(keys, tmp_path, sel
         asked = {name: [r.ok.payload.to_bytes() for r in who.get("twohr/a/map/snapshot", timeout=2.0)
                         if r.ok is not None] for name, who in (("b", b), ("tracker", tracker))}
         time.sleep(1.0)
-        assert snapshots == [("twohr/a/map/snapshot", b"a's map")], snapshots
-        assert asked == {"b": [], "tracker": [b"the map"]}, asked
+        assert snapshots == [("mapserver", "twohr/a/map/snapshot", b"a's map")], snapshots
+        assert asked == {"b": [], "tracker": [b"mapserver's map"]}, asked
         # no certificate, a self-signed one named a, a's certificate with b's password: refused or powerless
         with pytest.raises(TwohrError, match="cannot join"):
             open_session(BusConfig(connect=[endpoint], identity=None, user="a", password=SecretStr("x"),

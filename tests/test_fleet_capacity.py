@@ -15,7 +15,7 @@ import pytest
 from twohr.bus import free_port
 from twohr.dataset import RGBDSequence
 from twohr_app.supervisor import start_system
-from twohr_lab.live import _stack, camera_session
+from twohr_lab.bench.steps.camera_sessions import _stack, camera_session
 
 FRAMES = 300
 

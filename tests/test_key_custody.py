@@ -253,7 +253,8 @@ def test_the_denial_log_names_the_link_not_the_key(tmp_path):
 
 def test_recordings_and_maps_are_written_private(tmp_path, tiny_map):
     from twohr.dataset import CameraIntrinsics
-    from twohr.mapfile import OPERATOR, MapStore, encode_map
+    from twohr.mapfile import OPERATOR, encode_map
+    from twohr.mapstore import MapStore
     from twohr.mcapfile import partial_marker, recover
     from twohr.messages import PoseMsg, encode
     from twohr_services.recorder.core import SessionRecorder

@@ -15,7 +15,8 @@ from twohr import keys
 from twohr.bus import free_port, open_session
 from twohr.dataset import RGBDSequence
 from twohr.evaluation import evaluate
-from twohr.mapfile import MapStore, read_map, verify_bytes
+from twohr.mapfile import read_map, verify_bytes
+from twohr.mapstore import MapStore
 from twohr.messages import PoseMsg, decode
 from twohr.trajectory import Trajectory, read_tum
 from twohr_app.supervisor import start_system

@@ -6,7 +6,9 @@ from __future__ import annotations
 import pytest
 
 from twohr.dataset import CameraIntrinsics
-from twohr.mapfile import OPERATOR, MapFileError, MapStore, encode_map, read_map, write_bytes_atomically
+from twohr.files import write_atomic
+from twohr.mapfile import OPERATOR, MapFileError, encode_map, read_map
+from twohr.mapstore import MapStore
 
 CAMERA = CameraIntrinsics(fx=500, fy=500, cx=319.5, cy=239.5, width=640, height=480)
 
@@ -63,7 +65,7 @@ def test_a_save_cut_before_its_link_and_a_copied_store_keep_their_numbers(tmp_pa
     third = tiny_map("lab", CAMERA)
     third.arrays.landmark_positions += 3
     versions[3] = encode_map(third)
-    write_bytes_atomically(tmp_path / "maps" / "lab.v3.map", versions[3])  # the crash: no link made
+    write_atomic(tmp_path / "maps" / "lab.v3.map", versions[3])  # the crash: no link made
     assert (tmp_path / "maps" / "lab.map").read_bytes() == versions[2]
     assert store.numbers("lab") == [1, 2, 3] and store.entry("lab").version == 3
     assert store.latest_file("lab").read_bytes() == versions[3]
@@ -87,3 +89,49 @@ def test_a_save_cut_before_its_link_and_a_copied_store_keep_their_numbers(tmp_pa
     assert old.version_path("lab", 3).read_bytes() == versions[3]
     saved(old, tiny_map, 5)
     assert old.numbers("lab") == [1, 2, 3, 4] and (earlier / "lab.v3.map").read_bytes() == versions[3]
+
+
+def two_robots_map():
+    """A map of two keyframes, one by robot a's camera, one by b's, each observing landmarks of its own."""
+    import numpy as np
+
+    from twohr.config import PipelineConfig
+    from twohr.mapfile import MapArrays, arrays_file
+
+    arrays = MapArrays(
+        keyframe_poses=np.stack([np.eye(4)] * 2), keyframe_stamps=np.array([0.0, 1.0]),
+        keyframe_culled=np.zeros(2, bool), keyframe_first=np.array([0, 3, 5]),
+        keypoint_xy=np.ones((5, 2), np.float32), keypoint_depth=np.ones(5, np.float32),
+        keypoint_landmark=np.array([0, 1, 2, 3, 4]), landmark_positions=np.arange(15, dtype=float).reshape(5, 3),
+        landmark_descriptors=np.ones((5, 128), np.float32), landmark_accepted=np.ones(5, np.int64),
+        landmark_rejected=np.zeros(5, np.int64), landmark_bad=np.zeros(5, bool), keyframe_camera=np.array([0, 1]))
+    return arrays_file(arrays, CAMERA, PipelineConfig(), "lab", cameras=[CAMERA], camera_robots=["a", "b"])
+
+
+def test_twohr_maps_exports_a_point_cloud_and_takes_a_robot_out_audited(tmp_path):
+    """``twohr maps export --ply``: each landmark with the robot whose keyframe made it; ``remove-robot``: the next
+    version without that robot's keyframes, in the audit trail with the version it made."""
+    import json
+    import subprocess
+    import sys
+
+    import numpy as np
+
+    maps = tmp_path / "maps"
+    MapStore(maps).save(encode_map(two_robots_map()), builder="a")
+    twohr = [sys.executable, "-m", "twohr_app", "maps"]
+    done = subprocess.run([*twohr, "export", "lab", "--ply", "--maps", str(maps), "--out", str(tmp_path / "lab.ply")],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and "property source: 0 = a, 1 = b" in done.stdout, done.stderr
+    head, _, body = (tmp_path / "lab.ply").read_bytes().partition(b"end_header\n")
+    assert b"element vertex 5" in head and (tmp_path / "lab.ply").stat().st_mode & 0o777 == 0o600
+    rows = np.frombuffer(body, dtype=[("xyz", "<f4", 3), ("source", "<i4")])
+    assert rows["source"].tolist() == [0, 0, 0, 1, 1] and rows["xyz"][4].tolist() == [12.0, 13.0, 14.0]
+    done = subprocess.run([*twohr, "remove-robot", "lab", "b", "--maps", str(maps)], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0 and "version 2 without robot b's keyframes" in done.stdout, done.stderr
+    left = read_map(maps / "lab.map")
+    assert (left.header.camera_robots, left.header.keyframes, left.header.landmarks) == (["a"], 1, 3)
+    logged = [json.loads(line) for line in (maps / "audit.jsonl").read_text().splitlines()]
+    assert [(e["action"], e["who"], e["robot"], e["version"]) for e in logged] == [
+        ("map.remove_robot", OPERATOR, "b", 2)]

@@ -3,7 +3,8 @@ between trackers."""
 
 from __future__ import annotations
 
-from twohr.rates import FairShare, PeerShare, RateThinning
+from twohr.rates import RateThinning
+from twohr_services.tracker.shares import FairShare, PeerShare
 
 
 def test_thinning_keeps_evenly_spaced_frames_and_restarts_with_the_camera():

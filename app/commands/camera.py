@@ -17,6 +17,7 @@ from pathlib import Path
 
 from twohr.bus import add_router_option
 from twohr.errors import TwohrError
+from twohr.rates import ReplayPacer
 
 log = logging.getLogger(__name__)
 
@@ -41,24 +42,6 @@ def open_bus(args: argparse.Namespace):
     return open_session(camera_bus(args))
 
 
-class RatePacer:
-    """Waits so that frame ``i`` goes out ``i / rate`` seconds after the first (0 = no waiting)."""
-
-    def __init__(self, rate: float) -> None:
-        self.rate = rate
-        self.start: float | None = None
-        self.count = 0
-
-    def wait(self, _stamp: float = 0.0) -> None:
-        if self.rate > 0:
-            if self.start is None:
-                self.start = time.monotonic()
-            delay = self.start + self.count / self.rate - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-        self.count += 1
-
-
 def replay_payloads(sequence_dir: str, robot: str, rate: float, frames: int | None, start: int,
                     loop: bool = False) -> Iterator[bytes]:
     """Encoded frame messages of a recorded sequence, paced at ``rate`` frames per second. ``loop`` plays it
@@ -73,10 +56,10 @@ def replay_payloads(sequence_dir: str, robot: str, rate: float, frames: int | No
         raise TwohrError(f"--start {start} is outside the sequence's {len(sequence)} frames")
     stamps = sequence.stamps[start:]
     period = float(stamps[-1] - stamps[0]) + (float(np.median(np.diff(stamps))) if len(stamps) > 1 else 1 / 30)
-    return _replay(sequence, robot, RatePacer(rate), frames, start, period if loop else None)
+    return _replay(sequence, robot, ReplayPacer(fps=rate), frames, start, period if loop else None)
 
 
-def _replay(sequence, robot: str, pacer: RatePacer, frames: int | None, start: int,
+def _replay(sequence, robot: str, pacer: ReplayPacer, frames: int | None, start: int,
             period: float | None) -> Iterator[bytes]:
     from twohr.keys import LIVE_SESSION
     from twohr_services.source.core import frame_payloads

@@ -48,6 +48,7 @@ def _init(args: argparse.Namespace) -> int:
     owners = _owners(args.owner or [])
     if args.if_absent and fleet.exists():
         moved = fleet.adopt_legacy_token()
+        fleet.share_grants()  # the map room's copy of the grants, for keys made before it read them
         print(f"fleet keys in {fleet.folder}: already there ({len(fleet.read().robots)} robots)"
               + (f"; the operator's API token moved to {fleet.operator_token}" if moved else ""))
     else:

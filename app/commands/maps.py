@@ -9,8 +9,13 @@ import argparse
 import json
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-#: the most versions of each map a store may be told to keep (the gateway's settings hold the same bound)
+if TYPE_CHECKING:
+    import numpy as np
+
+#: the most versions of each map a store may be told to keep (``twohr.mapstore.MAX_KEEP``, read without importing
+#: the store library into every command's start)
 MAX_MAP_VERSIONS = 10_000
 
 
@@ -28,7 +33,7 @@ def parse_map_versions(value: str | int) -> int:
 
 def _list(args: argparse.Namespace) -> int:
     from twohr.errors import TwohrError
-    from twohr.mapfile import MapStore
+    from twohr.mapstore import MapStore
 
     if not Path(args.maps).is_dir():
         raise TwohrError(f"no map store folder {args.maps} (twohr up --maps DIR makes one)")
@@ -47,7 +52,7 @@ def _list(args: argparse.Namespace) -> int:
 
 def _target(args: argparse.Namespace, item: str) -> Path:
     """A map file named by path, or by name in the ``--maps`` store."""
-    from twohr.mapfile import MapStore
+    from twohr.mapstore import MapStore
 
     path = Path(item)
     return path if path.suffix == ".map" or path.is_file() else MapStore(args.maps).path(item)
@@ -84,9 +89,10 @@ def _verify(args: argparse.Namespace) -> int:
 
 
 def _rollback(args: argparse.Namespace) -> int:
+    from twohr.audit import AuditLog
     from twohr.errors import TwohrError
-    from twohr.mapfile import OPERATOR, MapStore
-    from twohr_services.gateway.audit import AuditLog
+    from twohr.mapfile import OPERATOR
+    from twohr.mapstore import MapStore
 
     from ..supervisor import audit_file
 
@@ -94,26 +100,20 @@ def _rollback(args: argparse.Namespace) -> int:
     if not Path(args.maps).is_dir():
         raise TwohrError(f"no map store folder {args.maps}")
     audit = Path(args.audit) if args.audit else audit_file(args.maps)
-    entry = MapStore(args.maps, keep).rollback(args.map, args.version)
-    AuditLog(audit).record("map.rollback", OPERATOR, map=args.map, version=entry.version,
-                           detail=f"version {entry.version} is version {args.version}'s bytes (twohr maps rollback)")
+    entry = MapStore(args.maps, keep).rollback(args.map, args.version, on_saved=lambda made: AuditLog(audit).record(
+        "map.rollback", OPERATOR, map=args.map, version=made.version,
+        detail=f"version {made.version} is version {args.version}'s bytes (twohr maps rollback)"))
     print(f"map {args.map}: version {entry.version} is version {args.version} again (byte for byte); kept "
           f"versions {', '.join(map(str, entry.versions))}; logged in {audit}")
     return 0
 
 
 def _export(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from twohr.mapfile import read_map, write_ply
+    from twohr.mapfile import read_map
 
     stored = read_map(_target(args, args.map))
     arrays, header = stored.arrays, stored.header
-    source = np.full(len(arrays.landmark_positions), -1, np.int64)  # the camera of the first keyframe to see it
-    for k in range(len(arrays.keyframe_stamps)):
-        ids = arrays.keypoint_landmark[arrays.keyframe_first[k]:arrays.keyframe_first[k + 1]]
-        ids = ids[ids >= 0]
-        source[ids[source[ids] < 0]] = arrays.keyframe_camera[k]
+    source = landmark_sources(arrays)
     good = ~arrays.landmark_bad
     out = Path(args.out or f"runs/maps/{header.name}.ply")
     size = write_ply(out, arrays.landmark_positions[good], source[good])
@@ -124,9 +124,10 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def _remove_robot(args: argparse.Namespace) -> int:
+    from twohr.audit import AuditLog
     from twohr.errors import TwohrError
-    from twohr.mapfile import OPERATOR, MapStore, encode_map, read_map, without_robot
-    from twohr_services.gateway.audit import AuditLog
+    from twohr.mapfile import OPERATOR, encode_map, read_map
+    from twohr.mapstore import MapStore, without_robot
 
     from ..supervisor import audit_file
 
@@ -134,13 +135,48 @@ def _remove_robot(args: argparse.Namespace) -> int:
         raise TwohrError(f"no map store folder {args.maps}")
     store = MapStore(args.maps, parse_map_versions(args.map_versions))
     kept = without_robot(read_map(store.latest_file(args.map)), args.robot)
-    entry = store.save(encode_map(kept), args.map, builder=OPERATOR)
     audit = Path(args.audit) if args.audit else audit_file(args.maps)
-    AuditLog(audit).record("map.remove_robot", OPERATOR, map=args.map, version=entry.version, robot=args.robot,
-                           detail=f"robot {args.robot}'s keyframes removed (twohr maps remove-robot)")
+    entry = store.save(encode_map(kept), args.map, builder=OPERATOR, on_saved=lambda made: AuditLog(audit).record(
+        "map.remove_robot", OPERATOR, map=args.map, version=made.version, robot=args.robot,
+        detail=f"robot {args.robot}'s keyframes removed (twohr maps remove-robot)"))
     print(f"map {args.map}: version {entry.version} without robot {args.robot}'s keyframes ({entry.keyframes} "
           f"keyframes, {entry.landmarks} landmarks left); logged in {audit}")
     return 0
+
+
+def landmark_sources(arrays) -> np.ndarray:
+    """For each landmark of a map's arrays (:class:`twohr.mapfile.MapArrays`), the camera of the first keyframe that
+    observes it (``keyframe_camera``: which robot's keyframes made it), -1 for one no keyframe observes."""
+    import numpy as np
+
+    source = np.full(len(arrays.landmark_positions), -1, np.int64)
+    for k in range(len(arrays.keyframe_stamps)):
+        ids = arrays.keypoint_landmark[arrays.keyframe_first[k]:arrays.keyframe_first[k + 1]]
+        ids = ids[ids >= 0]
+        source[ids[source[ids] < 0]] = arrays.keyframe_camera[k]
+    return source
+
+
+def write_ply(path: str | Path, points: np.ndarray, sources: np.ndarray | None = None) -> int:
+    """Points (N, 3) as a binary little-endian PLY point cloud (``sources``: an integer per point, written as
+    property ``source``: which robot's keyframes made it), written atomically and private (0600: a map is the
+    robots' surroundings); returns its size in bytes."""
+    import numpy as np
+
+    from twohr.files import write_atomic
+
+    points = np.asarray(points, np.float32).reshape(-1, 3)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")] + ([("source", "<i4")] if sources is not None else [])
+    rows = np.zeros(len(points), dtype=fields)
+    rows["x"], rows["y"], rows["z"] = points.T
+    if sources is not None:
+        rows["source"] = sources
+    header = ["ply", "format binary_little_endian 1.0", "comment twohr map landmarks (world frame, metres)",
+              f"element vertex {len(points)}", "property float x", "property float y", "property float z"]
+    header += ["property int source"] if sources is not None else []
+    data = ("\n".join(header + ["end_header"]) + "\n").encode() + rows.tobytes()
+    write_atomic(path, data, durable=True)
+    return len(data)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

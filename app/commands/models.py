@@ -32,12 +32,8 @@ def _models(args: argparse.Namespace) -> int:
         try:
             path = models.fetch(name, force=args.force) if args.action == "fetch" else None
             if args.action == "verify":
-                spec = models.get_spec(name)
-                path = models._bundled_path(spec) or models.cache_dir() / spec.file
-                if not path.is_file():
-                    mirror = next((m / spec.file for m in models.mirror_dirs() if (m / spec.file).is_file()), path)
-                    path = mirror
-                models.verify_file(spec, path)
+                path = models.local_file(name)
+                models.verify_file(models.get_spec(name), path)
             print(f"ok      {name:24} {path}")
         except TwohrError as exc:
             failed += 1

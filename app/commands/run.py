@@ -28,7 +28,7 @@ def write_run(out: Path, sequence, config, result) -> dict:
     """Write trajectories, per-frame stats, the config and (with ground truth) the evaluation; return a summary."""
     import yaml
 
-    from twohr.evaluation import evaluate
+    from twohr.evaluation import evaluate, loops_against_ground_truth
     from twohr.machine import machine
     from twohr.trajectory import write_tum
     from twohr_services.tracker.stages import keyframe_job_latency
@@ -266,23 +266,3 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sequence", default=DEV_SEQUENCE, help="TUM-layout RGB-D folder")
     p.add_argument("--out", default="runs/demo", help="output folder")
     p.set_defaults(func=_demo)
-
-
-def loops_against_ground_truth(loops: list[dict], ground_truth) -> dict:
-    """Each closed loop's two keyframes compared on the ground truth (``gt_distance_m``, ``gt_angle_deg`` added
-    to its entry), and how many are false accepts (not the same place: ``SAME_PLACE_M``, ``SAME_PLACE_DEG``)."""
-    import numpy as np
-
-    from twohr.config import SAME_PLACE_DEG, SAME_PLACE_M
-    from twohr.pose import pose_difference
-    from twohr.trajectory import interpolate_poses
-
-    false_accepts = 0
-    for loop in loops:
-        poses, valid = interpolate_poses(ground_truth, np.array([loop["stamp"], loop["candidate_stamp"]]))
-        if not valid.all():
-            continue
-        metres, degrees = pose_difference(poses[0], poses[1])
-        loop.update(gt_distance_m=round(metres, 3), gt_angle_deg=round(degrees, 2))
-        false_accepts += metres > SAME_PLACE_M or degrees > SAME_PLACE_DEG
-    return {"false_accepts": false_accepts}

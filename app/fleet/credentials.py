@@ -20,13 +20,13 @@ import json
 import os
 import secrets
 import stat
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
 from pydantic import BaseModel, SecretStr
 
 from twohr.errors import TwohrError
+from twohr.files import replacing
 from twohr.keys import PIPELINE_SERVICES
 
 #: The stack's own processes: one bus user each, and on a fleet's keys one certificate each. The router and the
@@ -73,22 +73,17 @@ def write_private(path: Path, text: str, keep_owner: bool = True) -> Path:
     if path.is_symlink():
         raise TwohrError(f"{path} is a symbolic link: a secret is written to a file of its own, never through a "
                          "link (remove it, or name the file it points to)")
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
+    # the rename replaces whatever is at ``path`` by then (a link planted since)
+    with replacing(path, 0o600, folder_mode=0o700) as new:
+        new.write(text.encode("utf-8"))
         if keep_owner:
-            _keep_owner(path, tmp)
-        os.replace(tmp, path)  # a rename: it replaces whatever is at ``path`` now (a link planted since)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+            _keep_owner(path, new.fileno())
     return path
 
 
-def _keep_owner(path: Path, tmp: str) -> None:
-    """Give ``tmp`` the owner of the regular file at ``path``, if there is one (never a link's target's)."""
+def _keep_owner(path: Path, tmp: int) -> None:
+    """Give ``tmp`` (a file descriptor) the owner of the regular file at ``path``, if there is one (never a link's
+    target's)."""
     try:
         before = os.lstat(path)
     except FileNotFoundError:

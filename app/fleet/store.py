@@ -19,7 +19,8 @@ list.
       services/gateway/       also operator.token (a hard link to DIR/operator.token) and tokens.json: robot ->
                               SHA-256 of its API token and its certificate's expiry, robots not revoked
       services/gateway/grants.json  the operator's map grants (``twohr keys grant``): map -> robot -> when; a
-                              robot may build or extend the maps it owns (made first) and those it is granted
+                              robot may build or extend the maps it owns (made first) and those it is granted;
+                              services/mapserver/grants.json the same file, for the map room's check of a save
       robots/<robot>.crt      each robot's certificate, for audit
 
 A robot is given one bundle file (:class:`twohr.identity.Bundle`): its certificate with the robot id as common
@@ -70,6 +71,9 @@ from .credentials import (
 
 #: The roles whose certificates name the hosts they are reached at: they serve TLS (the bus, HTTPS).
 SERVING_ROLES = ("router", "gateway")
+#: The roles that read the operator's map grants, each from its own key folder: the gateway checks a session's
+#: start, the map room a save
+GRANT_READERS = ("gateway", "mapserver")
 LOCAL_NAMES = ("localhost", "127.0.0.1", "::1")
 #: listen addresses that serve every interface: the names a certificate holds, none of their own
 WILDCARDS = ("0.0.0.0", "::", "")
@@ -392,9 +396,10 @@ class Fleet:
 
     def grant(self, robot: str, map_name: str, remove: bool = False) -> list[str]:
         """Let ``robot`` build or extend map ``map_name`` though it did not build it (``remove``: take the grant
-        back). The grants are ``grants.json`` in the gateway's folder, which a running gateway reads at its next
-        request; no router restart. Needs no ``ca.key``. Returns the maps ``robot`` now holds grants on."""
-        from twohr.mapfile import GRANTS_FILE, MapGrants, check_map_name
+        back). The grants are ``grants.json`` in the folders of the gateway and of the map room (:data:`GRANT_READERS`),
+        which a running gateway reads at its next request and the map room at its next save; no router restart.
+        Needs no ``ca.key``. Returns the maps ``robot`` now holds grants on."""
+        from twohr.mapstore import GRANTS_FILE, MapGrants, check_map_name
 
         check_map_name(map_name)  # one line for a name no map can have
         with self.locked():
@@ -413,13 +418,36 @@ class Fleet:
                 grants.maps = {name: robots for name, robots in grants.maps.items() if robots}
             else:
                 held.setdefault(robot, datetime.datetime.now(datetime.timezone.utc))
-            new = not path.exists()
-            write_private(path, grants.model_dump_json(indent=1))
-            if new:  # the gateway's own user reads it (a container's): as it reads tokens.json
-                with contextlib.suppress(OSError):
-                    reference = (self.service_folder("gateway") / TOKENS_FILE).stat()
-                    os.chown(path, reference.st_uid, reference.st_gid)
+            self._write_grants(grants.model_dump_json(indent=1))
             return sorted(name for name, robots in grants.maps.items() if robot in robots)
+
+    def share_grants(self) -> bool:
+        """Give the map room the gateway's grants where its copy differs (keys made before the map room checked
+        saves: ``twohr up`` and ``keys init --if-absent`` call it); True if a copy was written."""
+        from twohr.mapstore import GRANTS_FILE
+
+        with self.locked():
+            source = self.service_folder("gateway") / GRANTS_FILE
+            copy = self.service_folder("mapserver") / GRANTS_FILE
+            if not source.is_file() or (copy.is_file() and copy.read_bytes() == source.read_bytes()):
+                return False
+            self._write_grants(source.read_text())
+            return True
+
+    def _write_grants(self, text: str) -> None:
+        """Write the grants into each of :data:`GRANT_READERS`' folders; a file made anew is given that service's
+        user (a container's), as its other files are."""
+        from twohr.mapstore import GRANTS_FILE
+
+        for role in GRANT_READERS:
+            folder = self.service_folder(role)
+            path = folder / GRANTS_FILE
+            new = not path.exists()
+            write_private(path, text)
+            if new:
+                with contextlib.suppress(OSError):
+                    reference = (folder / PASSWORD_FILE).stat()
+                    os.chown(path, reference.st_uid, reference.st_gid)
 
     def identity(self, role: str) -> Identity:
         """The identity of service ``role``, read from its key folder."""

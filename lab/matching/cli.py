@@ -130,14 +130,10 @@ def choose_threshold(sweep: list[dict], baseline: dict) -> tuple[float, str]:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from twohr.config import MatcherConfig
-    from twohr_services.matcher.core import SiameseMatcher, mutual_nn, ratio_test
-
     from .data import LabelConfig, build_pair_set, frame_pairs
-    from .evaluation import evaluate_matchers, threshold_sweep
 
     try:
-        from .training import TrainConfig, classification_metrics, export_onnx, plot_training, predict, train_siamese
+        from .training import TrainConfig, export_onnx, plot_training, train_siamese
     except ModuleNotFoundError as exc:
         from twohr.errors import TwohrError
 
@@ -159,34 +155,12 @@ def _train(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     plot = plot_training(result, out / "training_curves.png")
-
-    metrics = {}
-    for name in ("val", "test"):
-        scores, loss = predict(result.model, sets[name])
-        metrics[name] = {"loss": loss, **classification_metrics(scores, sets[name].label)}
-        metrics[name]["by_kind_mean_score"] = {kind: float(scores[sets[name].kind == code].mean())
-                                               for code, kind in enumerate(("positive", "hard_negative", "random"))}
+    metrics = _metrics_at_half(result.model, sets)
 
     model_out = Path(args.model_out)
     export_onnx(result.model, model_out, {"trained_on": f"{cache.sequence.name} frames {splits['train'][0]}-"
                                           f"{splits['train'][-1]}", "command": "twohr matcher train"})
-
-    # tau on the validation frame pairs only; the held-out test pairs are for `twohr matcher eval`
-    baselines = {"mutual NN": lambda a, b: mutual_nn(a, b)}
-    for ratio in RATIOS:
-        baselines[f"ratio {ratio:g}"] = partial(ratio_test, ratio=ratio)
-    baseline_summaries = evaluate_matchers(cache, pairs["val"], baselines)[0]
-    baseline = baseline_summaries["mutual NN"]
-    ratio_rows = [{"ratio": ratio, "ms_3px": baseline_summaries[f"ratio {ratio:g}"].matching_score["3px"],
-                   "mma_3px": baseline_summaries[f"ratio {ratio:g}"].mma["3px"]} for ratio in RATIOS]
-    siamese = SiameseMatcher(MatcherConfig(candidates=args.candidates), model_file=model_out)
-    sweep = [{"tau": tau, "ms_3px": s.matching_score["3px"], "mma_3px": s.mma["3px"],
-              "matches_per_pair": s.matches_per_pair}
-             for tau, s in threshold_sweep(cache, pairs["val"], siamese, TAU_GRID).items()]
-    baseline_row = {"ms_3px": baseline.matching_score["3px"], "mma_3px": baseline.mma["3px"],
-                    "matches_per_pair": baseline.matches_per_pair}
-    tau, rule = choose_threshold(sweep, baseline_row)
-    plot_sweep = _plot_sweep(sweep, baseline_row, ratio_rows, tau, out / "threshold_sweep_val.png")
+    threshold = _validation_threshold(args, cache, pairs["val"], model_out, out)
 
     report = {
         "arguments": _arguments(args),
@@ -196,25 +170,70 @@ def _train(args: argparse.Namespace) -> int:
         "pair_counts": {name: s.counts() for name, s in sets.items()},
         "history": result.history, "best_epoch": result.best_epoch, "train_seconds": result.seconds,
         "metrics_at_0.5": metrics,
-        "val_threshold_sweep": sweep, "val_mutual_nn": baseline_row, "val_ratio_test": ratio_rows,
-        "chosen_threshold": tau, "threshold_rule": rule, "candidates": args.candidates,
+        "val_threshold_sweep": threshold["sweep"], "val_mutual_nn": threshold["baseline"],
+        "val_ratio_test": threshold["ratios"],
+        "chosen_threshold": threshold["tau"], "threshold_rule": threshold["rule"], "candidates": args.candidates,
         "model": str(model_out), "sha256": _sha256(model_out),
         "model_bytes": model_out.stat().st_size,
         "parameters": sum(p.numel() for p in result.model.parameters()),
     }
     (out / "training.json").write_text(json.dumps(report, indent=2))
     write_stamp(out, args.argv)
+    _print_training(report, result, metrics, threshold)
+    print(f"model:  {model_out} sha256 {report['sha256']}")
+    print(f"report: {out / 'training.json'}\nplots:  {plot}, {threshold['plot']}")
+    return 0
+
+
+def _metrics_at_half(model, sets: dict) -> dict:
+    """Loss, classification metrics at score 0.5 and the mean score by kind of pair, on the val and test pairs."""
+    from .training import classification_metrics, predict
+
+    metrics = {}
+    for name in ("val", "test"):
+        scores, loss = predict(model, sets[name])
+        metrics[name] = {"loss": loss, **classification_metrics(scores, sets[name].label)}
+        metrics[name]["by_kind_mean_score"] = {kind: float(scores[sets[name].kind == code].mean())
+                                               for code, kind in enumerate(("positive", "hard_negative", "random"))}
+    return metrics
+
+
+def _validation_threshold(args: argparse.Namespace, cache, val_pairs, model_out: Path, out: Path) -> dict:
+    """tau on the validation frame pairs only (the held-out test pairs are for `twohr matcher eval`): the sweep,
+    mutual NN and the ratio tests on the same pairs, the tau chosen and why, and the sweep's plot."""
+    from twohr.config import MatcherConfig
+    from twohr_services.matcher.core import SiameseMatcher, mutual_nn, ratio_test
+
+    from .evaluation import evaluate_matchers, threshold_sweep
+
+    baselines = {"mutual NN": lambda a, b: mutual_nn(a, b)}
+    for ratio in RATIOS:
+        baselines[f"ratio {ratio:g}"] = partial(ratio_test, ratio=ratio)
+    baseline_summaries = evaluate_matchers(cache, val_pairs, baselines)[0]
+    baseline = baseline_summaries["mutual NN"]
+    ratio_rows = [{"ratio": ratio, "ms_3px": baseline_summaries[f"ratio {ratio:g}"].matching_score["3px"],
+                   "mma_3px": baseline_summaries[f"ratio {ratio:g}"].mma["3px"]} for ratio in RATIOS]
+    siamese = SiameseMatcher(MatcherConfig(candidates=args.candidates), model_file=model_out)
+    sweep = [{"tau": tau, "ms_3px": s.matching_score["3px"], "mma_3px": s.mma["3px"],
+              "matches_per_pair": s.matches_per_pair}
+             for tau, s in threshold_sweep(cache, val_pairs, siamese, TAU_GRID).items()]
+    baseline_row = {"ms_3px": baseline.matching_score["3px"], "mma_3px": baseline.mma["3px"],
+                    "matches_per_pair": baseline.matches_per_pair}
+    tau, rule = choose_threshold(sweep, baseline_row)
+    plot = _plot_sweep(sweep, baseline_row, ratio_rows, tau, out / "threshold_sweep_val.png")
+    return {"sweep": sweep, "baseline": baseline_row, "ratios": ratio_rows, "tau": tau, "rule": rule, "plot": plot}
+
+
+def _print_training(report: dict, result, metrics: dict, threshold: dict) -> None:
     print(f"trained {report['parameters']} parameters in {result.seconds:.0f} s (kept epoch {result.best_epoch})")
     for name in ("val", "test"):
         m = metrics[name]
         print(f"{name:4} pairs at score 0.5: accuracy {m['accuracy']:.3f} precision {m['precision']:.3f} "
               f"recall {m['recall']:.3f} (loss {m['loss']:.4f})")
+    baseline_row, sweep = threshold["baseline"], threshold["sweep"]
     print(f"validation M.S./MMA @3px: mutual NN {baseline_row['ms_3px']:.3f}/{baseline_row['mma_3px']:.3f}; "
           "Siamese " + ", ".join(f"tau {r['tau']:g}: {r['ms_3px']:.3f}/{r['mma_3px']:.3f}" for r in sweep[::4]))
-    print(f"chosen tau {tau:g} ({rule}); use it as matcher.threshold")
-    print(f"model:  {model_out} sha256 {report['sha256']}")
-    print(f"report: {out / 'training.json'}\nplots:  {plot}, {plot_sweep}")
-    return 0
+    print(f"chosen tau {threshold['tau']:g} ({threshold['rule']}); use it as matcher.threshold")
 
 
 def _plot_sweep(sweep: list[dict], baseline: dict, ratio_rows: list[dict], tau: float, path: Path) -> Path:

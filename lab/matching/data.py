@@ -26,6 +26,7 @@ from twohr.config import DetectorConfig
 from twohr.dataset import RGBDSequence
 from twohr.errors import DatasetError
 from twohr.features import Keypoints, descriptor_distances
+from twohr.files import AS_OPEN, replacing
 from twohr.geometry import depth_at_pixels, invert_pose
 from twohr_lab.pairs import depth_agrees, frame_poses, in_image, project_into, relative_pose
 
@@ -85,11 +86,10 @@ class KeypointCache:
         for index in tqdm(todo, desc="keypoints", unit="frame", disable=not progress):
             frame = self.sequence.read(index)
             kp = detector.detect(frame.rgb)
-            target = self.path(index)
-            tmp = target.with_suffix(".tmp.npz")
-            np.savez(tmp, xy=kp.xy.astype(np.float32), descriptors=kp.descriptors.astype(np.float16),
-                     scores=kp.scores.astype(np.float32), depth=depth_at_pixels(frame.depth, kp.xy).astype(np.float32))
-            tmp.replace(target)
+            with replacing(self.path(index), AS_OPEN) as out:
+                np.savez(out, xy=kp.xy.astype(np.float32), descriptors=kp.descriptors.astype(np.float16),
+                         scores=kp.scores.astype(np.float32),
+                         depth=depth_at_pixels(frame.depth, kp.xy).astype(np.float32))
 
     def load(self, index: int) -> CachedFrame:
         path = self.path(index)

@@ -43,6 +43,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from twohr.files import AS_OPEN, replacing
+
 from .data import IMAGENET_MEAN, IMAGENET_STD, images_dir, list_images, models_dir, read_rgb, split, spread
 from .model import FASTER2D2_MACS_PER_PIXEL, StudentNet, export_onnx, macs_per_pixel, parameter_count
 
@@ -195,10 +197,9 @@ def learning_rate(step: int, steps: int, base: float) -> float:
 
 
 def _save(path: Path, model, optimiser, step: int, history: list[dict], conf: TrainConfig) -> None:
-    tmp = path.with_suffix(".tmp")
-    torch.save({"model": model.state_dict(), "optimiser": optimiser.state_dict(), "step": step,
-                "history": history, "config": asdict(conf)}, tmp)
-    tmp.replace(path)
+    with replacing(path, AS_OPEN) as out:
+        torch.save({"model": model.state_dict(), "optimiser": optimiser.state_dict(), "step": step,
+                    "history": history, "config": asdict(conf)}, out)
 
 
 def train(images_dir: str | Path, out_dir: str | Path, steps: int, teacher: str | Path = TEACHER,

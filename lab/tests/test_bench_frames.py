@@ -7,7 +7,7 @@ import numpy as np
 from twohr.config import load_config
 from twohr.dataset import RGBDSequence
 from twohr_app.pipeline import run_sequence
-from twohr_lab.bench import FramesInMemory, frames_fit_in_memory, memory_available_mib
+from twohr_lab.bench.steps.frames import FramesInMemory, frames_fit_in_memory, memory_available_mib
 
 
 def test_frames_held_in_memory_are_the_sequences_own_handed_out_afresh(synthetic_sequence):

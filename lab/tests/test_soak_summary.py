@@ -1,6 +1,6 @@
 """The soak's summary: RSS growth after a warm-up and FPS drift, scaled to the soak's length."""
 
-from twohr_lab.live import soak_summary
+from twohr_lab.bench.steps.camera_sessions import soak_summary
 
 
 def _row(minutes: int, growth_per_minute: float) -> dict:

@@ -1,7 +1,7 @@
 """One-at-a-time sensitivity of the dev ATE to the pipeline's settings: a thin loop over ``run_sequence``.
 
 Each swept value is one ``twohr run`` with that ``--set`` on top of the others; in ``every_frame`` mode
-the networks run once and the runs share their outputs (:class:`~twohr_lab.bench.FrontCache`)::
+the networks run once and the runs share their outputs (:class:`~twohr_lab.bench.steps.front_cache.FrontCache`)::
 
     .venv/bin/python -m twohr_lab.tracking.sensitivity --frames 560 --set pipeline.synchronous=true \\
         --sweep tracker.huber_px=1,4 --sweep tracker.match_radius_px=15,40 --out runs/sensitivity
@@ -58,7 +58,7 @@ def run_point(sequence, config: PipelineConfig, start: int, stop: int | None, st
 def sweep(sequence, config_file: str | None, overrides: list[str], sweeps: list[tuple[str, list]], start: int = 0,
           stop: int | None = None, step: int = 1, progress: bool = True) -> list[dict]:
     """Rows of the sensitivity table: the defaults first, then each swept value with the others unchanged."""
-    from ..bench import FrontCache
+    from ..bench.steps.front_cache import FrontCache
 
     fronts = FrontCache()
     base = load_config(config_file, overrides)

@@ -3,7 +3,7 @@
 The baseline is plain frame-to-frame RGB-D VO: mutual-NN matches to the previous frame, back-projected
 with its depth, RANSAC PnP, no map and no refinement (the "simple system" of ../shared/README.md). Both
 get the same keypoints, with the pipeline's dynamic mask applied (the front end of ``twohr run``, run
-once and shared through :class:`~twohr_lab.bench.FrontCache`), so only the back ends differ::
+once and shared through :class:`~twohr_lab.bench.steps.front_cache.FrontCache`), so only the back ends differ::
 
     .venv/bin/python -m twohr_lab.tracking.vo_bench --frames 560 --repeats 3 --out runs/vo_bench
 
@@ -32,7 +32,7 @@ from twohr.trajectory import Trajectory
 from twohr_services.tracker.tracking import Tracker
 from twohr_services.tracker.trajectory import AnchoredTrajectory
 
-from ..bench import FrontCache
+from ..bench.steps.front_cache import FrontCache
 from ..stamp import provenance
 
 

@@ -17,8 +17,8 @@ from pydantic import BaseModel, ValidationError
 
 from twohr.config import DetectorConfig
 from twohr.errors import ModelError
+from twohr.files import write_atomic
 from twohr.machine import machine
-from twohr.mapfile import write_bytes_atomically
 from twohr.models import auto_candidates, cache_dir, get_spec, resolve_backend
 
 from .networks import R2D2Network, time_network
@@ -88,7 +88,7 @@ def keep_auto_choice(path: Path, key: str, choice: AutoChoice) -> None:
     choices[key] = choice
     data = json.dumps({k: v.model_dump() for k, v in choices.items()}, indent=1).encode()
     try:
-        write_bytes_atomically(path, data)
+        write_atomic(path, data, durable=True, folder_mode=0o700)
     except OSError as exc:
         log.warning("detector.model=auto cannot keep its choice in %s (%s): every process times again", path, exc)
 

@@ -1,114 +1,39 @@
-"""The audit trail: who started, stopped or failed a session, who saved, uploaded, rolled back or deleted a map, who
-was granted a map and who was added or revoked, with the time, as JSON lines appended to one private file (0600),
-``audit.jsonl`` in the recordings folder unless ``--audit-log`` says otherwise. The operator reads it with
+"""The gateway's part of the audit trail (:mod:`twohr.audit`: one trail of JSON lines, private, append-only, that
+the gateway, the map room and ``twohr maps`` append to; ``MAPS/audit.jsonl`` under ``twohr up`` and compose,
+``audit.jsonl`` in the recordings folder unless ``--audit-log`` says otherwise). The operator reads it with
 ``GET /audit``; a robot's token gets 403.
 
-The gateway logs what it does itself (sessions; maps over HTTP and on the bus). What the operator does in the keys
-folder it notices: :class:`KeysWatch` looks at the robots' tokens (``tokens.json``, their digests too: a token
-replaced between two looks is a revocation and an addition), the router's list of replicas (``robots.json``) and
-the map grants (``grants.json``) four times a second, and at start compares them with what it last saw (a private
-``.audit-seen.json`` beside the log), so that a grant or a revocation made while no stack ran is logged at the next
-start. ``twohr maps rollback`` (no stack running) appends to the same file. Lines are only ever appended (``O_APPEND``,
-one ``write`` each, fsynced); nothing here rewrites or truncates the log."""
+The gateway logs what it does itself (sessions; maps over HTTP); the map room logs the saves it makes. What the
+operator does in the keys folder the gateway notices: :class:`KeysWatch` looks at the robots' tokens
+(``tokens.json``, their digests too: a token replaced between two looks is a revocation and an addition), the
+router's list of replicas (``robots.json``) and the map grants (``grants.json``) four times a second, and at start
+compares them with what it last saw (a private ``.audit-seen.json`` beside the log), so that a grant or a revocation
+made while no stack ran is logged at the next start."""
 
 from __future__ import annotations
 
-import datetime
 import json
 import logging
-import os
-import tempfile
 import threading
-import time
 from pathlib import Path
-from typing import Literal
 
-from pydantic import BaseModel, Field, ValidationError, field_validator
+from pydantic import BaseModel, Field, field_validator
 
-from twohr.mapfile import OPERATOR, MapGrants
+from twohr.audit import STACK as STACK
+from twohr.audit import AuditEvent as AuditEvent
+from twohr.audit import AuditLog
+from twohr.files import write_atomic
+from twohr.mapfile import OPERATOR
+from twohr.mapstore import MapGrants
 
 from .tokens import WatchedFile, parse_tokens
 
 log = logging.getLogger("twohr.gateway")
 
-#: the identity of what the stack does by itself: a session that finished or failed
-STACK = "@stack"
-#: the audit events, by what happened
-Action = Literal["session.start", "session.stop", "session.finish", "session.fail", "session.move", "map.save",
-                 "map.upload", "map.rollback", "map.delete", "map.grant", "map.ungrant", "map.remove_robot",
-                 "robot.add", "robot.revoke"]
 SEEN_FILE = ".audit-seen.json"
 #: the router's list of the robots and replicas not revoked, in its key folder
 ROUTER_LIST = "robots.json"
 WATCH_PERIOD_S = 0.25
-
-
-class AuditEvent(BaseModel):
-    """One line of the audit trail."""
-
-    time: float = Field(description="when it was logged (Unix time)")
-    utc: str = Field(description="the same time, ISO 8601 in UTC")
-    action: Action
-    who: str = Field(description=f"who did it: a robot id, {OPERATOR} (the operator's token, the keys folder, "
-                     f"twohr maps) or {STACK} (the stack: a session that finished or failed)")
-    robot: str | None = Field(None, description="the robot acted on or for")
-    session: str | None = None
-    map: str | None = None
-    version: int | None = Field(None, description="the map version made (saved, uploaded, rolled back to)")
-    detail: str = ""
-
-
-class AuditLog:
-    """The append-only audit trail in ``path`` (None: events are made and dropped, for a gateway with no log)."""
-
-    def __init__(self, path: Path | None) -> None:
-        self.path = path
-        self._lock = threading.Lock()
-
-    def record(self, action: Action, who: str, **fields) -> AuditEvent:
-        """Append one event; a log that cannot be written is an error in the gateway's log, not in the request."""
-        now = time.time()
-        event = AuditEvent(time=now, utc=datetime.datetime.fromtimestamp(now, datetime.timezone.utc).isoformat(
-            timespec="milliseconds"), action=action, who=who, **fields)
-        if self.path is None:
-            return event
-        line = (event.model_dump_json(exclude_none=True) + "\n").encode()
-        try:
-            with self._lock:
-                append_private(self.path, line)
-        except OSError as exc:
-            log.error("audit trail %s not written (%s): %s", self.path, exc.strerror or exc, line.decode().strip())
-        return event
-
-    def read(self, limit: int = 1000, since: float | None = None) -> list[AuditEvent]:
-        """The newest ``limit`` events (from ``since``, Unix time, if given), oldest first. A line that is not an
-        event (cut short by a power loss) is left out and logged."""
-        if self.path is None or not self.path.is_file():
-            return []
-        events = []
-        for number, line in enumerate(self.path.read_bytes().splitlines(), 1):
-            try:
-                event = AuditEvent.model_validate_json(line)
-            except ValidationError:
-                log.warning("audit trail %s line %d is not an event", self.path, number)
-                continue
-            if since is None or event.time >= since:
-                events.append(event)
-        return events[-limit:]
-
-
-def append_private(path: Path, data: bytes) -> None:
-    """Append ``data`` to ``path`` in one write, creating it readable by its owner only (0600); a file found wider
-    is narrowed first."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
-    try:
-        if os.fstat(handle).st_mode & 0o077:
-            os.fchmod(handle, 0o600)
-        os.write(handle, data)
-        os.fsync(handle)
-    finally:
-        os.close(handle)
 
 
 class KeysState(BaseModel):
@@ -247,15 +172,7 @@ class KeysWatch:
             return None
 
     def _save_seen(self, state: KeysState) -> None:
-        self.seen_file.parent.mkdir(parents=True, exist_ok=True)
-        handle, temporary = tempfile.mkstemp(prefix=f"{SEEN_FILE}.", suffix=".tmp", dir=self.seen_file.parent)
-        try:
-            with os.fdopen(handle, "w") as out:
-                out.write(state.model_dump_json())
-            os.replace(temporary, self.seen_file)
-        except BaseException:
-            Path(temporary).unlink(missing_ok=True)
-            raise
+        write_atomic(self.seen_file, state.model_dump_json())
 
 
 def _pairs(ours: dict[str, dict[str, str]], theirs: dict[str, dict[str, str]]) -> list[tuple[str, str, str]]:

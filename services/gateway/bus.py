@@ -1,14 +1,13 @@
 """The gateway's side of the bus: it follows poses, statuses and service liveliness into the session table,
 sends control messages, and ends sessions: finished (with their ATE), or failed when a service they need dies,
-rejects their config, or the pipeline stalls. It also keeps the map store on the bus (``--maps``). No HTTP here; the
-routers in ``routes/`` call it."""
+rejects their config, or the pipeline stalls. No HTTP here; the routers in ``routes/`` call it. The maps and the
+sessions' map snapshots on the bus are the map room's (``twohr_services.mapserver``)."""
 
 from __future__ import annotations
 
 import logging
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 
 import zenoh
 
@@ -19,7 +18,6 @@ from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
 from twohr.evaluation import evaluate
 from twohr.keys import PIPELINE_SERVICES
-from twohr.mapfile import OPERATOR, MapAccessError, MapFileError, MapMissingError, MapStore
 from twohr.mapmodes import MapMode
 from twohr.messages import (
     ControlMsg,
@@ -34,23 +32,14 @@ from twohr.messages import (
 )
 from twohr.service import declare_publisher
 
-from .admission import least_loaded_tracker, stack_trackers
 from .audit import STACK, AuditLog
 from .live import BusLiveView, live_access
 from .ownership import Grants
 from .sessions import Session, SessionTable
 from .tokens import Tokens
+from .trackers import TrackerKind, Trackers, TrackerState
 
 log = logging.getLogger("twohr.gateway")
-
-#: threads that read and save map files for the map store's queries: a save waiting on the store (another save, a
-#: slow disk) takes one, and reads and other saves go on in the others
-MAP_STORE_WORKERS = 4
-
-
-#: a session's detail while its robot's own tracker (``twohr camera --edge``) is out of reach: the robot tracks on
-OWN_TRACKER_AWAY = "the robot's own tracker is out of reach (its link or its process): its poses come back with it"
-
 
 class GatewayBus:
     """The gateway's Zenoh session and what it does with it (``settings`` is a ``GatewaySettings``; ``audit``: the
@@ -64,7 +53,8 @@ class GatewayBus:
         self.table = table
         self.audit = audit or AuditLog(None)
         self.grants = grants or Grants(None)
-        self.alive: dict[str, set[str]] = {}  # service -> its replicas whose liveliness token is up
+        self.alive: dict[str, set[str]] = {}  # service -> its replicas whose liveliness token is up (not the tracker)
+        self.trackers = Trackers(table)  # the trackers: which are alive, where sessions go, where they move
         self._gone: dict[str, float] = {}  # pipeline service -> when its token went, while it has not come back
         self._linked_since: float | None = 0.0  # when this gateway's own link to a router last came up
         self.session: zenoh.Session | None = None
@@ -73,7 +63,6 @@ class GatewayBus:
         self._live: BusLiveView | None = None
         self._stop = threading.Event()
         self._monitor: threading.Thread | None = None
-        self._map_store: ThreadPoolExecutor | None = None
 
     def start(self) -> None:
         """Open the session, follow poses, statuses and liveliness, and start the session monitor."""
@@ -82,17 +71,9 @@ class GatewayBus:
             self.session.declare_subscriber(keys.all_robots("pose"), self._decoded(PoseMsg, self.table.on_pose)),
             self.session.declare_subscriber(keys.all_robots("status"), self._decoded(StatusMsg, self._on_status)),
             self.session.declare_subscriber(keys.all_robots("path"), self._on_path),
-            # each session's latest map snapshot, kept here for the tracker it moves to when its own dies
-            self.session.declare_subscriber(keys.snapshot_key(), self._on_snapshot),
             self.session.declare_subscriber(keys.merged_key(), self._decoded(MergeMsg, self.table.on_merge)),
-            self.session.declare_queryable(keys.snapshot_key(), self._serve_snapshot),
             self.session.liveliness().declare_subscriber(keys.alive_key("*"), self._on_liveliness,
                                                          history=True)]
-        if self.settings.maps is not None:  # the map store: read by trackers and clients, written by trackers
-            self._map_store = ThreadPoolExecutor(MAP_STORE_WORKERS, thread_name_prefix="map-store")
-            self._subscribers += [
-                self.session.declare_queryable(f"{keys.MAPS_PREFIX}/*", self._handed_on(self._read_map)),
-                self.session.declare_queryable(f"{keys.MAPS_PREFIX}/*/save", self._handed_on(self._save_map))]
         if self.settings.foxglove_port:
             tls, authorize = live_access(self.settings, self.tokens)
             self._live = BusLiveView(self.session, self.settings.foxglove_host, self.settings.foxglove_port,
@@ -101,7 +82,7 @@ class GatewayBus:
         self._monitor.start()
 
     def close(self) -> None:
-        """Stop the monitor and the live view, answer the map queries already taken, and close the session."""
+        """Stop the monitor and the live view, and close the session."""
         self._stop.set()
         if self._monitor is not None:
             self._monitor.join(timeout=2)
@@ -109,95 +90,13 @@ class GatewayBus:
             self._live.close()
         for sub in self._subscribers:
             sub.undeclare()
-        if self._map_store is not None:  # no new queries come: the ones taken are answered before the session goes
-            self._map_store.shutdown(wait=True)
         if self.session is not None:
             self.session.close()
-
-    def _handed_on(self, answer):
-        """A queryable callback that hands each query to the map store's workers, which run ``answer(query)``: the
-        file I/O stays off Zenoh's callback thread, which takes the next query at once. The query object travels
-        with the work (it is answered there) and is dropped once answered, which ends it for the caller."""
-        def callback(query: zenoh.Query) -> None:
-            try:
-                self._map_store.submit(self._answer, answer, query)
-            except RuntimeError:  # shut down: the gateway is closing
-                query.reply_err(b"the gateway is closing")
-                query.drop()
-        return callback
-
-    @staticmethod
-    def _answer(answer, query: zenoh.Query) -> None:
-        """Run ``answer(query)`` on a worker; whatever it raises is logged (the query is ended either way)."""
-        try:
-            answer(query)
-        except Exception:
-            log.exception("map store query %s failed", query.key_expr)
-        finally:
-            query.drop()
-
-    def _read_map(self, query: zenoh.Query) -> None:
-        """``twohr/maps/<name>``: the latest version's bytes of a map in the store."""
-        try:
-            name = keys.parse_map_key(query.key_expr)
-            query.reply(query.key_expr, MapStore(self.settings.maps).latest_file(name).read_bytes())
-        except (FileNotFoundError, MapMissingError):
-            query.reply_err(f"no map named {name!r} in the map store".encode())
-        except (ValueError, MapFileError, OSError) as exc:  # a key naming no single map, a bad file
-            query.reply_err(str(exc).encode())
-
-    def _save_map(self, query: zenoh.Query) -> None:
-        """``twohr/maps/<name>/save`` with a map file's bytes: checked, kept as the map's next version. The tracker
-        attaches the id of the session that built it: the session's robot is its builder (the owner of a new map, a
-        contributor to another's), and replacing an existing map needs whoever started the session to own it or
-        hold the operator's grant. Only
-        the tracker may save (the bus's access control); a save naming no session is the stack's, the operator's."""
-        name, session = str(query.key_expr), None
-        try:
-            name = keys.parse_map_key(query.key_expr, save=True)
-            if query.payload is None:
-                raise MapFileError("a save carries the map file's bytes")
-            session = self._saving_session(query, name)
-            builder, starter = (OPERATOR, OPERATOR) if session is None else (session.request.robot_id,
-                                                                            session.started_by)
-            entry = MapStore(self.settings.maps, self.settings.map_versions).save(
-                query.payload.to_bytes(), name, builder=builder,
-                may_replace=lambda owners: self.grants.may_change(starter, name, owners))
-            log.info("map %s version %d saved (%d keyframes, %d bytes)", name, entry.version, entry.keyframes,
-                     entry.size_bytes)
-            by_session = {} if session is None else {"robot": builder, "session": session.id}
-            self.audit.record("map.save", STACK if session is None else starter, map=name, version=entry.version,
-                              detail=f"owners {', '.join(entry.owners)}" + (
-                                  f"; contributors {', '.join(entry.contributors)}" if entry.contributors else ""),
-                              **by_session)
-            query.reply(query.key_expr, entry.model_dump_json())
-        except (ValueError, MapFileError, OSError) as exc:  # a key naming no single map, a bad file, not theirs
-            log.warning("map %s not saved: %s", name, exc)
-            if isinstance(exc, MapAccessError) and session is not None:
-                self.audit.record("map.save", session.started_by, robot=session.request.robot_id, map=name,
-                                  session=session.id, detail=f"refused: {exc}")
-            query.reply_err(str(exc).encode())
-
-    def _saving_session(self, query: zenoh.Query, name: str) -> Session | None:
-        """The session a save's attachment names (None: it names none); :class:`MapAccessError` when that is no
-        session of this gateway that builds or extends map ``name``."""
-        if query.attachment is None:
-            return None
-        session_id = query.attachment.to_bytes().decode(errors="replace")[:64]
-        session = self.table.get(session_id)
-        wanted = None if session is None else session.request.map
-        # a shared map is saved by the map server, and a robot of it that never merged as map <name>.<robot>
-        names = (wanted.name, f"{wanted.name}.{session.request.robot_id}") if wanted and wanted.mode.shared else (
-            () if wanted is None else (wanted.name,))
-        if wanted is None or name not in names or not wanted.mode.saves:
-            raise MapAccessError(f"session {session_id!r} is no session of this gateway that builds, extends or "
-                                 f"shares map {name}")
-        return session
 
     def missing_services(self) -> list[str]:
         """The pipeline services whose liveliness token is not up."""
         return [name for name in PIPELINE_SERVICES if not (
-            stack_trackers(self.alive.get(name, set())) if name == "tracker" else self.alive.get(name))]
+            self.trackers.alive(TrackerKind.STACK) if name == "tracker" else self.alive.get(name))]
 
     def send_control(self, session: Session, command: str, config: PipelineConfig | None = None) -> None:
         """Publish a start, stop or move of ``session`` on ``twohr/<robot>/control`` (with ``config``, or the
@@ -205,7 +104,6 @@ class GatewayBus:
         for up to ``refine_timeout``."""
         req = session.request
         if command == "stop":
-            session.snapshot = None
             if session.poses:
                 session.refined_due = time.time() + self.settings.refine_timeout
         control = ControlMsg(session_id=session.id, robot_id=req.robot_id, frame_index=-1, stamp=time.time(),
@@ -252,52 +150,21 @@ class GatewayBus:
         if session is not None:
             self._score(session)
 
-    def _snapshot_session(self, key_expr, attachment) -> Session | None:
-        """The active session a snapshot key and its attachment (the session's id) name, or None."""
-        try:
-            robot = str(key_expr).split("/")[1]
-            session_id = attachment.to_bytes().decode(errors="replace") if attachment is not None else ""
-        except IndexError:
-            return None
-        session = self.table.active_for_robot(robot)
-        return session if session is not None and session.id == session_id else None
-
-    def _on_snapshot(self, sample) -> None:
-        """A tracker's latest copy of a session's map: kept while the session is active (the previous one goes)."""
-        session = self._snapshot_session(sample.key_expr, sample.attachment)
-        if session is not None:
-            session.snapshot = sample.payload.to_bytes()
-
-    def _serve_snapshot(self, query: zenoh.Query) -> None:
-        """``twohr/<robot>/map/snapshot``, the session's id attached: the latest snapshot of its map, for the
-        tracker the session moved to."""
-        session = self._snapshot_session(query.key_expr, query.attachment)
-        if session is None or session.snapshot is None:
-            query.reply_err(b"no snapshot of this session's map")
-        else:
-            query.reply(query.key_expr, session.snapshot)
-
     def _move_sessions(self, replica: str) -> None:
         """The sessions of a tracker that died go to the least loaded of the others, each told to go on in its
-        map's latest snapshot (``move``); with no other tracker alive, they fail."""
-        others = stack_trackers(self.alive.get("tracker", set()) - {replica})
-        for session in self.table.active():
-            if session.tracker != replica:
-                continue
-            if keys.edge_robot(replica) is not None:  # its frames are the robot's: none reach another tracker
-                session.detail = OWN_TRACKER_AWAY
-                log.warning("session %s: the robot's own tracker %s is out of reach", session.id, replica)
-                continue
-            target = least_loaded_tracker(others, self.table, always=True)
-            if not target:
-                session.state, session.detail = "failed", f"its tracker {replica} stopped during the session"
-                self._fail(session)
-                continue
-            session.tracker, session.moves = target, session.moves + 1
+        map's latest snapshot (``move``); with no other tracker alive, they fail. A robot's own tracker's wait for it
+        (:meth:`Trackers.rehome`)."""
+        rehomed = self.trackers.rehome(replica)
+        for session in rehomed.away:
+            log.warning("session %s: the robot's own tracker %s is out of reach", session.id, replica)
+        for session in rehomed.failed:
+            session.state, session.detail = "failed", f"its tracker {replica} stopped during the session"
+            self._fail(session)
+        for session in rehomed.moved:
+            target = session.tracker
             log.warning("session %s: its tracker %s stopped; it moves to tracker %s", session.id, replica, target)
             self.audit.record("session.move", STACK, robot=session.request.robot_id, session=session.id,
-                              detail=f"tracker {replica} stopped; now on {target}" + (
-                                  "" if session.snapshot else ", with no map snapshot"))
+                              detail=f"tracker {replica} stopped; now on {target}")
             self.send_control(session, "move")
 
     def _score(self, session: Session) -> None:
@@ -332,19 +199,30 @@ class GatewayBus:
             name, replica = keys.parse_replica_key(sample.key_expr)
         except ValueError:
             return
+        if name == "tracker":
+            self._on_tracker(replica, up=sample.kind == zenoh.SampleKind.PUT)
+            return
         replicas = self.alive.setdefault(name, set())
         if sample.kind == zenoh.SampleKind.PUT:
             replicas.add(replica)
-            for session in self.table.active():  # a robot's own tracker in reach again
-                if session.tracker == replica and session.detail == OWN_TRACKER_AWAY:
-                    session.detail = ""
             return
         replicas.discard(replica)
-        # an optional service (the ros2 bridge) is not part of a session's pipeline; a robot's own tracker is not
-        # the stack's
-        if not (stack_trackers(replicas) if name == "tracker" else replicas) and name in PIPELINE_SERVICES:
+        # an optional service (the ros2 bridge) is not part of a session's pipeline
+        if not replicas and name in PIPELINE_SERVICES:
             self._gone.setdefault(name, time.monotonic())
-        elif name == "tracker":  # the sessions placed on this one have lost their tracker
+
+    def _on_tracker(self, replica: str, up: bool) -> None:
+        """A tracker's token came (a robot's own tracker back in reach: its sessions go on) or went: the tracker
+        service is gone with the stack's last tracker (a robot's own is not the stack's); else the sessions placed
+        on this one have lost their tracker."""
+        if up:
+            for session in self.trackers.came(replica):
+                log.info("session %s: the robot's own tracker %s is in reach again", session.id, replica)
+            return
+        self.trackers.went(replica)
+        if not self.trackers.alive(TrackerKind.STACK):
+            self._gone.setdefault("tracker", time.monotonic())
+        else:  # one tracker of several
             self._gone.setdefault(f"tracker {replica}", time.monotonic())
 
     def _fail_for_gone_services(self) -> None:
@@ -361,8 +239,9 @@ class GatewayBus:
         if self._linked_since is None:
             self._linked_since = now
         for name, since in list(self._gone.items()):
-            service, _, replica = name.partition(" ")  # "tracker <replica>": one tracker of several
-            back = replica in self.alive.get(service, set()) if replica else name not in self.missing_services()
+            _, _, replica = name.partition(" ")  # "tracker <replica>": one tracker of several
+            back = (self.trackers.state(replica) is TrackerState.ALIVE if replica
+                    else name not in self.missing_services())
             if back or since < self._linked_since:
                 del self._gone[name]
             elif now - since >= self.settings.liveliness_grace:
@@ -372,7 +251,7 @@ class GatewayBus:
                     continue
                 # a session on a robot's own tracker needs none of the stack's trackers
                 def needs_it(session: Session, service: str = name) -> bool:
-                    return service != "tracker" or keys.edge_robot(session.tracker) is None
+                    return service != "tracker" or self.trackers.needs_stack(session)
 
                 for session in self.table.fail_active(f"the {name} service stopped during the session", needs_it):
                     self._fail(session)

@@ -7,7 +7,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from twohr.mapfile import OPERATOR, MapGrants
+from twohr.mapfile import OPERATOR
+from twohr.mapstore import MapGrants, may_change
 
 from .tokens import WatchedFile
 
@@ -33,6 +34,6 @@ class Grants:
         return self._file.current()
 
     def may_change(self, who: str, name: str, owners: list[str]) -> bool:
-        """Whether identity ``who`` may build or extend map ``name`` owned by ``owners`` (a map's contributors have
-        no right of their own: a robot that changed it under a grant needs the grant again)."""
-        return who == OPERATOR or who in owners or self.current().allows(who, name)
+        """Whether identity ``who`` may build or extend map ``name`` owned by ``owners``, with the grants in force
+        (:func:`twohr.mapstore.may_change`, the rule the map room checks a save with)."""
+        return may_change(who, name, owners, self.current())

@@ -211,8 +211,6 @@ class Session:
     """the tracker replica serving it ('' = every tracker: a stack with one)"""
     config: PipelineConfig | None = None
     """the pipeline config it runs with (a tracker it moves to is given it again)"""
-    snapshot: bytes | None = None
-    """the latest snapshot of its map its tracker sent (a map file's bytes), while it is active"""
     moves: int = 0
     merge: MergeOut | None = None
     """where a session that shares a map was placed in the map's frame"""

@@ -109,7 +109,8 @@ class CrossMatch:
 @dataclass
 class MergeEvent:
     """A robot placed in the map's frame: ``kind`` ``merged`` (found by its places), ``defines`` (its frame is the
-    map's) or ``joined`` (it tracks in the stored map); ``T`` its frame into the map's."""
+    map's), ``joined`` (it tracks in the stored map) or ``refined`` (a merged robot's transform moved by its later
+    matches); ``T`` its frame into the map's."""
 
     robot: str
     session: str

@@ -7,7 +7,6 @@ once, so every consumer decodes exactly the pixels that ``twohr run`` reads from
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -56,30 +55,3 @@ def frame_payloads(sequence: RGBDSequence, session_id: str, robot_id: str, start
             "depth": encoded_image("depth", record.depth_path.read_bytes(), "png", "uint16", (height, width)),
         }
         yield PlaybackItem(index, stamp, encode(message, blobs=blobs))
-
-
-class Pacer:
-    """Real-time pacing: ``rate`` 1 plays at the recorded speed, 2 twice as fast, 0 does not wait."""
-
-    def __init__(self, rate: float) -> None:
-        self.rate = rate
-        self.t0_wall: float | None = None
-        self.t0_stamp = 0.0
-
-    def restart(self) -> None:
-        """The next frame is due at once; the ones after it at the rate from there."""
-        self.t0_wall = None
-
-    def wait(self, stamp: float, stop: threading.Event | None = None) -> None:
-        if self.rate <= 0:
-            return
-        if self.t0_wall is None:
-            self.t0_wall, self.t0_stamp = time.monotonic(), stamp
-            return
-        due = self.t0_wall + (stamp - self.t0_stamp) / self.rate
-        delay = due - time.monotonic()
-        if delay > 0:
-            if stop is not None:
-                stop.wait(delay)
-            else:
-                time.sleep(delay)

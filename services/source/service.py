@@ -21,10 +21,10 @@ from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
 from twohr.messages import ControlMsg, PoseMsg, StatusMsg, decode
 from twohr.paths import resolve_under_roots
-from twohr.rates import CameraRelay
+from twohr.rates import CameraRelay, ReplayPacer
 from twohr.service import Service, one_line_errors, service_parser
 
-from .core import Pacer, frame_payloads
+from .core import frame_payloads
 
 #: a paced replay waits at most this long for its first frame's answer before it plays on regardless
 FIRST_ANSWER_TIMEOUT_S = 15.0
@@ -108,7 +108,7 @@ class SourceService(Service):
         except TwohrError as exc:
             self.report(control, "error", str(exc))
             return
-        pacer = Pacer(control.rate)
+        pacer = ReplayPacer(speed=control.rate)
         frames_key = keys.key(control.robot_id, "frames")
         stop = len(sequence) if control.max_frames is None else min(len(sequence), control.start + control.max_frames)
         self.report(control, "started", sequence.name, frames=max(0, stop - control.start))

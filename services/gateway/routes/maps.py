@@ -1,8 +1,10 @@
 """``/maps``: the map store over HTTP (``--maps DIR``): list, download (the latest version or a kept one), upload
 (checked through first), roll back, remove. Every robot's token reads; uploads, rollbacks and removals are the
-operator's, and go into the audit trail.
+operator's, and go into the audit trail (an upload's and a rollback's under the store's lock, as the map room's
+saves).
 
-The store is the same folder the gateway serves on the bus (``twohr/maps/<name>``, see ``..bus``)."""
+The store is the folder the map room serves on the bus (``twohr/maps/<name>``, ``twohr_services.mapserver``), read
+and written here through the store library (:mod:`twohr.mapstore`)."""
 
 from __future__ import annotations
 
@@ -13,7 +15,8 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
-from twohr.mapfile import OPERATOR, MapEntry, MapFileError, MapMissingError, MapStore
+from twohr.mapfile import OPERATOR, MapFileError
+from twohr.mapstore import MapEntry, MapMissingError, MapStore
 
 from ..deps import Bus, Settings, Who, errors, require_token
 
@@ -70,12 +73,13 @@ async def upload_map(request: Request, store: Store, settings: Settings, bus: Bu
         if size > settings.max_map_bytes:
             raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, f"map over {settings.max_map_bytes} bytes")
         chunks.append(chunk)
+    def audited(entry: MapEntry) -> None:
+        bus.audit.record("map.upload", OPERATOR, map=entry.name, version=entry.version, detail=f"{size} bytes")
+
     try:  # checks and fsyncs: off the loop
-        entry = await run_in_threadpool(store.save, b"".join(chunks), name, builder=OPERATOR)
+        return await run_in_threadpool(store.save, b"".join(chunks), name, builder=OPERATOR, on_saved=audited)
     except MapFileError as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)[:2000]) from None
-    bus.audit.record("map.upload", OPERATOR, map=entry.name, version=entry.version, detail=f"{size} bytes")
-    return entry
 
 
 @router.post("/maps/{name}/rollback", response_model=MapEntry, responses=errors(401, 403, 404, 409, 422))
@@ -89,15 +93,16 @@ def rollback_map(name: str, store: Store, bus: Bus, who: Who, version: Annotated
         store.path(name)
     except MapFileError as exc:  # not a name a map can have
         raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
+    def audited(entry: MapEntry) -> None:
+        bus.audit.record("map.rollback", OPERATOR, map=name, version=entry.version,
+                         detail=f"version {entry.version} is version {version}'s bytes")
+
     try:
-        entry = store.rollback(name, version)
+        return store.rollback(name, version, on_saved=audited)
     except MapMissingError as exc:
         raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
     except MapFileError as exc:  # the latest already, or a kept file no longer readable
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)[:2000]) from None
-    bus.audit.record("map.rollback", OPERATOR, map=name, version=entry.version,
-                     detail=f"version {entry.version} is version {version}'s bytes")
-    return entry
 
 
 @router.delete("/maps/{name}", status_code=204, responses=errors(401, 403, 404))

@@ -15,21 +15,22 @@ from pathlib import Path
 from fastapi import APIRouter, Depends, HTTPException, status
 from fastapi.responses import FileResponse, PlainTextResponse
 
-from twohr import keys
 from twohr.config import PipelineConfig, load_config
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
-from twohr.mapfile import MapFileError, MapMissingError, MapStore, read_map
+from twohr.mapfile import MapFileError
+from twohr.mapstore import MapStore
 from twohr.mcapfile import is_finalised, partial_marker
 from twohr.models import get_spec, keyframe_network
 from twohr.paths import resolve_under_roots
 from twohr.trajectory import tum_text
 
-from ..admission import admit, tracker_for
+from ..admission import admit
 from ..deps import Bus, Caller, Settings, Table, Who, errors, require_token
 from ..ownership import Grants, identity
 from ..sessions import ACTIVE, MapRequest, PoseOut, Session, SessionInfo, SessionRequest, SessionTable
 from ..settings import GatewaySettings
+from ..trackers import PlacementRefused
 
 router = APIRouter(dependencies=[Depends(require_token)])
 _admitting = threading.Lock()
@@ -49,21 +50,20 @@ def validate_models(config: PipelineConfig) -> None:
 
 def check_map(wanted: MapRequest, config: PipelineConfig, maps: Path | None) -> None:
     """A session's map must be usable before the session starts: a store for it (``maps``), and for localize and
-    extend a readable map built with the session's detector model, for share one where the map is stored (422
-    otherwise, one line)."""
+    extend a stored map whose header reads and names the session's detector model, for share one where the map is
+    stored (422 otherwise, one line). The header alone is read: the services that load the map read it whole."""
     if maps is None:
         raise TwohrError("map: this gateway has no map store (start it with twohr up --maps DIR)")
     store = MapStore(maps)
     store.path(wanted.name)  # a name the store can keep, in every mode
     if not wanted.mode.reads_stored:
         return
-    try:
-        path = store.latest_file(wanted.name)
-    except MapMissingError:
+    header = store.header(wanted.name)
+    if header is None:
         if wanted.mode.stored_optional:
             return  # a new shared map: the first robot's frame will be its frame
-        raise TwohrError(f"map: no map named {wanted.name!r} in the map store (GET /maps lists them)") from None
-    read_map(path, detector=config.detector)
+        raise TwohrError(f"map: no map named {wanted.name!r} in the map store (GET /maps lists them)")
+    header.check_built_with(config.detector, str(store.latest_file(wanted.name)))
 
 
 def check_map_rights(wanted: MapRequest, who: Caller, maps: Path | None, grants: Grants) -> None:
@@ -153,12 +153,10 @@ def create_session(request: SessionRequest, settings: Settings, bus: Bus, table:
         if table.active_for_robot(request.robot_id):
             raise HTTPException(status.HTTP_409_CONFLICT, f"robot {request.robot_id} already runs a session")
         admit(request, table, settings.max_robots)
-        tracker = tracker_for(request, set(bus.alive.get("tracker", ())), table)
-        if keys.edge_robot(tracker) is not None and request.map is not None and not request.map.mode.edge_allowed:
-            raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY,
-                                f"robot {request.robot_id} tracks itself (twohr camera --edge): it may localize in "
-                                f"or share a map, but {request.map.mode.value} needs the stack's tracker (twohr camera "
-                                "without --edge)")
+        try:
+            tracker = bus.trackers.place(request)
+        except PlacementRefused as exc:
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, str(exc)) from None
         session = Session(id=uuid.uuid4().hex[:12], request=request, folder=folder, started_by=identity(who.robot),
                           tracker=tracker, config=config)
         table.add(session)
@@ -203,7 +201,7 @@ async def trajectory(session_id: str, bus: Bus, table: Table, who: Who, online: 
     ``X-Twohr-Trajectory`` says which (``refined`` or ``online``)."""
     session = lookup(table, session_id, who)
     while not online and session.refined is None and session.refined_due is not None and (
-            time.time() < session.refined_due) and "tracker" in bus.alive:
+            time.time() < session.refined_due) and bus.trackers.alive():
         await asyncio.sleep(0.1)
     refined = None if online else session.refined
     trajectory = session.trajectory() if refined is None else refined

@@ -13,8 +13,9 @@ import uvicorn
 
 from twohr import keys
 from twohr.bus import BusConfig, free_port, open_session
+from twohr.errors import ConfigError
 from twohr.keys import PIPELINE_SERVICES
-from twohr_services.gateway.admission import estimated_capacity, session_load
+from twohr_services.gateway.admission import parse_max_robots, session_load
 from twohr_services.gateway.app import create_app
 from twohr_services.gateway.sessions import SessionRequest
 from twohr_services.gateway.settings import GatewaySettings
@@ -83,4 +84,14 @@ def test_what_a_session_weighs():
     assert session_load(SessionRequest(source="camera", rate=60)) == 1.0  # no robot weighs more than its camera
     assert session_load(SessionRequest(sequence="s", rate=2)) == 2.0  # a replay at twice real time: two cameras
     assert session_load(SessionRequest(sequence="s", rate=0)) == 1.0
-    assert estimated_capacity(2) == 1.0 and estimated_capacity(16) == 8.0 and estimated_capacity(1) == 1.0
+
+
+def test_the_gateway_alone_reads_a_count_and_refuses_auto_in_one_line():
+    """``auto`` is what ``twohr up`` measures on its host; the gateway alone cannot, and says so."""
+    assert parse_max_robots("2") == 2.0 and parse_max_robots("1.5") == 1.5
+    with pytest.raises(ConfigError) as refused:
+        parse_max_robots("auto")
+    line = str(refused.value)
+    assert "\n" not in line and "twohr up" in line and "--max-robots N" in line
+    with pytest.raises(ConfigError):
+        parse_max_robots("0")

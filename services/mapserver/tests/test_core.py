@@ -11,7 +11,8 @@ from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics
 from twohr.features import mutual_nn
 from twohr.geometry import invert_pose, make_pose, project, so3_exp, transform_points
-from twohr.mapfile import MapArrays, arrays_file, encode_map, read_map, without_robot
+from twohr.mapfile import MapArrays, arrays_file, encode_map, read_map
+from twohr.mapstore import without_robot
 from twohr.sharing import KeyframeSender
 from twohr_services.mapserver.core import STORED, KeyframeBatch, SharedMap, export, pose_gap
 

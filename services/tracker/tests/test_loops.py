@@ -78,7 +78,7 @@ STRESS = {  # a local map of one keyframe: revisits are not re-found by tracking
 def test_loops_on_real_frames_are_found_verified_and_closed(dev_sequence, tmp_path, monkeypatch):
     from twohr.config import load_config
     from twohr.dataset import RGBDSequence
-    from twohr_app.commands.run import loops_against_ground_truth
+    from twohr.evaluation import loops_against_ground_truth
     from twohr_app.pipeline import run_sequence
     from twohr_services.detector.core import build_detector
 

@@ -191,7 +191,7 @@ def test_a_session_in_a_named_map_keeps_the_map_not_the_file(stack, dev_sequence
     for payload in _frames(dev_sequence, "r3", "extending", 2):
         client.put(keys.key("r3", "frames"), payload)
     assert client.wait_for(lambda: len([m for m in client.messages("r3", StatusMsg) if m.state == "relocalising"]) == 2)
-    assert tracker.tracks["extending"].schedule.map  # the map it localizes in
+    assert tracker.sessions["extending"].track.schedule.map  # the map it localizes in
     gc.collect()
     assert not [type(o).__name__ for o in gc.get_objects() if isinstance(o, (MapFile, MapArrays))]
     saves = len(store.saves)
@@ -207,7 +207,7 @@ def test_one_match_query_answers_every_candidate_set(stack):
     from types import SimpleNamespace
 
     from twohr.errors import TwohrError
-    from twohr_services.tracker.service import RemoteMatcher
+    from twohr_services.tracker.remote import RemoteMatcher
 
     tracker, client, _ = stack
     _start(tracker, client, "r5", "sets")
@@ -218,7 +218,7 @@ def test_one_match_query_answers_every_candidate_set(stack):
     frame_desc /= np.linalg.norm(frame_desc, axis=1, keepdims=True)
     sets = [frame_desc[rng.permutation(120)[:n]] + 0.02 * rng.normal(size=(n, 128)).astype(np.float32)
             for n in (80, 40, 60)]
-    matcher = RemoteMatcher(tracker.replicas["matcher"], "r5", "sets")
+    matcher = RemoteMatcher(tracker.networks.replicas["matcher"], "r5", "sets")
     frame = SimpleNamespace(index=7, stamp=1.0)
     one_each = [matcher(frame, frame_desc, desc_b) for desc_b in sets]
     assert client.wait_for(lambda: len(replies) == 3)

@@ -212,7 +212,7 @@ def replay(system, url: str, sequence: RGBDSequence, jobs: list[Job], robots: in
 
     from twohr.bus import open_session
 
-    from .live import process_cpu_s
+    from .camera_sessions import process_cpu_s
 
     names = [f"fleet-{i + 1}" for i in range(robots)]
     bus = open_session(system.bus("tracker"))  # the bench speaks to the networks as the trackers do

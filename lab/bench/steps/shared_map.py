@@ -54,8 +54,8 @@ def share_runs(sequence, runs: int = 3, progress: bool = True) -> list[dict]:
     from twohr.evaluation import joint_ate
     from twohr_app.supervisor import start_system
 
-    from .live import _stack, camera_session, process_cpu_s, rss_mib
-    from .tracking.backwards import backwards
+    from ...tracking.backwards import backwards
+    from .camera_sessions import _stack, camera_session, process_cpu_s, rss_mib
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="twohr-share-") as scratch:

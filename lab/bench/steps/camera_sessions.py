@@ -92,6 +92,128 @@ class LiveStack:
         return httpx.Client(base_url=self.url, timeout=60, headers=self.headers, verify=self.verify)
 
 
+class _CameraSession:
+    """One camera session's state as :func:`camera_session` runs it: the cameras it starts, the poses it hears,
+    the RSS samples and upstream bytes it counts, and what the gateway says of the session at its end."""
+
+    def __init__(self, stack: LiveStack, sequence, robot: str, frames: int, camera_runs: int, start: int,
+                 rate: float, sample_every_s: float, progress: bool) -> None:
+        self.stack, self.sequence, self.robot, self.frames = stack, sequence, robot, frames
+        self.camera_runs, self.start, self.rate = camera_runs, start, rate
+        self.sample_every_s, self.progress = sample_every_s, progress
+        self.per_run = frames // camera_runs
+        self.poses = PoseLog()
+        self.rss: dict[str, list[tuple[float, float]]] = {}
+        self.upstream: list[tuple[int, float]] = []  # (bytes, seconds) each camera run sent
+        self.edge_camera: subprocess.Popen | None = None
+        self.session_id = ""
+        self.info: dict = {}
+        self.served = self.online = None
+
+    def start_camera(self) -> subprocess.Popen:
+        return subprocess.Popen(
+            [sys.executable, "-m", "twohr_app", "camera", "--replay", str(self.sequence.root), "--rate", "30",
+             "--robot", self.robot, *self.stack.camera_args, "--frames", str(self.per_run), "--start",
+             str(self.start), *(["--loop"] if self.per_run > len(self.sequence) else []),
+             *(["--edge"] if self.stack.edge else [])],
+            stdout=subprocess.PIPE, text=True)
+
+    def post(self, client, config_overrides: dict | None, map_request: dict | None,
+             posted: threading.Event | None, post_after: threading.Event | None) -> None:
+        """Start the robot's own tracker (with ``--edge``), then the session, once ``post_after`` is set."""
+        if self.stack.edge:
+            self.edge_camera = self.start_camera()
+            if "tracks itself" not in self.edge_camera.stdout.readline():
+                raise RuntimeError(f"robot {self.robot}'s own tracker did not start")
+        if post_after is not None and not post_after.wait(120):
+            raise RuntimeError(f"robot {self.robot}: the session it starts after did not start")
+        response = client.post("/sessions", json={"source": "camera", "robot_id": self.robot, "record": False,
+                                                  "config": config_overrides or {}, "rate": self.rate,
+                                                  **({"map": map_request} if map_request else {})})
+        response.raise_for_status()
+        self.session_id = response.json()["id"]
+        if posted is not None:
+            posted.set()
+
+    def _running(self, client, camera: subprocess.Popen) -> bool:
+        if camera is not self.edge_camera:
+            return camera.poll() is None
+        # a robot's own tracker lingers for the session's stop: its frames are done once all are counted
+        return camera.poll() is None and (client.get(f"/sessions/{self.session_id}").json()["frames_sent"] or 0) \
+            < self.per_run * (self.rate / 30 if self.rate else 1) - 1
+
+    def feed(self, client) -> None:
+        """Run the cameras one after another, sampling every process's RSS every ``sample_every_s``."""
+        t0 = time.monotonic()
+        next_sample = t0
+        for _ in range(self.camera_runs):
+            camera = self.edge_camera or self.start_camera()
+            while self._running(client, camera):
+                if time.monotonic() >= next_sample:
+                    self._sample(camera, t0)
+                    next_sample += self.sample_every_s
+                time.sleep(0.2)
+            if camera is not self.edge_camera:
+                self.upstream.append(_camera_upstream(camera.stdout.read()))
+
+    def _sample(self, camera: subprocess.Popen, t0: float) -> None:
+        for name, pid in [(child.name, child.proc.pid) for child in self.stack.system.group.children] + (
+                [("edge tracker", camera.pid)] if camera is self.edge_camera else []):
+            value = rss_mib(pid)
+            if value is not None:
+                self.rss.setdefault(name, []).append((round(time.monotonic() - t0, 1), round(value, 1)))
+        if self.progress:
+            print(f"  {self.robot}: {len(self.poses.received)} poses after {time.monotonic() - t0:.0f} s",
+                  flush=True)
+
+    def finish(self, client) -> None:
+        """Wait for the last frames' poses, end the session and download both of its trajectories."""
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            info = client.get(f"/sessions/{self.session_id}").json()
+            sent = info["frames_sent"] or 0
+            if sent >= self.frames * (self.rate / 30 if self.rate else 1) - 1 \
+                    and info["frames"] + (info["frames_dropped"] or 0) >= sent:
+                break
+            time.sleep(0.5)
+        self.info = client.get(f"/sessions/{self.session_id}").json()
+        client.delete(f"/sessions/{self.session_id}")
+        self.served = client.get(f"/sessions/{self.session_id}/trajectory")
+        self.online = client.get(f"/sessions/{self.session_id}/trajectory", params={"online": True})
+        if self.edge_camera is not None:  # it ends once the session's final path is out
+            self.upstream.append(_camera_upstream(self.edge_camera.communicate(timeout=120)[0]))
+
+    def close(self) -> None:
+        if self.edge_camera is not None and self.edge_camera.poll() is None:
+            self.edge_camera.kill()
+
+    def row(self, busy: int) -> dict:
+        info, served, online, frames = self.info, self.served, self.online, self.frames
+        looped = frames > len(self.sequence) or self.camera_runs > 1
+        latency = self.poses.latency_ms()
+        relayed = info["frames_sent"] or frames  # fewer than the camera sent where the session was admitted at a rate
+        row = {"robot": self.robot, "tracking": "edge" if self.stack.edge else "central", "busy_processes": busy,
+               "frames": frames, "relayed": relayed, "posed": info["frames"],
+               "dropped": info["frames_dropped"], "posed_percent": round(100 * info["frames"] / max(1, relayed), 1),
+               "fps": info["fps"],
+               "latency_ms_p50": round(float(np.percentile(latency, 50)), 1) if len(latency) else None,
+               "latency_ms_p99": round(float(np.percentile(latency, 99)), 1) if len(latency) else None,
+               "health": info.get("health"), "health_detail": info.get("health_detail"),
+               "served": served.headers.get("x-twohr-trajectory"),
+               "ate_served": None if looped else _score(self.sequence, served.text),
+               "ate_online": None if looped else _score(self.sequence, online.text), "rss_mib": self.rss,
+               "upstream_bytes_per_s": round(sum(b for b, _ in self.upstream)
+                                             / max(1e-9, sum(s for _, s in self.upstream))),
+               "session_id": self.session_id, "served_tum": served.text, "frame_id": info.get("frame_id"),
+               "merge": info.get("merge")}
+        stamps = np.array([r for _, r, _ in self.poses.received])
+        if looped and len(stamps) > 1:
+            minutes = (stamps - stamps[0]) / 60
+            per_minute = np.bincount(minutes.astype(int))
+            row["fps_per_minute"] = [round(n / 60, 2) for n in per_minute[:-1]]  # the last minute is partial
+        return row
+
+
 def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: int,
                    sample_every_s: float = 10.0, progress: bool = True, camera_runs: int = 1,
                    config_overrides: dict | None = None, start: int = 0, rate: float = 0.0,
@@ -107,107 +229,24 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
     from twohr import keys
     from twohr.bus import open_session
 
-    looped = frames > len(sequence) or camera_runs > 1
-    per_run = frames // camera_runs
-    poses = PoseLog()
-    observer = open_session(stack.observer)
-    subscriber = observer.declare_subscriber(keys.key(robot, "pose"), poses)
-    hogs = _busy(busy)
-    rss: dict[str, list[tuple[float, float]]] = {}
-    upstream: list[tuple[int, float]] = []  # (bytes, seconds) each camera run sent
     if stack.edge and camera_runs != 1:
         raise ValueError("a robot that tracks itself runs one camera per session")
-    edge_camera = None
-
-    def start_camera() -> subprocess.Popen:
-        return subprocess.Popen(
-            [sys.executable, "-m", "twohr_app", "camera", "--replay", str(sequence.root), "--rate", "30", "--robot",
-             robot, *stack.camera_args, "--frames", str(per_run), "--start", str(start),
-             *(["--loop"] if per_run > len(sequence) else []), *(["--edge"] if stack.edge else [])],
-            stdout=subprocess.PIPE, text=True)
-
+    session = _CameraSession(stack, sequence, robot, frames, camera_runs, start, rate, sample_every_s, progress)
+    observer = open_session(stack.observer)
+    subscriber = observer.declare_subscriber(keys.key(robot, "pose"), session.poses)
+    hogs = _busy(busy)
     try:
         with stack.http() as client:
-            edge_camera = start_camera() if stack.edge else None
-            if edge_camera is not None and "tracks itself" not in edge_camera.stdout.readline():
-                raise RuntimeError(f"robot {robot}'s own tracker did not start")
-            if post_after is not None and not post_after.wait(120):
-                raise RuntimeError(f"robot {robot}: the session it starts after did not start")
-            response = client.post("/sessions", json={"source": "camera", "robot_id": robot, "record": False,
-                                                      "config": config_overrides or {}, "rate": rate,
-                                                      **({"map": map_request} if map_request else {})})
-            response.raise_for_status()
-            session_id = response.json()["id"]
-            if posted is not None:
-                posted.set()
-            t0 = time.monotonic()
-            next_sample = t0
-
-            def running(camera: subprocess.Popen) -> bool:
-                if camera is not edge_camera:
-                    return camera.poll() is None
-                # a robot's own tracker lingers for the session's stop: its frames are done once all are counted
-                return camera.poll() is None and (client.get(f"/sessions/{session_id}").json()["frames_sent"] or 0) \
-                    < per_run * (rate / 30 if rate else 1) - 1
-
-            for _ in range(camera_runs):
-                camera = edge_camera or start_camera()
-                while running(camera):
-                    if time.monotonic() >= next_sample:
-                        for name, pid in [(child.name, child.proc.pid) for child in stack.system.group.children] + (
-                                [("edge tracker", camera.pid)] if camera is edge_camera else []):
-                            value = rss_mib(pid)
-                            if value is not None:
-                                rss.setdefault(name, []).append((round(time.monotonic() - t0, 1), round(value, 1)))
-                        next_sample += sample_every_s
-                        if progress:
-                            print(f"  {robot}: {len(poses.received)} poses after {time.monotonic() - t0:.0f} s",
-                                  flush=True)
-                    time.sleep(0.2)
-                if camera is not edge_camera:
-                    upstream.append(_camera_upstream(camera.stdout.read()))
-            deadline = time.monotonic() + 30
-            while time.monotonic() < deadline:  # until the last frames' poses are in
-                info = client.get(f"/sessions/{session_id}").json()
-                sent = info["frames_sent"] or 0
-                if sent >= frames * (rate / 30 if rate else 1) - 1 and info["frames"] + (info["frames_dropped"] or 0) \
-                        >= sent:
-                    break
-                time.sleep(0.5)
-            info = client.get(f"/sessions/{session_id}").json()
-            client.delete(f"/sessions/{session_id}")
-            served = client.get(f"/sessions/{session_id}/trajectory")
-            online = client.get(f"/sessions/{session_id}/trajectory", params={"online": True})
-            if edge_camera is not None:  # it ends once the session's final path is out
-                upstream.append(_camera_upstream(edge_camera.communicate(timeout=120)[0]))
+            session.post(client, config_overrides, map_request, posted, post_after)
+            session.feed(client)
+            session.finish(client)
     finally:
         for hog in hogs:
             hog.kill()
-        if edge_camera is not None and edge_camera.poll() is None:
-            edge_camera.kill()
+        session.close()
         subscriber.undeclare()
         observer.close()
-    latency = poses.latency_ms()
-    stamps = np.array([r for _, r, _ in poses.received])
-    relayed = info["frames_sent"] or frames  # fewer than the camera sent where the session was admitted at a rate
-    row = {"robot": robot, "tracking": "edge" if stack.edge else "central", "busy_processes": busy, "frames": frames,
-           "relayed": relayed, "posed": info["frames"],
-           "dropped": info["frames_dropped"], "posed_percent": round(100 * info["frames"] / max(1, relayed), 1),
-           "fps": info["fps"],
-           "latency_ms_p50": round(float(np.percentile(latency, 50)), 1) if len(latency) else None,
-           "latency_ms_p99": round(float(np.percentile(latency, 99)), 1) if len(latency) else None,
-           "health": info.get("health"), "health_detail": info.get("health_detail"),
-           "served": served.headers.get("x-twohr-trajectory"),
-           "ate_served": None if looped else _score(sequence, served.text),
-           "ate_online": None if looped else _score(sequence, online.text), "rss_mib": rss,
-           "upstream_bytes_per_s": round(sum(b for b, _ in upstream) / max(1e-9, sum(s for _, s in upstream))),
-           "session_id": session_id, "served_tum": served.text, "frame_id": info.get("frame_id"),
-           "merge": info.get("merge")}
-    if looped and len(stamps) > 1:
-        minutes = (stamps - stamps[0]) / 60
-        per_minute = np.bincount(minutes.astype(int))
-        row["fps_per_minute"] = [round(n / 60, 2) for n in per_minute[:-1]]  # the last minute is partial
-    return row
+    return session.row(busy)
 
 
 def process_cpu_s(system) -> dict[str, float]:
