@@ -88,6 +88,23 @@ def static_synthetic_sequence(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def synthetic_room(tmp_path_factory):
+    """``synthetic_room(spec) -> Path``: the sequence :func:`twohr.synthetic.generate` renders for ``spec``, rendered
+    once per session for every test that asks for an equal spec (360 frames take half a minute to render); tests
+    read it and never write into it."""
+    from twohr.synthetic import generate
+
+    rendered: dict[str, Path] = {}
+
+    def room(spec) -> Path:
+        if repr(spec) not in rendered:  # a dataclass's repr names every field
+            rendered[repr(spec)] = generate(tmp_path_factory.mktemp("synthetic_room") / "room", spec)
+        return rendered[repr(spec)]
+
+    return room
+
+
+@pytest.fixture(scope="session")
 def zenoh_router():
     """A real Zenoh router on a free loopback port; yields its endpoint."""
     from twohr.bus import start_router

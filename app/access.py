@@ -5,9 +5,11 @@ Every process joins the router with a user name and password (Zenoh's ``usrpwd``
 user name is its role. The router's access-control list, made here from :data:`GRANTS`, denies everything
 that a role was not granted: only the tracker may publish poses, only the gateway may start or stop a
 session, only the pipeline services may report a session's status, and an outside ``client`` (another
-robot, a camera driver, a ROS 2 node, a viewer) may publish camera frames and read results and the map store's maps
-(``twohr/maps/<name>``), nothing more; only the map server (the map room) serves the maps and the sessions' map
-snapshots, and only the tracker may save a map (``twohr/maps/<name>/save``) or send and fetch a snapshot.
+robot, a camera driver, a ROS 2 node, a viewer, ``twohr health``) may publish camera frames, read results, fetch
+the map store's maps (``twohr/maps/<name>``), ask the services' health and watch their liveliness, nothing more;
+only the map server (the map room) serves the maps and the sessions' map snapshots, and only the tracker may save a
+map (``twohr/maps/<name>/save``) or send and fetch a snapshot. On a fleet's keys each robot has less than a client
+(:func:`robot_grants`), and a robot's own tracker publishes that robot's results and status, no more.
 A client that presents no credentials, or wrong ones, cannot connect at all.
 
 Across hosts, a robot's own router links to the stack's router as the ``router`` role, which may forward what a

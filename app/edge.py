@@ -111,7 +111,7 @@ class EdgeStages:
 
 class CameraInlet:
     """The frames of a robot's own tracker: its camera's, in memory, into the one session the tracker serves (a new
-    session ends the one before); the sessions: its robot's, placed on its replica."""
+    session ends the one before); the sessions: its robot's, assigned to its replica."""
 
     one_session = True
 

@@ -9,7 +9,9 @@ from .ids import ROS2_RESERVED_NAMES as ROS2_RESERVED_NAMES
 from .ids import check_robot_id
 
 PREFIX = "twohr"
-#: The services every session's pipeline needs, in the order a stack starts them (the ros2 bridge is optional).
+#: The services a stack runs for every session, in the order it starts them: the gateway starts a session only while
+#: each is up, and fails the sessions that need one that stops (one on a robot's own tracker needs none of the
+#: stack's trackers); the ros2 bridge is optional.
 PIPELINE_SERVICES = ("source", "detector", "yolo", "matcher", "tracker", "mapserver", "recorder")
 #: The services that answer the tracker's keyframe jobs: any number of replicas each, on any host of the mesh.
 NETWORK_SERVICES = ("detector", "yolo", "matcher")

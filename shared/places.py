@@ -160,7 +160,7 @@ def _unit(vectors: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class LoopCandidate:
+class PlaceCandidate:
     """An older keyframe that looks like the query, with the landmarks it and its neighbours observe."""
 
     keyframe_id: int
@@ -173,7 +173,7 @@ class LoopCandidate:
 
 
 @dataclass
-class LoopQuery:
+class PlaceQuery:
     """What verification needs of a keyframe and its candidates: copies, so that the map may change meanwhile."""
 
     keyframe_id: int
@@ -182,15 +182,15 @@ class LoopQuery:
     depth: np.ndarray
     landmark_ids: np.ndarray
     descriptors: np.ndarray
-    candidates: list[LoopCandidate]
+    candidates: list[PlaceCandidate]
 
 
 @dataclass
-class Loop:
-    """A verified loop: keyframe ``keyframe_id`` seen again from candidate ``candidate_id``'s part of the map, at
-    camera-to-world pose ``relative`` in the candidate keyframe's frame (relative, so that bundle adjustment moving
-    both meanwhile does not matter); ``pairs`` (M, 2) the inlier (keyframe's landmark, candidate's landmark)
-    pairs."""
+class PlaceMatch:
+    """A verified place (a loop to the loop closer, a match across robots to the map server): keyframe
+    ``keyframe_id`` seen again from candidate ``candidate_id``'s part of the map, at camera-to-world pose
+    ``relative`` in the candidate keyframe's frame (relative, so that bundle adjustment moving both meanwhile does not
+    matter); ``pairs`` (M, 2) the inlier (keyframe's landmark, candidate's landmark) pairs."""
 
     keyframe_id: int
     candidate_id: int
@@ -202,16 +202,16 @@ class Loop:
 
 
 @dataclass
-class LoopVerdict:
-    """The outcome of verifying one query: a :class:`Loop`, or None and why not."""
+class PlaceVerdict:
+    """The outcome of verifying one query: a :class:`PlaceMatch`, or None and why not."""
 
-    loop: Loop | None
+    match: PlaceMatch | None
     reason: str
     ms: float = 0.0
 
 
-def verify(query: LoopQuery, K: np.ndarray, conf: LoopClosingConfig, tracking: TrackerConfig,
-           match: MatchFn) -> LoopVerdict:
+def verify(query: PlaceQuery, K: np.ndarray, conf: LoopClosingConfig, tracking: TrackerConfig,
+           match: MatchFn) -> PlaceVerdict:
     """Geometric verification of a query's candidates (best first): descriptor matches, RANSAC PnP of the
     keyframe's keypoints against the candidates' landmarks, then the pose refined on the inliers with their depth
     (as tracking refines a frame's pose). Pure: reads only the query."""
@@ -236,8 +236,9 @@ def verify(query: LoopQuery, K: np.ndarray, conf: LoopClosingConfig, tracking: T
                 continue
             pairs = np.stack([query.landmark_ids[a], candidate.landmark_ids[b]], axis=1)
             relative = invert_pose(candidate.pose) @ invert_pose(T_cw)
-            loop = Loop(query.keyframe_id, candidate.keyframe_id, candidate.score, relative, pairs, query.stamp)
-            return LoopVerdict(loop, f"{found} inliers against keyframe {candidate.keyframe_id}",
+            verified = PlaceMatch(query.keyframe_id, candidate.keyframe_id, candidate.score, relative, pairs,
+                                  query.stamp)
+            return PlaceVerdict(verified, f"{found} inliers against keyframe {candidate.keyframe_id}",
                                (time.perf_counter() - t0) * 1000)
     reason = best_reason or f"best {best_inliers} inliers < {conf.min_inliers}"
-    return LoopVerdict(None, reason, (time.perf_counter() - t0) * 1000)
+    return PlaceVerdict(None, reason, (time.perf_counter() - t0) * 1000)

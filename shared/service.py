@@ -247,7 +247,7 @@ class Service:
 
     def takes(self, control: ControlMsg) -> bool:
         """Whether this replica serves the session ``control`` starts or stops (every one does, unless a service
-        serves only the sessions placed on it)."""
+        serves only the sessions assigned to it)."""
         return True
 
     def _handle_control(self, payload: bytes) -> None:

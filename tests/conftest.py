@@ -1,6 +1,9 @@
 """Test hosts made of Linux network namespaces, for the tests that run the stack across hosts
 (test_across_hosts.py, test_fleet_hosts.py). Addresses exist only inside the namespaces a test makes; every
-namespace and every process started in one is removed when the test's network closes."""
+namespace and every process started in one is removed when the test's network closes.
+
+Also one ``twohr run --view`` on real frames, whose stream test_run_view.py reads and whose report
+test_run_report.py reads (:func:`viewed_run`)."""
 
 from __future__ import annotations
 
@@ -186,3 +189,37 @@ def self_signed_bundle():
         return path
 
     return make
+
+
+VIEWED_FRAMES = 90
+
+
+@pytest.fixture(scope="session")
+def viewed_run(dev_sequence, tmp_path_factory):
+    """``twohr run --view`` on the first :data:`VIEWED_FRAMES` dev frames with the default settings, a Foxglove
+    client subscribed from its first line on, before the models load (no frame is missed): a dict of the run's
+    ``out`` folder, its ``first_line``, ``stdout`` (after that line), ``stderr``, ``returncode`` and the
+    ``client``, and its ``frames``. The run writes everything ``twohr run`` writes, so the report's test reads the
+    same run."""
+    import sys
+
+    from twohr.bus import free_port
+    from twohr.foxglove_live import FoxgloveClient
+
+    out, port = tmp_path_factory.mktemp("viewed_run") / "run", free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "twohr_app", "run", "--sequence", str(dev_sequence), "--out",
+                             str(out), "--frames", str(VIEWED_FRAMES), "--quiet", "--view", "--view-port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    client = None
+    try:
+        first_line = proc.stdout.readline()
+        if first_line.startswith("live view: "):
+            client = FoxgloveClient(f"ws://127.0.0.1:{port}")
+        stdout, stderr = proc.communicate(timeout=600)
+    finally:
+        proc.kill()
+    time.sleep(0.2)
+    yield {"out": out, "frames": VIEWED_FRAMES, "port": port, "first_line": first_line, "stdout": stdout,
+           "stderr": stderr, "returncode": proc.returncode, "client": client}
+    if client is not None:
+        client.close()

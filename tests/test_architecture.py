@@ -219,12 +219,8 @@ def test_no_service_room_has_an_import_cycle():
     assert {room: cycles for room in rooms if (cycles := import_cycles(graph, room))} == {}
 
 
-#: ``shared/`` modules with a single user for now, and why they stay there.
-#: shared modules with one user for now, and why they are shared all the same
-SHARED_WITH_ONE_USER: dict[str, str] = {
-    "mapclient": "the map room's protocol, served by the map server; the tracker's map fetch, save and snapshots move "
-                 "onto its client in issue 59 (then this entry goes)",
-}
+#: ``shared/`` modules with one user for now, and why they are shared all the same (none today)
+SHARED_WITH_ONE_USER: dict[str, str] = {}
 
 
 def shared_module_users() -> dict[str, set[str]]:

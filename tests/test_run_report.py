@@ -14,12 +14,11 @@ from twohr_app.report import flags_for, frame_flags
 from twohr_services.tracker.stages import FrameStats
 
 
-def test_run_writes_a_linked_html_report(dev_sequence, tmp_path):
-    out = tmp_path / "run"
-    result = subprocess.run([sys.executable, "-m", "twohr_app", "run", "--sequence", str(dev_sequence),
-                             "--out", str(out), "--frames", "60", "--quiet"], capture_output=True, text=True,
-                            timeout=600)
-    assert result.returncode == 0, result.stderr
+def test_run_writes_a_linked_html_report(viewed_run):
+    """The report of :func:`viewed_run` (``tests/conftest.py``: ``twohr run`` on 90 real frames, whose live view
+    test_run_view.py reads)."""
+    out, frames = viewed_run["out"], viewed_run["frames"]
+    assert viewed_run["returncode"] == 0, viewed_run["stderr"]
     summary = json.loads((out / "summary.json").read_text())
     page = (out / "report.html").read_text()
     links = set(re.findall(r'(?:href|src)="([^"]+)"', page))
@@ -32,7 +31,7 @@ def test_run_writes_a_linked_html_report(dev_sequence, tmp_path):
     with open(out / "stats.csv") as fh:
         rows = list(csv.DictReader(fh))
     keyframes = sum(r["keyframe"] == "True" for r in rows)
-    assert 1 <= keyframes < 60 and len(rows) == summary["frames"] == 60
+    assert 1 <= keyframes < frames and len(rows) == summary["frames"] == frames
 
 
 def test_flags_follow_the_frames_by_stamp():

@@ -4,26 +4,16 @@ import csv
 import json
 import subprocess
 import sys
-import time
-
-from twohr.bus import free_port
 
 
-def test_twohr_run_view_streams_every_channel(dev_sequence, tmp_path, foxglove_listener):
-    port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "twohr_app", "run", "--sequence", str(dev_sequence),
-                             "--out", str(tmp_path / "run"), "--frames", "90", "--quiet", "--view", "--view-port",
-                             str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        line = proc.stdout.readline()
-        assert line.startswith("live view: https://app.foxglove.dev/?ds=foxglove-websocket&ds.url=ws://127.0.0.1:"
-                               f"{port}"), line + proc.stderr.read()
-        client = foxglove_listener(f"ws://127.0.0.1:{port}")  # before the models are loaded: no frame is missed
-        out, err = proc.communicate(timeout=600)
-        assert proc.returncode == 0, err
-    finally:
-        proc.kill()
-    time.sleep(0.2)
+def test_twohr_run_view_streams_every_channel(viewed_run):
+    """The run of :func:`viewed_run` (``tests/conftest.py``: 90 frames, the client subscribed before the models load;
+    test_run_report.py reads the report the same run writes)."""
+    line, port = viewed_run["first_line"], viewed_run["port"]
+    assert line.startswith("live view: https://app.foxglove.dev/?ds=foxglove-websocket&ds.url=ws://127.0.0.1:"
+                           f"{port}"), line + viewed_run["stderr"]
+    assert viewed_run["returncode"] == 0, viewed_run["stderr"]
+    client, out = viewed_run["client"], viewed_run["stdout"]
     counts = client.counts
     assert set(client.topics()) == {"/run/camera/image", "/run/camera/calibration", "/run/camera/keypoints",
                                     "/run/camera/dynamic_mask", "/run/pose", "/run/path", "/run/keyframes",
@@ -33,7 +23,7 @@ def test_twohr_run_view_streams_every_channel(dev_sequence, tmp_path, foxglove_l
     assert counts["/run/path"] == 18 and 1 <= counts["/run/map"] < 90, counts
     assert counts["/run/camera/keypoints"] >= 80, counts
     # a mask with every frame tracked with one: how many depends on how soon YOLO's first answer came (the load)
-    with open(tmp_path / "run" / "stats.csv", newline="") as fh:
+    with open(viewed_run["out"] / "stats.csv", newline="") as fh:
         masked = sum(int(row["mask_age"]) >= 0 for row in csv.DictReader(fh))
     assert 1 <= masked and counts["/run/camera/dynamic_mask"] == masked, (masked, counts)
     assert len(client.decode("/run/path").poses) == 86  # sent with every 5th pose

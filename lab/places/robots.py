@@ -19,8 +19,8 @@ import numpy as np
 from twohr.dataset import CameraIntrinsics
 from twohr.features import mutual_nn
 from twohr.geometry import invert_pose
+from twohr.keyframe_sender import KeyframeSender
 from twohr.mapfile import MapArrays
-from twohr.sharing import KeyframeSender
 from twohr.trajectory import Trajectory
 from twohr_services.mapserver.core import CrossMatch, KeyframeBatch, MergeEvent, SharedMap, pose_gap
 

@@ -1,8 +1,8 @@
 """Images for calibration and distillation: listing, the held-out split, the R2D2 input normalisation.
 
-Only ``/work/shared/images`` (or another folder the caller names) is read; never the evaluation
-sequence. The last ``HELD_OUT`` frames of ``7scenes/`` (sorted by name) are held out of training and
-calibration, to check a network on images it did not see.
+Only ``../shared/images`` (the data folder beside the repository, :func:`images_dir`; or another folder the caller
+names) is read; never the evaluation sequence. The last ``HELD_OUT`` frames of ``7scenes/`` (sorted by name) are held
+out of training and calibration, to check a network on images it did not see.
 """
 
 from __future__ import annotations
@@ -65,13 +65,14 @@ def network_input(path: str | Path, width: int, height: int) -> np.ndarray:
 
 
 def models_dir() -> Path:
-    """The shared model folder (the project's mirror: $TWOHR_MODEL_MIRROR or ../shared/models)."""
-    from twohr.models import mirror_dirs
+    """The shared model folder (the project's mirror: $TWOHR_MODEL_MIRROR or ../shared/models beside the
+    repository)."""
+    from twohr.models import REPO_ROOT, mirror_dirs
 
     for folder in mirror_dirs():
         if (folder / "faster2d2_WASF_N16.onnx").exists():
             return folder
-    return Path("/work/shared/models")
+    return REPO_ROOT.parent / "shared" / "models"
 
 
 def images_dir() -> Path:

@@ -1,6 +1,6 @@
 """Distil the student keyframe network (:mod:`.model`) from the faster2d2 teacher.
 
-``python -m twohr_lab.student.train --images /work/shared/images --out runs/student/run1 --steps N``
+``python -m twohr_lab.student.train --images ../shared/images --out runs/student/run1 --steps N``
 
 Data: every image under ``--images`` except the held-out last 200 frames of ``7scenes/`` (never the
 evaluation sequence). Each sample is a pair of views of one image:

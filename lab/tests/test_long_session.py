@@ -7,16 +7,16 @@ import csv
 
 import pytest
 
-from twohr.synthetic import SyntheticSpec, generate
+from twohr.synthetic import SyntheticSpec
 from twohr_lab.tracking import long_session
 
 FAST = ("detector.features=orb,yolo.enabled=false,matcher.method=mutual_nn,tracker.depth_noise=0.005,"
         "pipeline.synchronous=true,tracker.refine_frames=30")  # a short refinement window frees rows sooner
 
 
-def test_checkpoints_of_each_configuration_with_rows_and_memory(tmp_path):
-    sequence = generate(tmp_path / "sweeps", SyntheticSpec(frames=360, occluders=0, seed=3, motion="pan",
-                                                           pan_deg=60, sweeps=12))
+def test_checkpoints_of_each_configuration_with_rows_and_memory(synthetic_room, tmp_path):
+    # the room of test_keyframe_policy.py's sweeps: rendered once per session
+    sequence = synthetic_room(SyntheticSpec(frames=360, occluders=0, seed=3, motion="pan", pan_deg=60, sweeps=12))
     out = tmp_path / "out"
     assert long_session.main(["--sequence", str(sequence), "--every", "60", "--out", str(out),
                               "--config", f"reuse={FAST}",

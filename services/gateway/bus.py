@@ -213,8 +213,8 @@ class GatewayBus:
 
     def _on_tracker(self, replica: str, up: bool) -> None:
         """A tracker's token came (a robot's own tracker back in reach: its sessions go on) or went: the tracker
-        service is gone with the stack's last tracker (a robot's own is not the stack's); else the sessions placed
-        on this one have lost their tracker."""
+        service is gone with the stack's last tracker (a robot's own is not the stack's); else the sessions assigned
+        to this one have lost their tracker."""
         if up:
             for session in self.trackers.came(replica):
                 log.info("session %s: the robot's own tracker %s is in reach again", session.id, replica)

@@ -148,9 +148,9 @@ class PoseRecord:
     def append(self, pose: PoseMsg, T: np.ndarray | None = None) -> None:
         """Keep a pose (``T``: moved by this transform first, a pose published before its robot was merged)."""
         if T is not None:
-            placed = T @ make_pose(quat_to_rot(np.array(pose.orientation)), np.array(pose.position))
-            pose = pose.model_copy(update={"position": placed[:3, 3].tolist(),
-                                           "orientation": rot_to_quat(placed[:3, :3]).tolist()})
+            in_map = T @ make_pose(quat_to_rot(np.array(pose.orientation)), np.array(pose.position))
+            pose = pose.model_copy(update={"position": in_map[:3, 3].tolist(),
+                                           "orientation": rot_to_quat(in_map[:3, :3]).tolist()})
         if self._count == len(self._rows):
             self._rows = np.concatenate([self._rows, np.zeros_like(self._rows)])
         self._rows[self._count] = [pose.frame_index, pose.stamp, *pose.position, *pose.orientation]

@@ -44,7 +44,7 @@ def kind_of(replica: str) -> TrackerKind:
 
 
 class Trackers:
-    """The tracker replicas of one gateway, over its session ``table`` (the sessions placed on each)."""
+    """The tracker replicas of one gateway, over its session ``table`` (the sessions assigned to each)."""
 
     def __init__(self, table: SessionTable) -> None:
         self.table = table
@@ -110,19 +110,19 @@ class Trackers:
 
     def rehome(self, replica: str) -> Rehomed:
         """Tracker ``replica`` died: where each of its active sessions goes. A stack tracker's move to the least
-        loaded of the others (now placed there, their moves counted), or fail where none is alive. A robot's own
+        loaded of the others (now assigned to it, their moves counted), or fail where none is alive. A robot's own
         tracker's stay: its frames are the robot's and reach no other tracker; they are marked away
         (:data:`AWAY_DETAIL`) until it is back."""
-        placed = [s for s in self.table.active() if s.tracker == replica]
+        assigned = [s for s in self.table.active() if s.tracker == replica]
         if kind_of(replica) is TrackerKind.OWN:
             with self._lock:
-                if placed and replica not in self._alive:
+                if assigned and replica not in self._alive:
                     self._away.add(replica)
-            for session in placed:
+            for session in assigned:
                 session.detail = AWAY_DETAIL
-            return Rehomed(away=placed)
+            return Rehomed(away=assigned)
         others, done = self.alive(TrackerKind.STACK) - {replica}, Rehomed()
-        for session in placed:
+        for session in assigned:
             target = self.least_loaded(others, always=True)
             if not target:
                 done.failed.append(session)

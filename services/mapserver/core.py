@@ -29,9 +29,9 @@ import numpy as np
 from twohr.config import LoopClosingConfig, TrackerConfig
 from twohr.dataset import CameraIntrinsics
 from twohr.geometry import invert_pose, nearest_rotation, rotation_angle, transform_points
+from twohr.keyframe_sender import KeyframeSender
 from twohr.mapfile import MapArrays, MapFile
-from twohr.places import LoopCandidate, LoopQuery, MatchFn, PlaceIndex, Vocabulary, VocabularyError, verify
-from twohr.sharing import KeyframeSender
+from twohr.places import MatchFn, PlaceCandidate, PlaceIndex, PlaceQuery, Vocabulary, VocabularyError, verify
 
 #: words of the vocabulary built from the map's own keyframes (a room's map has tens to hundreds of keyframes)
 ONLINE_WORDS = 128
@@ -248,7 +248,7 @@ class SharedMap:
         self.vocabulary: Vocabulary | None = None
         self.index: PlaceIndex | None = None
         self.indexed: list[tuple[str, int]] = []  # the index's places: (robot, keyframe), by place number
-        self.placed: set[tuple[str, int]] = set()
+        self.in_index: set[tuple[str, int]] = set()  # the places of ``indexed``, for a quick look-up
         self.built_from = 0  # keyframes in the map when the vocabulary was built
 
     def join(self, robot: str, session: str) -> MergeEvent | None:
@@ -354,10 +354,10 @@ class SharedMap:
                                                    card={"name": f"online ({self.name})", "trained_on": "the map"})
             except VocabularyError:
                 return False  # too few descriptors yet
-            self.index, self.indexed, self.placed, self.built_from = PlaceIndex(ONLINE_WORDS), [], set(), mapped
+            self.index, self.indexed, self.in_index, self.built_from = PlaceIndex(ONLINE_WORDS), [], set(), mapped
         for key, submap in self.merged().items():  # places added since
             for k in range(len(submap)):
-                if (key, k) not in self.placed:
+                if (key, k) not in self.in_index:
                     self._index_place(key, submap, k)
         return True
 
@@ -366,7 +366,7 @@ class SharedMap:
         if len(descriptors):
             self.index.add(len(self.indexed), self.vocabulary.vector(descriptors))
         self.indexed.append((key, keyframe))
-        self.placed.add((key, keyframe))
+        self.in_index.add((key, keyframe))
 
     def _find(self, mine: str, submap: Submap, keyframe: int, candidates: int = CANDIDATES) -> CrossMatch | None:
         """One keyframe looked for among the other robots' in the map: the best ``candidates`` by bag of words,
@@ -382,16 +382,16 @@ class SharedMap:
             ids, positions, descriptors = other.landmarks_near(candidate, self.conf.candidate_neighbours)
             if len(ids) < self.conf.min_inliers:
                 continue
-            query = LoopQuery(keyframe, float(submap.stamps[keyframe]), seen.xy, seen.depth, seen.landmark,
-                              seen.descriptors, [LoopCandidate(candidate, score, ids, positions, descriptors,
+            query = PlaceQuery(keyframe, float(submap.stamps[keyframe]), seen.xy, seen.depth, seen.landmark,
+                              seen.descriptors, [PlaceCandidate(candidate, score, ids, positions, descriptors,
                                                                other.poses[candidate])])
             verdict = verify(query, submap.camera.matrix, self.conf, self.tracking, self.match)
-            if verdict.loop is None:
+            if verdict.match is None:
                 continue
-            T_other_keyframe = other.poses[candidate] @ verdict.loop.relative
+            T_other_keyframe = other.poses[candidate] @ verdict.match.relative
             T_map_robot = other.T @ T_other_keyframe @ invert_pose(submap.poses[keyframe])
             return CrossMatch(keyframe, float(submap.stamps[keyframe]), key, candidate,
-                              len(verdict.loop.pairs), T_map_robot, verdict.loop.pairs, verdict.loop.relative)
+                              len(verdict.match.pairs), T_map_robot, verdict.match.pairs, verdict.match.relative)
         return None
 
 
@@ -405,7 +405,7 @@ class Exported:
     robots: list[str]
 
 
-def export(shared: SharedMap, keys: list[str]) -> Exported:
+def export(shared_map: SharedMap, keys: list[str]) -> Exported:
     """The keyframes of the submaps ``keys`` (the merged ones, with the stored map's first, in the map's frame; or
     one robot's alone, in its own) as one map's arrays. Each robot's landmarks are its own rows, except those a
     merge matched to another robot's landmark (the inliers of its agreeing matches): those are fused into that
@@ -415,7 +415,7 @@ def export(shared: SharedMap, keys: list[str]) -> Exported:
     rows: dict[tuple[str, int], int] = {}
     cameras: list[CameraIntrinsics] = []
     robots: list[str] = []
-    stored = shared.stored if STORED in keys else None
+    stored = shared_map.stored if STORED in keys else None
     if stored is not None:  # as stored: its landmarks keep their rows
         arrays = stored.arrays
         parts["poses"].append(arrays.keyframe_poses)
@@ -434,7 +434,7 @@ def export(shared: SharedMap, keys: list[str]) -> Exported:
         cameras += [stored.header.camera, *stored.header.cameras]
         robots += stored.header.camera_robots or [""] * len(cameras)
     for key in keys:
-        submap = shared.submaps[key]
+        submap = shared_map.submaps[key]
         if key == STORED or not len(submap):
             continue
         T = submap.T if submap.T is not None else np.eye(4)

@@ -65,7 +65,7 @@ class SharedSession:
 class OpenMap:
     """A shared map while robots build it: the core's map and its sessions, by id."""
 
-    shared: SharedMap
+    shared_map: SharedMap
     config: PipelineConfig
     sessions: dict[str, SharedSession] = field(default_factory=dict)
     merged_into: list[str] = field(default_factory=list)  # submap keys, in the order they entered the map's frame
@@ -117,14 +117,14 @@ class MapServerService(Service):
         if opened is None:
             stored = None if self.room.store is None else self.room.stored(control.map_name,
                                                                             control.config.detector)
-            shared = SharedMap(control.map_name, mutual_nn, control.config.loop_closing, control.config.tracker,
-                               stored=stored)
-            opened = self.maps[control.map_name] = OpenMap(shared, control.config)
+            shared_map = SharedMap(control.map_name, mutual_nn, control.config.loop_closing, control.config.tracker,
+                                   stored=stored)
+            opened = self.maps[control.map_name] = OpenMap(shared_map, control.config)
             if stored is not None:
                 opened.merged_into.append(STORED)
         opened.sessions[control.session_id] = SharedSession(control)
         self.sessions[control.session_id] = control.map_name
-        event = opened.shared.join(control.robot_id, control.session_id)
+        event = opened.shared_map.join(control.robot_id, control.session_id)
         if event is not None:
             self._merged(opened, event)
         else:
@@ -147,10 +147,10 @@ class MapServerService(Service):
         session = opened.sessions[message.session_id]
         session.bytes_in += len(payload)
         session.final = session.final or message.final
-        if opened.shared.submaps[message.robot_id].session != message.session_id:
+        if opened.shared_map.submaps[message.robot_id].session != message.session_id:
             return  # an earlier session of the robot, still finishing: its keyframes are in the map already
-        event = opened.shared.add(message.robot_id, KeyframeBatch(first=message.first, **arrays), message.camera)
-        session.keyframes = len(opened.shared.submaps[message.robot_id])
+        event = opened.shared_map.add(message.robot_id, KeyframeBatch(first=message.first, **arrays), message.camera)
+        session.keyframes = len(opened.shared_map.submaps[message.robot_id])
         if event is not None:
             self._merged(opened, event)
         opened.work_s += time.thread_time() - began
@@ -166,7 +166,7 @@ class MapServerService(Service):
 
     def _merged(self, opened: OpenMap, event: MergeEvent) -> None:
         """A robot placed in the map's frame: said on ``twohr/maps/<name>/merged`` and on its session's status."""
-        name = opened.shared.name
+        name = opened.shared_map.name
         if event.robot not in opened.merged_into:
             opened.merged_into.append(event.robot)
         session = opened.sessions[event.session]
@@ -191,20 +191,20 @@ class MapServerService(Service):
         del self.maps[name]
         for session_id in opened.sessions:
             self.sessions.pop(session_id, None)
-        shared = opened.shared
-        merged = [key for key in opened.merged_into if key in shared.submaps]
+        shared_map = opened.shared_map
+        merged = [key for key in opened.merged_into if key in shared_map.submaps]
         first = next(s for s in opened.sessions.values())  # the session that opened the map saves it
-        self._save(name, export(shared, merged), opened, first.control, "robots " + ", ".join(
-            sorted({shared.submaps[k].robot for k in merged if k != STORED})))
-        for key, submap in shared.submaps.items():
+        self._save(name, export(shared_map, merged), opened, first.control, "robots " + ", ".join(
+            sorted({shared_map.submaps[k].robot for k in merged if k != STORED})))
+        for key, submap in shared_map.submaps.items():
             if submap.T is None and len(submap):
                 own = f"{name}.{submap.robot}"
                 control = opened.sessions[submap.session].control
-                if self._save(own, export(shared, [key]), opened, control, f"robot {submap.robot}"):
+                if self._save(own, export(shared_map, [key]), opened, control, f"robot {submap.robot}"):
                     self.report(control, "not merged", f"robot {submap.robot}'s places were never found in map "
                                 f"{name}: its {len(submap)} keyframes are saved as map {own}")
         self.log.info("map %s closed: %.2f s of this thread's CPU on its %d keyframes", name, opened.work_s,
-                      sum(len(s) for s in shared.submaps.values()))
+                      sum(len(s) for s in shared_map.submaps.values()))
         for session in opened.sessions.values():
             self.report(session.control, "shared", f"map {name}: {session.keyframes} keyframes in, "
                         f"{session.bytes_in} bytes in, {session.bytes_out} bytes out ({session.corrections} "
@@ -218,8 +218,8 @@ class MapServerService(Service):
             return False
         try:
             stored = arrays_file(exported.arrays, exported.cameras[0], opened.config, name,
-                                 built_by=f"shared map {opened.shared.name}: {built_by}",
-                                 parent=None if opened.shared.stored is None else opened.shared.stored.header,
+                                 built_by=f"shared map {opened.shared_map.name}: {built_by}",
+                                 parent=None if opened.shared_map.stored is None else opened.shared_map.stored.header,
                                  cameras=exported.cameras[1:], camera_robots=exported.robots)
             payload = encode_map(stored)
         except MapFileError as exc:

@@ -1,6 +1,6 @@
 """Bundle adjustment: Levenberg-Marquardt with Huber weights over keyframe poses and landmarks, the points
 eliminated by the Schur complement (block normal equations, shared with the lab's consistency check). Pure
-functions on numpy arrays; the residuals are :mod:`.pose`'s."""
+functions on numpy arrays; the residuals are :mod:`twohr.pose`'s."""
 
 from __future__ import annotations
 

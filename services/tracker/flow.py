@@ -30,7 +30,7 @@ from twohr.dataset import CameraIntrinsics
 from twohr.features import masked
 from twohr.geometry import backproject, invert_pose, project, transform_points
 from twohr.mapfile import MapArrays
-from twohr.places import LoopQuery
+from twohr.places import PlaceQuery
 from twohr.pose import estimate_pose, sample_depth
 
 from .keyframe_policy import VERY_WEAK, Evidence, close_points
@@ -58,11 +58,16 @@ class MapUpdate:
     gray: np.ndarray | None = None
     """the frame's grayscale image, to carry the seeds to a later frame by optical flow"""
     timings: dict[str, float] | None = None
+    """milliseconds per stage of the job (``detector``, ``yolo``, ``mapping``, ``job``)"""
+    keypoints: int = 0
+    """the keypoints the job detected (a tracked keyframe: its new corners)"""
+    kept: int = 0
+    """of them, those kept (outside the dynamic mask)"""
     kind: str = "2hr"
     """``2hr``, ``tracked``, ``describe`` or ``loop`` (see :class:`~.stages.KeyframeLog`)"""
     mask: np.ndarray | None = None
     """the dynamic mask of a tracked keyframe, for its 2HR detection later"""
-    loop_query: LoopQuery | None = None
+    loop_query: PlaceQuery | None = None
     """place-recognition candidates of the job's keyframe, for the loop worker to verify"""
     fused: np.ndarray | None = None
     """(M, 2) landmark ids a closed loop fused: (retired duplicate, the landmark that replaces it)"""

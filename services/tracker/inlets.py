@@ -36,14 +36,14 @@ class FrameInlet(Protocol):
 
 
 class BusInlet:
-    """Every robot's frames and controls off the bus, as the stack's trackers take them: a session placed on another
+    """Every robot's frames and controls off the bus, as the stack's trackers take them: a session assigned to another
     tracker replica is that one's, and its robot's frames are not even queued here while it runs."""
 
     one_session = False
 
     def __init__(self) -> None:
         self.serving: dict[str, str] = {}  # session -> robot, of the sessions this replica serves
-        self.elsewhere: dict[str, str] = {}  # session -> robot, of the sessions placed on other tracker replicas
+        self.elsewhere: dict[str, str] = {}  # session -> robot, of the sessions assigned to other tracker replicas
 
     def subscriptions(self) -> list[str]:
         return [keys.all_robots("frames")]

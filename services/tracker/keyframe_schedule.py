@@ -2,10 +2,10 @@
 
 Every frame is tracked by optical flow against the map (:class:`~.flow.FrameTracker`). 2HR detection, the
 dynamic mask of the keyframe, descriptor matching, keyframe insertion, local bundle adjustment and
-relocalisation run only on keyframes, in a mapping worker thread (:class:`~.mapping.Mapper`); dynamic masks for the
+relocalisation run only on keyframes, in a mapping worker thread (:class:`~.mapper.Mapper`); dynamic masks for the
 frames between come from a second worker on every n-th frame. With ``pipeline.keyframes=tracked`` (or ``auto`` on a
 slow detector) a keyframe is made from the tracks and new corners instead, and a third worker runs the 2HR
-detector on the latest such keyframe for the mapping worker to join to the map (:meth:`~.mapping.Mapper.describe`).
+detector on the latest such keyframe for the mapping worker to join to the map (:meth:`~.mapper.Mapper.describe`).
 The per-frame path never waits for either
 (except for the very first map, while the camera is not yet found in a map it was given, and in a replay whose
 keyframe job is too many frames late).
@@ -27,7 +27,7 @@ from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics, Frame
 from twohr.mapfile import MapArrays
 from twohr.messages import MessageError
-from twohr.places import Loop, LoopQuery, LoopVerdict, verify
+from twohr.places import PlaceMatch, PlaceQuery, PlaceVerdict, verify
 from twohr.trajectory import Trajectory
 from twohr.workers import Worker
 
@@ -69,8 +69,8 @@ class KeyframePipeline:
         # loop closing: the loop worker verifies the latest keyframe's place-recognition candidates, and a verified
         # loop waits for the mapping worker to correct the map
         self.closing = Worker(self._verify_loop, "loops", runtime.synchronous)
-        self._loop_query: LoopQuery | None = None
-        self._loop: Loop | None = None
+        self._loop_query: PlaceQuery | None = None
+        self._loop: PlaceMatch | None = None
         self._to_detect: tuple[int, Frame, np.ndarray | None] | None = None
         self._detected: Detected | None = None
         self._job_frame: Frame | None = None
@@ -105,22 +105,22 @@ class KeyframePipeline:
         """Loops detected, accepted, rejected and closed so far, and every loop closed."""
         return self.mapper.loop_log
 
-    def _verify_loop(self, job: tuple[LoopQuery, Frame]) -> LoopVerdict:
+    def _verify_loop(self, job: tuple[PlaceQuery, Frame]) -> PlaceVerdict:
         """Loop worker: geometric verification of one keyframe's candidates (reads no map)."""
         query, frame = job
         try:
             return verify(query, self.map.K, self.config.loop_closing, self.config.tracker,
                           match=self.stages.matcher_for(frame))
         except (MessageError, TimeoutError) as exc:  # the matcher behind the bus failed: a loop not verified
-            return LoopVerdict(None, f"verification failed: {exc}")
+            return PlaceVerdict(None, f"verification failed: {exc}")
 
     def _close_loops(self, frame: Frame, wait: bool = False) -> None:
         """Collect the loop worker's verdict and start it on the latest keyframe's candidates."""
         verdict = self._collect(self.closing, wait=wait)
         if verdict is not None:
-            if verdict.loop is not None:
+            if verdict.match is not None:
                 self.loop_log.accepted += 1
-                self._loop = verdict.loop  # no query waits now (_take keeps none while a loop is pending)
+                self._loop = verdict.match  # no query waits now (_take keeps none while a loop is pending)
                 self._loop_query = None  # built before the loop closes: its candidates are about to be joined
             else:
                 self.loop_log.rejected += 1
@@ -163,7 +163,7 @@ class KeyframePipeline:
                                            update.snapshot.keyframe_poses)
         t = update.timings
         self.keyframe_log.append(KeyframeLog(update.frame_index, update.result.status, update.keyframe_id >= 0,
-                                             int(t["keypoints"]), int(t["kept"]), t["detector"], t["yolo"],
+                                             update.keypoints, update.kept, t["detector"], t["yolo"],
                                              t["mapping"], self._number - self._job_number, update.kind,
                                              t.get("job", 0.0)))
 

@@ -4,11 +4,11 @@ Three steps, split by the thread they may run on:
 
 1. :meth:`LoopClosing.query` (mapping worker, after a keyframe joins the map): the keyframe's bag of words
    (:mod:`twohr.places`) is searched among keyframes at least ``min_separation`` keyframes older that share no more
-   than a few landmarks with it; the best candidates come back as a :class:`LoopQuery`, a copy of what
+   than a few landmarks with it; the best candidates come back as a :class:`PlaceQuery`, a copy of what
    verification needs, and the keyframe joins the index.
 2. :func:`twohr.places.verify` (its own worker, reads no map): the keyframe's landmark descriptors are matched
    to the landmarks of each candidate and its neighbours, and RANSAC PnP must find ``min_inliers`` inliers: that
-   gives the keyframe's pose in the candidate's frame (:class:`~twohr.places.Loop`), or a reason for rejecting it.
+   gives the keyframe's pose in the candidate's frame (:class:`~twohr.places.PlaceMatch`), or a reason for rejecting it.
 3. :meth:`LoopClosing.close` (mapping worker): a pose graph (gtsam) over the keyframe chain plus the loop edge
    spreads the correction along the path; every landmark moves with the keyframe that first observed it; the
    loop's matched landmarks are fused (the keyframe's duplicates retired); bundle adjustment over the whole map
@@ -26,7 +26,7 @@ import numpy as np
 from twohr.config import LoopClosingConfig
 from twohr.errors import TwohrError
 from twohr.geometry import invert_pose
-from twohr.places import Loop, LoopCandidate, LoopQuery, PlaceIndex, Vocabulary
+from twohr.places import PlaceCandidate, PlaceIndex, PlaceMatch, PlaceQuery, Vocabulary
 from twohr.pose import pose_difference
 
 from .map import Map
@@ -93,7 +93,7 @@ class LoopClosing:
             self.index.add(keyframe_id, self._vector(keyframe_id))
             self._indexed.add(keyframe_id)
 
-    def query(self, keyframe_id: int) -> LoopQuery | None:
+    def query(self, keyframe_id: int) -> PlaceQuery | None:
         """Candidates for a loop at keyframe ``keyframe_id`` (None: none worth verifying); the keyframe then joins
         the index. A candidate must be ``min_separation`` keyframes older, score at least ``min_score_ratio`` of
         the keyframe's best score against its 3 predecessors (how alike views of one place are here), and share at most
@@ -119,12 +119,12 @@ class LoopClosing:
                 if len(ids) < conf.min_inliers or \
                         len(own.intersection(ids.tolist())) > conf.max_shared_landmarks * len(observed):
                     continue
-                candidates.append(LoopCandidate(candidate_id, score, ids, world.landmarks.positions[ids].copy(),
+                candidates.append(PlaceCandidate(candidate_id, score, ids, world.landmarks.positions[ids].copy(),
                                                 world.landmarks.descriptors[ids].copy(),
                                                 world.keyframe_poses[candidate_id].copy()))
             if candidates:
                 ids = keyframe.landmark_ids[observed]
-                query = LoopQuery(keyframe_id, keyframe.stamp, keyframe.xy[observed].copy(),
+                query = PlaceQuery(keyframe_id, keyframe.stamp, keyframe.xy[observed].copy(),
                                   keyframe.depth[observed].copy(), ids.copy(),
                                   world.landmarks.descriptors[ids].copy(), candidates)
         self._index(keyframe_id)
@@ -136,7 +136,7 @@ class LoopClosing:
         span = range(max(0, keyframe_id - reach), min(len(self.map.keyframes), keyframe_id + reach + 1))
         return np.array([k for k in span if not self.map.keyframes[k].culled], np.int64)
 
-    def close(self, loop: Loop, ba_iterations: int) -> dict:
+    def close(self, loop: PlaceMatch, ba_iterations: int) -> dict:
         """Correct the map for a verified loop; returns what it moved (the keyframe's correction, in m and deg)."""
         world = self.map
         before = world.keyframe_poses.copy()

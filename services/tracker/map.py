@@ -375,8 +375,8 @@ class Map:
         obs_frame, obs_keypoint = np.concatenate(frame_parts), np.concatenate(keypoint_parts)
         obs_landmark = np.concatenate([self.keyframes[i].landmark_ids[k] for i, k in
                                        zip(range(len(self.keyframes)), keypoint_parts, strict=True)])
-        shared = np.bincount(obs_landmark, minlength=len(landmarks)) >= 2
-        keep = shared[obs_landmark]  # a landmark seen once constrains no pose
+        seen_twice = np.bincount(obs_landmark, minlength=len(landmarks)) >= 2
+        keep = seen_twice[obs_landmark]  # a landmark seen once constrains no pose
         obs_frame, obs_keypoint, obs_landmark = obs_frame[keep], obs_keypoint[keep], obs_landmark[keep]
         if len(obs_frame) == 0:
             return
@@ -399,7 +399,7 @@ class Map:
             kf = self.keyframes[f]
             new_pose = invert_pose(result.poses_cw[j])
             alone = kf.landmark_ids[(kf.landmark_ids >= 0)]
-            alone = alone[~shared[alone]]
+            alone = alone[~seen_twice[alone]]
             landmarks.positions[alone] = transform_points(new_pose @ invert_pose(self.keyframe_poses[f]),
                                                           landmarks.positions[alone])
             self.keyframe_poses[f] = new_pose

@@ -1,8 +1,8 @@
 """The mapping worker: keyframe work off the per-frame path, over the map of one :class:`~.tracking.Tracker`.
 
 :class:`Mapper` takes the worker's jobs (:class:`KeyframeJob`, :class:`Detected`, a verified
-:class:`~.loops.Loop`) and returns each to the schedule as a :class:`~.flow.MapUpdate`. It sits above the tracker
-and its :class:`~.mapping.LocalMapping`, as the thread that drives them.
+:class:`~twohr.places.PlaceMatch`: a loop) and returns each to the schedule as a :class:`~.flow.MapUpdate`. It sits
+above the tracker and its :class:`~.mapping.LocalMapping`, as the thread that drives them.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from twohr.config import PipelineConfig
 from twohr.dataset import Frame
 from twohr.features import Keypoints, drop_masked
 from twohr.geometry import invert_pose
-from twohr.places import Loop, LoopQuery, Vocabulary, vocabulary_path
+from twohr.places import PlaceMatch, PlaceQuery, Vocabulary, vocabulary_path
 from twohr.pose import sample_depth
 
 from .flow import MapUpdate, new_corners, on_flat_depth, static_in_reference
@@ -52,8 +52,10 @@ class Detected:
     keyframe_id: int
     frame: Frame
     keypoints: Keypoints
+    """those outside the keyframe's dynamic mask"""
     ms_detector: float
-    kept: int
+    detected_count: int
+    """the keypoints detected, the masked ones included"""
 
 
 class Mapper:
@@ -94,13 +96,13 @@ class Mapper:
         ``idle_rows``): the next job lets new landmarks fill them. Called from the per-frame path's thread."""
         self._released.append(rows)
 
-    def __call__(self, job: KeyframeJob | Detected | Loop) -> MapUpdate:
+    def __call__(self, job: KeyframeJob | Detected | PlaceMatch) -> MapUpdate:
         t0 = time.perf_counter()
         while self._released:
             self.map.reuse_rows(self._released.pop(0))
         if isinstance(job, Detected):
             update = self.describe(job)
-        elif isinstance(job, Loop):
+        elif isinstance(job, PlaceMatch):
             update = self.close_loop(job)
         elif job.tracks is not None and self.tracker.localised:
             update = self._tracked_keyframe(job)
@@ -151,10 +153,10 @@ class Mapper:
         result = self.local_mapping.add_tracked_keyframe(frame.stamp, job.pose, tracks_xy, tracks_landmark, corners,
                                                    frame.depth)
         keyframe_id = self.map.keyframes[-1].id if result.is_keyframe else -1
-        timings = {"detector": 0.0, "yolo": (t1 - t0) * 1000, "mapping": (time.perf_counter() - t1) * 1000,
-                   "keypoints": len(corners), "kept": len(corners)}
+        timings = {"detector": 0.0, "yolo": (t1 - t0) * 1000, "mapping": (time.perf_counter() - t1) * 1000}
         return MapUpdate(frame.index, frame.stamp, result, keyframe_id, result.observed_xy, result.observed_landmarks,
-                         self.map.snapshot(), frame.gray, timings, kind="tracked", mask=mask)
+                         self.map.snapshot(), frame.gray, timings, keypoints=len(corners), kept=len(corners),
+                         kind="tracked", mask=mask)
 
     def _detected_keyframe(self, job: KeyframeJob) -> MapUpdate:
         frame = job.frame
@@ -172,20 +174,20 @@ class Mapper:
             seeds_xy, seeds_landmark = result.observed_xy[order], result.observed_landmarks[order]
         keyframe_id = self.map.keyframes[-1].id if result.is_keyframe else -1
         t3 = time.perf_counter()
-        timings = {"detector": ms_detector, "yolo": ms_yolo, "mapping": (t3 - t2) * 1000,
-                   "keypoints": len(keypoints), "kept": len(kept)}
+        timings = {"detector": ms_detector, "yolo": ms_yolo, "mapping": (t3 - t2) * 1000}
         # until the camera is found in a given map, the per-frame path gets none of it
         snapshot = self.map.snapshot() if tracker.localised else MapSnapshot.empty()
         return MapUpdate(frame.index, frame.stamp, result, keyframe_id, seeds_xy, seeds_landmark, snapshot,
-                         frame.gray, timings, loop_query=self._loop_query(keyframe_id))
+                         frame.gray, timings, keypoints=len(keypoints), kept=len(kept),
+                         loop_query=self._loop_query(keyframe_id))
 
-    def _loop_query(self, keyframe_id: int) -> LoopQuery | None:
+    def _loop_query(self, keyframe_id: int) -> PlaceQuery | None:
         """Place recognition for a keyframe whose landmarks have descriptors (off without a vocabulary)."""
         if self.loops is None or keyframe_id < 0 or not self.tracker.localised:
             return None
         return self.loops.query(keyframe_id)
 
-    def close_loop(self, loop: Loop) -> MapUpdate:
+    def close_loop(self, loop: PlaceMatch) -> MapUpdate:
         """Correct the map for a verified loop (:meth:`~.loops.LoopClosing.close`); the per-frame path gets the
         corrected map, and its tracks follow the fused landmarks."""
         t0 = time.perf_counter()
@@ -197,8 +199,7 @@ class Mapper:
         pose = self.map.keyframe_poses[loop.keyframe_id].copy()
         result = TrackResult(loop.stamp, pose, "loop", reason=f"loop closed at keyframe {loop.keyframe_id} against "
                              f"keyframe {loop.candidate_id}: {closed['correction_m']} m corrected")
-        timings = {"detector": 0.0, "yolo": 0.0, "mapping": (time.perf_counter() - t0) * 1000, "keypoints": 0,
-                   "kept": 0}
+        timings = {"detector": 0.0, "yolo": 0.0, "mapping": (time.perf_counter() - t0) * 1000}
         return MapUpdate(-1, loop.stamp, result, -1, np.zeros((0, 2)), np.zeros(0, np.int64), self.map.snapshot(),
                          None, timings, kind="loop", fused=loop.pairs)
 
@@ -218,9 +219,9 @@ class Mapper:
         xy, landmark = self.local_mapping.describe_keyframe(detected.keyframe_id, detected.keypoints, frame.depth,
                                                       match=self.stages.matcher_for(frame))
         result = TrackResult(frame.stamp, self.map.keyframe_poses[detected.keyframe_id], "described",
-                             num_keypoints=detected.kept, num_matches=len(detected.keypoints),
+                             num_keypoints=detected.detected_count, num_matches=len(detected.keypoints),
                              reason=f"2HR keypoints of keyframe {detected.keyframe_id} joined to the map")
-        timings = {"detector": detected.ms_detector, "yolo": 0.0, "mapping": (time.perf_counter() - t0) * 1000,
-                   "keypoints": detected.kept, "kept": len(detected.keypoints)}
+        timings = {"detector": detected.ms_detector, "yolo": 0.0, "mapping": (time.perf_counter() - t0) * 1000}
         return MapUpdate(frame.index, frame.stamp, result, -1, xy, landmark, self.map.snapshot(), frame.gray,
-                         timings, kind="describe", loop_query=self._loop_query(detected.keyframe_id))
+                         timings, keypoints=detected.detected_count, kept=len(detected.keypoints), kind="describe",
+                         loop_query=self._loop_query(detected.keyframe_id))

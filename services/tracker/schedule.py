@@ -24,7 +24,8 @@ class Schedule(Protocol):
     """How the stages and the tracker are run over one camera's frames (``pipeline.mode``)."""
 
     map: Map
-    """the camera's map (given, or built by the schedule); read it after :meth:`finish`, not while frames flow"""
+    """the camera's map (given, or built by the schedule); read it after :meth:`finish`, not while frames flow (the
+    worker threads change it): while they do, read :meth:`map_snapshot` or :meth:`map_copy`"""
     keyframe_log: list[KeyframeLog]
     """what each keyframe job cost (empty where keyframes are not built apart from the frames)"""
     mask: np.ndarray | None

@@ -67,7 +67,7 @@ class TrackerService(Service):
         """``shared_cores``: other trackers run on this host's cores; this one caps its robots' rates so that none is
         served better than the others' worst (:class:`~.shares.PeerShare`), and runs at the networks' priority
         while the others serve live robots (:meth:`_yield_priority`). ``snapshots``: send each live map's snapshot
-        to the gateway, for the tracker its session moves to if this one dies. ``inlet``: where frames and sessions
+        to the map room, for the tracker its session moves to if this one dies. ``inlet``: where frames and sessions
         come from (default: every robot's, off the bus); ``networks``: where the stages run (default: the network
         services, over the bus); ``replica``: its replica name (default: the process's)."""
         # robots take turns: on an overloaded stack each gets the same share of the per-frame thread
@@ -76,7 +76,7 @@ class TrackerService(Service):
         self.inlet: FrameInlet = inlet or BusInlet()
         self.networks: StageProvider = networks or RemoteStages()
         self.sessions: dict[str, TrackerSession] = {}  # the sessions this replica serves, by id
-        self.maps: MapLink | None = None  # the map store, once the bus session is open
+        self.maps: MapLink | None = None  # the map room, once the bus session is open
         self.finishing = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracker-finishing")
         """the ends of sessions, one after another, off the per-frame thread"""
         self.snapshots = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracker-snapshots") \
@@ -199,7 +199,7 @@ class TrackerService(Service):
         camera, a frame that waited too long while newer ones queued is dropped on its header, before any image
         is decoded: fresh data wins (a paced source does not wait for poses, so nothing stalls), but never more
         than ``max_skipped_frames`` in a row, so the optical flow keeps short steps while it catches up."""
-        if key.startswith(keys.MAPS_PREFIX):  # the map server placed a robot in a shared map
+        if key.startswith(keys.MAPS_PREFIX):  # the map server merged a robot into a shared map
             merge, _ = decode(payload, MergeMsg)
             if (session := self.sessions.get(merge.session_id)) is not None:
                 session.on_merge(merge)

@@ -1,8 +1,8 @@
 """One session a tracker service serves, as an object (:class:`TrackerSession`): from its start (the map or snapshot
 it starts in) through its frames (its schedule and health, :class:`SessionTrack`; its poses, paths and landmarks;
-its map's snapshots; in a shared map, its keyframes to the map server and the merge that places it) to its end (the
-final path, the map saved). The service routes to it; it publishes through the service (:class:`Outlet`) and
-reaches the map store through a :class:`~.maplink.MapLink`.
+its map's snapshots; in a shared map, its keyframes to the map server and the merge that puts it in the map's
+frame) to its end (the final path, the map saved). The service routes to it; it publishes through the service
+(:class:`Outlet`) and reaches the map room (the map store and the snapshots) through a :class:`~.maplink.MapLink`.
 
 Live corrections: whenever a keyframe changes the map, the keyframes' poses after bundle adjustment go out on
 ``twohr/<robot>/path`` (``PathMsg``, ``final`` False): those that are new or moved, the whole path every few
@@ -26,6 +26,7 @@ from twohr import keys
 from twohr.config import PipelineConfig
 from twohr.errors import TwohrError
 from twohr.geometry import rot_to_quat, transform_points
+from twohr.keyframe_sender import KeyframeSender
 from twohr.mapfile import MapArrays, MapFile, MapHeader, arrays_file
 from twohr.mapmodes import MapMode
 from twohr.messages import (
@@ -43,14 +44,13 @@ from twohr.messages import (
 )
 from twohr.rates import RateThinning
 from twohr.service import Counters
-from twohr.sharing import KeyframeSender
 from twohr.trajectory import Trajectory
 
 from .mapfiles import map_file, usable_map
 from .maplink import MapLink
 from .remote import StageProvider
 from .schedule import Schedule, build_schedule
-from .sharing import SharedFrame
+from .shared_map_frame import SharedMapFrame
 from .stages import FrameStats, keyframe_job_latency
 from .trajectory import TrackResult
 
@@ -61,7 +61,7 @@ DEGRADED_DROPPED_PERCENT = 10
 DEGRADED_KEYFRAME_LAG = 30
 #: seconds between the last frame before a camera's stamps went back in time and the first one after
 RESTARTED_CLOCK_GAP = 1 / 30
-#: a live session's whole map goes to the gateway at most this often (s): the snapshot a session moves with when
+#: a live session's whole map goes to the map room at most this often (s): the snapshot a session moves with when
 #: its tracker dies is at most this old, plus one keyframe job
 SNAPSHOT_EVERY_S = 2.0
 
@@ -145,7 +145,7 @@ class SessionTrack:
 
 class TrackerSession:
     """One session a tracker serves: ``control``, its start (or ``move``); ``outlet``, the service it publishes
-    through; ``maps``, the map store; ``snapshots``, the thread that sends its map's snapshots (None: none sent)."""
+    through; ``maps``, the map room; ``snapshots``, the thread that sends its map's snapshots (None: none sent)."""
 
     def __init__(self, control: ControlMsg, outlet: Outlet, maps: MapLink, snapshots: Executor | None) -> None:
         self.control, self.outlet, self.maps, self.snapshots = control, outlet, maps, snapshots
@@ -153,10 +153,12 @@ class TrackerSession:
         self.paced = control.rate > 0 or not control.sequence
         self.refused = False  # its map or vocabulary did not fit: said once, its frames ignored
         self.stored: MapFile | None = None  # the map fetched for it, until its first frame builds the Map
-        self.placed: np.ndarray | None = None  # where a shared map's session was placed before its first frame
+        self.T_map_robot: np.ndarray | None = None
+        """a shared map's session in the map's frame before its first frame (its map was stored, or the map server
+        merged it early): the robot's frame into the map's, until :attr:`map_frame` holds it"""
         self.track: SessionTrack | None = None
-        self.shared: SharedFrame | None = None
-        """a session that shares a map: where its poses go (its own frame until the map server places it)"""
+        self.map_frame: SharedMapFrame | None = None
+        """a session that shares a map: where its poses go (its own frame until the map server merges it)"""
         self.sender: KeyframeSender | None = None
         """a session that shares a map: what the map server has of its map"""
         self.parent: MapHeader | None = None
@@ -188,8 +190,8 @@ class TrackerSession:
     @property
     def frame_id(self) -> str:
         """The frame its poses are published in: the map's (``''``: the robot's own), or in a shared map
-        ``<map>/<robot>`` until the map server placed the robot in the map's."""
-        return self.map_name if self.shared is None else self.shared.frame_id
+        ``<map>/<robot>`` until the map server merged the robot into the map's."""
+        return self.map_name if self.map_frame is None else self.map_frame.frame_id
 
     def load(self, replica: str) -> None:
         """Fetch the map it starts in: a moved session's latest snapshot (else, where it had not grown, its stored
@@ -206,7 +208,7 @@ class TrackerSession:
         elif control.map_mode.reads_stored:
             self.stored = self.maps.fetch(control)
             if self.stored is not None and control.map_mode.shared:  # a stored shared map: the robot's frame at once
-                self.placed = np.eye(4)
+                self.T_map_robot = np.eye(4)
 
     def track_for(self, header: FrameMsg, networks: StageProvider) -> SessionTrack:
         """Its schedule, built on its first frame (the camera intrinsics come with the frames), in the map it was
@@ -218,14 +220,14 @@ class TrackerSession:
         world = None if stored is None else usable_map(stored, config, header.camera, f"map {stored.header.name}")
         known = 0 if world is None else len(world.keyframes)
         if self.control.map_mode.shared:
-            self.shared = SharedFrame(self.control.map_name, header.robot_id, self.placed)
+            self.map_frame = SharedMapFrame(self.control.map_name, header.robot_id, self.T_map_robot)
             self.sender = KeyframeSender(known)  # a stored map's keyframes are the map server's already
         # a snapshot (a moved session's) names no parent: its map's next version names none
         self.parent = stored.header if stored is not None and self.control.command != "move" else None
         self.snapshot_keyframes = known
         # a replay paced by poses (rate 0) waits for late keyframe jobs as `twohr run` does; a camera does not
         self.track = SessionTrack(build_schedule(config, header.camera, stages, live=self.paced, world=world), header)
-        self.stored, self.placed = None, None  # the session tracks in the Map built from it
+        self.stored, self.T_map_robot = None, None  # the session tracks in the Map built from it
         return self.track
 
     def drop(self, header: FrameMsg) -> None:
@@ -270,10 +272,10 @@ class TrackerSession:
         self.outlet.report(header, state, detail, **figures)
 
     def publish_pose(self, header: FrameMsg, result: TrackResult, stats: FrameStats) -> None:
-        placed = result.pose if self.shared is None else self.shared.place(result.pose)
+        in_frame = result.pose if self.map_frame is None else self.map_frame.place(result.pose)
         pose = PoseMsg(session_id=header.session_id, robot_id=header.robot_id, frame_index=header.frame_index,
-                       stamp=header.stamp, frame_id=self.frame_id, position=placed[:3, 3].tolist(),
-                       orientation=rot_to_quat(placed[:3, :3]).tolist(), status=result.status,
+                       stamp=header.stamp, frame_id=self.frame_id, position=in_frame[:3, 3].tolist(),
+                       orientation=rot_to_quat(in_frame[:3, :3]).tolist(), status=result.status,
                        num_keypoints=stats.keypoints, num_matches=result.num_matches, num_inliers=result.num_inliers,
                        is_keyframe=result.is_keyframe, frame_sent_at=header.sent_at,
                        elapsed_ms={"detector": stats.ms_detector, "yolo": stats.ms_yolo, "tracker": stats.ms_tracker})
@@ -290,8 +292,8 @@ class TrackerSession:
         ids = dict(session_id=header.session_id, robot_id=header.robot_id, frame_index=header.frame_index,
                    stamp=header.stamp)
         points, poses = snapshot.points, snapshot.keyframe_poses
-        if self.shared is not None:
-            points, poses = transform_points(self.shared.place(np.eye(4)), points), self.shared.place(poses)
+        if self.map_frame is not None:
+            points, poses = transform_points(self.map_frame.place(np.eye(4)), points), self.map_frame.place(poses)
         if len(points):
             self.outlet.publish(keys.key(header.robot_id, "landmarks"),
                                 encode(LandmarksMsg(**ids), {"points": points.astype(np.float32)}))
@@ -301,7 +303,7 @@ class TrackerSession:
 
     def keep_snapshot(self, header: FrameMsg) -> None:
         """Every :data:`SNAPSHOT_EVERY_S` while it gains keyframes, a copy of the session's whole map goes to the
-        gateway on ``twohr/<robot>/map/snapshot`` as a map file (encoded and sent on the snapshot thread): where this
+        map room on ``twohr/<robot>/map/snapshot`` as a map file (encoded and sent on the snapshot thread): where this
         process dies, the tracker the session moves to starts from it (:meth:`MapLink.fetch_snapshot`). The map's
         keyframes are counted as last published: the schedule's map is not read while frames flow."""
         now = time.monotonic()
@@ -336,21 +338,21 @@ class TrackerSession:
             return
         first, blobs = batch
         message = KeyframesMsg(session_id=header.session_id, robot_id=header.robot_id, frame_index=header.frame_index,
-                               stamp=header.stamp, map_name=self.shared.map_name, first=first, camera=header.camera,
+                               stamp=header.stamp, map_name=self.map_frame.map_name, first=first, camera=header.camera,
                                final=final)
         payload = encode(message, blobs)
         self.sender.bytes_sent += len(payload)
         self.outlet.publish(keys.key(header.robot_id, "keyframes"), payload)
 
     def on_merge(self, merge: MergeMsg) -> None:
-        """The map server placed a robot in a shared map's frame: the session puts its poses there from now on, and
+        """The map server merged a robot into a shared map's frame: the session puts its poses there from now on, and
         sends its path again at once, every keyframe moved (its earlier poses with them)."""
         if not self.control.map_mode.shared or self.control.map_name != merge.map_name:
             return  # not this session's map
-        if self.track is None:  # placed before its first frame: its schedule starts placed
-            self.placed = merge.transform
+        if self.track is None:  # merged before its first frame: its schedule starts in the map's frame
+            self.T_map_robot = merge.transform
             return
-        self.shared.T = merge.transform
+        self.map_frame.T = merge.transform
         self.path_deltas = PathDeltas()  # the next path message is whole
         self.map_sent = -1
         self.publish_map(self.track.last_header)
@@ -367,9 +369,9 @@ class TrackerSession:
         finally:
             track.schedule.close()
         header = track.last_header
-        if self.shared is not None:  # its last keyframes first: the map server saves the map once they came
+        if self.map_frame is not None:  # its last keyframes first: the map server saves the map once they came
             self.send_keyframes(header, track.schedule.map.arrays(), final=True)
-            refined = Trajectory(refined.stamps, self.shared.place(refined.poses))
+            refined = Trajectory(refined.stamps, self.map_frame.place(refined.poses))
         message = PathMsg(session_id=self.session_id, robot_id=header.robot_id, frame_index=header.frame_index,
                           stamp=header.stamp, final=True, frame_id=self.frame_id)
         self.outlet.publish(keys.key(header.robot_id, "path"), encode(message, path_arrays(refined)))

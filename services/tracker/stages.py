@@ -39,7 +39,7 @@ class Stages:
 @dataclass
 class FrameMatch:
     """The match stage for one frame: called with one reference set, or :meth:`sets` with several (one query to a
-    matcher service where the stages offer it, see :func:`~.pose.match_each`)."""
+    matcher service where the stages offer it, see :func:`twohr.pose.match_each`)."""
 
     stages: Stages
     frame: Frame

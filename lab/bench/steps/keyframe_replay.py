@@ -26,6 +26,7 @@ import numpy as np
 from twohr import keys
 from twohr.config import PipelineConfig
 from twohr.dataset import Frame, RGBDSequence
+from twohr.rates import ReplayPacer
 
 #: a fleet of n robots is carried while every robot's keyframe jobs come back within this, 99 times in 100 (ms)
 P99_LIMIT_MS = 1000.0
@@ -95,13 +96,12 @@ def record_jobs(sequence: RGBDSequence, config: PipelineConfig, start: int = 0, 
     recording = Stages(detect, mask if local.dynamic_mask is not None else None, match, match_sets=match_sets)
     schedule = build_schedule(config, sequence.camera, recording, live=True)
     stop = len(sequence) if frames is None else min(len(sequence), start + frames)
-    t0, first = time.monotonic(), None
+    # at the camera's pace, as a robot's tracker runs: its workers take the keyframes they have time for
+    pacer = ReplayPacer(speed=1)
     try:
         for frame in tqdm(sequence.frames(start, stop), total=stop - start, disable=not progress, unit="frame",
                           desc="recording keyframe jobs", dynamic_ncols=True):
-            first = frame.stamp if first is None else first
-            # at the camera's pace, as a robot's tracker runs: its workers take the keyframes they have time for
-            time.sleep(max(0.0, t0 + frame.stamp - first - time.monotonic()))
+            pacer.wait(frame.stamp)
             schedule.process(frame)
         schedule.finish()
     finally:

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from twohr.machine import machine
+from twohr.rates import ReplayPacer
 
 #: a live-view viewer in its own process (as on another machine): subscribes to every channel and notes when each
 #: image arrives; prints the count, the seconds from the first to the last, and its own CPU time
@@ -52,10 +53,11 @@ def _view_run(view, url: str, cafile: Path, sequence, images: list[bytes], frame
                               stdout=subprocess.PIPE, text=True)
     viewer.stdout.readline()  # subscribed
     time.sleep(0.3)
-    c0, t0 = time.process_time(), time.monotonic()
+    pacer = ReplayPacer(fps=rate)
+    c0 = time.process_time()
     for i in range(frames):
         if rate:
-            time.sleep(max(0.0, t0 + i / rate - time.monotonic()))
+            pacer.wait()
         else:
             while view.backlog() >= in_flight:
                 time.sleep(0.0005)

@@ -11,9 +11,9 @@ from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics
 from twohr.features import mutual_nn
 from twohr.geometry import invert_pose, make_pose, project, so3_exp, transform_points
+from twohr.keyframe_sender import KeyframeSender
 from twohr.mapfile import MapArrays, arrays_file, encode_map, read_map
 from twohr.mapstore import without_robot
-from twohr.sharing import KeyframeSender
 from twohr_services.mapserver.core import STORED, KeyframeBatch, SharedMap, export, pose_gap
 
 CAMERA = CameraIntrinsics(fx=400, fy=400, cx=319.5, cy=239.5, width=640, height=480)
@@ -88,18 +88,18 @@ def test_a_robot_is_merged_where_its_frame_is_and_the_map_is_saved_as_one():
     points, descriptors = world(0)
     a = robot_map(points, descriptors, camera_path(10, 0.0), np.eye(4))
     b = robot_map(points, descriptors, camera_path(8, 0.3), T_AB)
-    shared = SharedMap("lab", mutual_nn)
-    assert shared.join("a", "s1").kind == "defines" and shared.join("b", "s2") is None
+    shared_map = SharedMap("lab", mutual_nn)
+    assert shared_map.join("a", "s1").kind == "defines" and shared_map.join("b", "s2") is None
     for batch in keyframes_of(a):
-        assert shared.add("a", batch, CAMERA) is None
-    events = [e for e in (shared.add("b", batch, CAMERA) for batch in keyframes_of(b)) if e is not None]
+        assert shared_map.add("a", batch, CAMERA) is None
+    events = [e for e in (shared_map.add("b", batch, CAMERA) for batch in keyframes_of(b)) if e is not None]
     merged = [e for e in events if e.kind == "merged"]
     assert len(merged) == 1 and len(merged[0].matches) == 3, events
     assert merged[0].keyframes >= 3  # k = 3 matches, one keyframe each
-    metres, degrees = pose_gap(shared.submaps["b"].T, T_AB)
+    metres, degrees = pose_gap(shared_map.submaps["b"].T, T_AB)
     assert metres < 0.01 and degrees < 0.2, (metres, degrees)
 
-    exported = export(shared, ["a", "b"])
+    exported = export(shared_map, ["a", "b"])
     assert exported.robots == ["a", "b"] and list(np.bincount(exported.arrays.keyframe_camera)) == [10, 8]
     # b's keyframes are in the map's frame: where a's frame has them
     np.testing.assert_allclose(exported.arrays.keyframe_poses[10:, :3, 3],
@@ -117,14 +117,14 @@ def test_a_robot_is_merged_where_its_frame_is_and_the_map_is_saved_as_one():
 def test_a_robot_that_sees_other_places_is_never_merged():
     points, descriptors = world(0)
     elsewhere, other = world(1)
-    shared = SharedMap("lab", mutual_nn)
-    shared.join("a", "s1")
-    shared.join("c", "s3")
+    shared_map = SharedMap("lab", mutual_nn)
+    shared_map.join("a", "s1")
+    shared_map.join("c", "s3")
     for batch in keyframes_of(robot_map(points, descriptors, camera_path(10, 0.0), np.eye(4))):
-        shared.add("a", batch, CAMERA)
+        shared_map.add("a", batch, CAMERA)
     for batch in keyframes_of(robot_map(elsewhere, other, camera_path(10, 0.0), T_AB)):
-        assert shared.add("c", batch, CAMERA) is None
-    assert shared.submaps["c"].T is None and shared.submaps["c"].matches == []
+        assert shared_map.add("c", batch, CAMERA) is None
+    assert shared_map.submaps["c"].T is None and shared_map.submaps["c"].matches == []
 
 
 def test_a_robot_that_shares_a_stored_map_tracks_in_its_frame_and_the_map_grows_by_its_keyframes_alone():
@@ -132,16 +132,16 @@ def test_a_robot_that_shares_a_stored_map_tracks_in_its_frame_and_the_map_grows_
     base_poses = camera_path(10, 0.0)
     base = robot_map(points, descriptors, base_poses, np.eye(4))
     stored = read_map(encode_map(arrays_file(base, CAMERA, PipelineConfig(), "lab", camera_robots=["a"])))
-    shared = SharedMap("lab", mutual_nn, stored=stored)
-    assert shared.join("c", "s4").kind == "joined"
+    shared_map = SharedMap("lab", mutual_nn, stored=stored)
+    assert shared_map.join("c", "s4").kind == "joined"
     # c's tracker holds the stored map and adds 4 keyframes; the stored map's points keep their rows
     used_by_base = np.array(sorted({int(i) for i in range(len(points))
                                     if np.any(np.all(np.isclose(base.landmark_positions, points[i]), axis=1))}))
     grown = robot_map(points, descriptors, base_poses + camera_path(4, 1.4), np.eye(4), rows_of=used_by_base)
     sender = KeyframeSender(keyframes=10)  # the stored keyframes are the map server's already
     first, parts = sender.next(grown)
-    assert first == 10 and shared.add("c", KeyframeBatch(first=first, **parts), CAMERA) is None
-    exported = export(shared, [STORED, "c"])
+    assert first == 10 and shared_map.add("c", KeyframeBatch(first=first, **parts), CAMERA) is None
+    exported = export(shared_map, [STORED, "c"])
     assert exported.robots == ["a", "c"] and exported.arrays.keyframe_camera.tolist() == [0] * 10 + [1] * 4
     np.testing.assert_array_equal(exported.arrays.keyframe_poses[:10], base.keyframe_poses)
     # the stored landmarks c saw again are not doubled: only the points new to the map add rows

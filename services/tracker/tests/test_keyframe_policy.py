@@ -57,14 +57,19 @@ def test_the_queue_sheds_what_a_newer_job_makes_redundant_and_never_the_newest()
     assert redundant(np.zeros(0, np.int64), view_a, CONF)  # a job that tracked nothing holds no view
 
 
-def _run(tmp_path_factory, name: str, spec_update: dict, settings: dict | None = None, every: int = 0):
-    """Run the keyframes schedule (synchronous, ORB) over a synthetic room without movers; returns the schedule,
-    each frame's keyframe evidence, every ``every`` frames the map's working set, and the refined trajectory's
-    error (m, :func:`_error_from_first`)."""
-    from twohr.synthetic import SyntheticSpec, generate
+def _room(spec_update: dict):
+    """A synthetic room without movers (seed 3), the camera moving as ``spec_update`` says."""
+    from twohr.synthetic import SyntheticSpec
 
-    spec = SyntheticSpec(occluders=0, seed=3, **spec_update)
-    sequence = RGBDSequence(generate(tmp_path_factory.mktemp("policy") / name, spec))
+    return SyntheticSpec(occluders=0, seed=3, **spec_update)
+
+
+def _run(synthetic_room, spec_update: dict, settings: dict | None = None, every: int = 0):
+    """Run the keyframes schedule (synchronous, ORB) over a synthetic room without movers (rendered once per
+    session: the runs of one room differ in their settings alone); returns the schedule, each frame's keyframe
+    evidence, every ``every`` frames the map's working set, and the refined trajectory's error (m,
+    :func:`_error_from_first`)."""
+    sequence = RGBDSequence(synthetic_room(_room(spec_update)))
     config = load_config(None, {"detector.features": "orb", "yolo.enabled": False, "matcher.method": "mutual_nn",
                                 "pipeline.synchronous": True, "tracker.depth_noise": 0.005, **(settings or {})})
     schedule = build_schedule(config, sequence.camera, local_stages(config, sequence.camera))
@@ -87,18 +92,20 @@ def _error_from_first(gt: Trajectory, est: Trajectory) -> float:
     return float(np.sqrt(np.mean([np.sum(r[:3, 3] ** 2) for r in relative])))
 
 
-def test_a_still_camera_adds_no_keyframes(tmp_path_factory):
-    schedule, evidence, _, _ = _run(tmp_path_factory, "still", {"frames": 75, "motion": "still"})
+def test_a_still_camera_adds_no_keyframes(synthetic_room):
+    schedule, evidence, _, _ = _run(synthetic_room, {"frames": 75, "motion": "still"})
     # the first map; then a job every keyframe_max_interval_s (1 s), which finds the view held: no keyframe
     assert [(job.index, job.keyframe) for job in schedule.keyframe_log] == [(0, True), (30, False), (60, False)]
     assert all(e is not None and weakness(e, CONF) is None for n, e in enumerate(evidence[1:], 1) if n not in (30, 60))
     assert len(schedule.map.keyframes) == 1
 
 
+PAN = {"frames": 60, "motion": "pan", "pan_deg": 60}
+
+
 @pytest.fixture(scope="module")
-def pans(tmp_path_factory):
-    return {ratio: _run(tmp_path_factory, f"pan{ratio}", {"frames": 60, "motion": "pan", "pan_deg": 60},
-                        {"tracker.keyframe_tracked_ratio": ratio}) for ratio in (0.75, 0.5)}
+def pans(synthetic_room):
+    return {ratio: _run(synthetic_room, PAN, {"tracker.keyframe_tracked_ratio": ratio}) for ratio in (0.75, 0.5)}
 
 
 def test_a_pan_adds_a_keyframe_where_its_tracks_fall_below_the_ratio(pans):
@@ -117,12 +124,12 @@ SWEEPS = {"frames": 360, "motion": "pan", "pan_deg": 60, "sweeps": 12}
 
 
 @pytest.fixture(scope="module")
-def sweeps(tmp_path_factory):
+def sweeps(synthetic_room):
     """Twelve sweeps of the same 60 degrees, the working set every 30 frames (a sweep)."""
-    return _run(tmp_path_factory, "sweeps", SWEEPS, every=30)
+    return _run(synthetic_room, SWEEPS, every=30)
 
 
-def test_a_camera_going_round_one_place_stops_growing_its_working_set(tmp_path_factory, sweeps):
+def test_a_camera_going_round_one_place_stops_growing_its_working_set(synthetic_room, sweeps):
     """Twelve sweeps of the same 60 degrees: the first ones map it; once unconfirmed landmarks are retired and
     redundant keyframes culled, the working set stays as it is for the last third (12 keyframes, about 2,650
     landmarks here). Without landmark culling the revisits' keyframes stay apart from the older ones: twice the
@@ -132,14 +139,14 @@ def test_a_camera_going_round_one_place_stops_growing_its_working_set(tmp_path_f
     assert live[-1] <= live[7] + 1, live  # 12 or 13 from sweep 8 on here
     assert max(s["live_landmarks"] for s in sets[8:]) < 1.1 * sets[7]["live_landmarks"], sets
     assert sets[-1]["culled"] >= 4 and live[-1] < sets[-1]["keyframes"], sets[-1]
-    _, _, kept, _ = _run(tmp_path_factory, "sweeps_kept", SWEEPS, {"tracker.landmark_culling": False}, every=30)
+    _, _, kept, _ = _run(synthetic_room, SWEEPS, {"tracker.landmark_culling": False}, every=30)
     assert kept[-1]["live_keyframes"] > 1.5 * live[-1], (kept[-1], sets[-1])
     assert kept[-1]["keyframes"] > 1.5 * sets[-1]["keyframes"], (kept[-1], sets[-1])
     for k in range(len(culled.map.keyframes)):  # a culled keyframe keeps its pose, for the frames kept against it
         assert np.isfinite(culled.map.keyframe_poses[k]).all()
 
 
-def test_new_landmarks_fill_the_rows_of_retired_ones_and_the_map_stays_as_accurate(tmp_path_factory, sweeps):
+def test_new_landmarks_fill_the_rows_of_retired_ones_and_the_map_stays_as_accurate(synthetic_room, sweeps):
     """The same twelve sweeps: the rows of retired landmarks that nothing refers to any more are filled again, so
     the landmark arrays stop growing while landmarks are still made (61 rows for 332 landmarks in the last third
     here); no keyframe observes a free row nor does a frame kept for refinement, and the refined trajectory is as
@@ -154,23 +161,20 @@ def test_new_landmarks_fill_the_rows_of_retired_ones_and_the_map_stays_as_accura
     observed = np.concatenate([kf.landmark_ids for kf in world.keyframes])
     assert not np.isin(observed[observed >= 0], free).any()
     assert not np.isin(reused.record.held_landmarks(), free).any()
-    _, _, every_row, error_every_row = _run(tmp_path_factory, "sweeps_rows", SWEEPS,
-                                            {"tracker.reuse_landmark_rows": False}, every=30)
+    _, _, every_row, error_every_row = _run(synthetic_room, SWEEPS, {"tracker.reuse_landmark_rows": False}, every=30)
     assert every_row[-1]["landmark_rows"] == every_row[-1]["landmarks"] > rows[-1], (every_row[-1], sets[-1])
     assert error <= 1.2 * error_every_row + 0.001, (error, error_every_row)
 
 
-def test_a_slow_mapping_worker_delays_keyframes_rather_than_refusing_them(tmp_path_factory, pans):
+def test_a_slow_mapping_worker_delays_keyframes_rather_than_refusing_them(synthetic_room, pans):
     """A live camera at 30 Hz whose keyframe jobs take 5 frames each (the detector made slow, as on a short CPU):
     the weak frames wait in the queue, stale ones are shed, and the pan gets about the keyframes a mapper that is
     never busy gives it (6 here)."""
     import time
 
-    from twohr.synthetic import SyntheticSpec, generate
     from twohr_services.tracker.stages import Stages
 
-    sequence = RGBDSequence(generate(tmp_path_factory.mktemp("policy") / "pan_live", SyntheticSpec(
-        occluders=0, seed=3, frames=60, motion="pan", pan_deg=60)))
+    sequence = RGBDSequence(synthetic_room(_room(PAN)))  # the pan of ``pans``
     config = load_config(None, {"detector.features": "orb", "yolo.enabled": False, "matcher.method": "mutual_nn",
                                 "tracker.depth_noise": 0.005})
     local = local_stages(config, sequence.camera)

@@ -113,7 +113,7 @@ def test_loops_on_real_frames_are_found_verified_and_closed(dev_sequence, tmp_pa
 def test_fusion_follows_chains_and_skips_retired_originals_and_the_world_moves_with_the_correction():
     from twohr.config import TrackerConfig
     from twohr.dataset import CameraIntrinsics
-    from twohr.places import Loop
+    from twohr.places import PlaceMatch
     from twohr_services.tracker.loops import LoopClosing
     from twohr_services.tracker.map import Map
     from twohr_services.tracker.motion import MotionModel
@@ -138,7 +138,7 @@ def test_fusion_follows_chains_and_skips_retired_originals_and_the_world_moves_w
     motion = MotionModel()
     motion.advance(3.0, world.keyframe_poses[2].copy())
     latest = world.keyframe_poses[2].copy()
-    closed = loops.close(Loop(2, 0, 0.9, relative, np.zeros((0, 2), np.int64), 2.0), ba_iterations=0)
+    closed = loops.close(PlaceMatch(2, 0, 0.9, relative, np.zeros((0, 2), np.int64), 2.0), ba_iterations=0)
     assert abs(closed["correction_m"] - 0.05) < 1e-6 and world.corrections == 1
     assert abs(world.keyframe_poses[2][0, 3] - 0.25) < 0.01  # the loop edge is much stiffer than the chain
     np.testing.assert_allclose(world.keyframe_poses[0], np.eye(4), atol=1e-6)  # the first keyframe is held

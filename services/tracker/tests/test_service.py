@@ -15,7 +15,9 @@ from twohr import keys
 from twohr.bus import BusConfig, open_session
 from twohr.config import PipelineConfig, load_config
 from twohr.dataset import RGBDSequence
+from twohr.mapclient import no_map
 from twohr.mapfile import MapArrays, MapFile, encode_map, read_map
+from twohr.mapstore import MapEntry
 from twohr.messages import ControlMsg, PathMsg, PoseMsg, StatusMsg, decode, encode
 from twohr.service import declare_publisher
 from twohr_services.detector.service import DetectorService
@@ -29,8 +31,8 @@ WAIT_S = 120.0  # for what must come (a loaded machine is slow, never this slow)
 
 
 class MapStore:
-    """The map store's two queries on the bus (the gateway serves them in the system): a map's bytes, and a save,
-    whose answer waits while ``hold`` is clear (an event the test sets)."""
+    """The map store's two queries on the bus (the map room serves them in the system, :mod:`twohr.mapclient`): a
+    map's bytes, and a save, whose answer (the map's entry) waits while ``hold`` is clear (an event the test sets)."""
 
     def __init__(self, session, hold_s: float) -> None:
         self.maps: dict[str, bytes] = {}
@@ -38,7 +40,7 @@ class MapStore:
         self.saving = threading.Event()  # a save has come and waits for its answer
         self.hold = threading.Event()
         self.hold.set()
-        self.hold_s = hold_s  # below the tracker's MAP_TIMEOUT_S: a held save is still answered
+        self.hold_s = hold_s  # below the map client's TIMEOUT_S: a held save is still answered
         self.answered_after_release: list[bool] = []
         self.queryables = [session.declare_queryable(f"{keys.MAPS_PREFIX}/*", self._read),
                            session.declare_queryable(f"{keys.MAPS_PREFIX}/*/save", self._save)]
@@ -48,15 +50,19 @@ class MapStore:
         if name in self.maps:
             query.reply(query.key_expr, self.maps[name])
         else:
-            query.reply_err(f"no map named {name!r}".encode())
+            query.reply_err(no_map(name).encode())
 
     def _save(self, query) -> None:
         name = keys.parse_map_key(query.key_expr, save=True)
         self.saves.append((name, query.payload.to_bytes()))
         self.saving.set()
         self.answered_after_release.append(self.hold.wait(self.hold_s))
-        self.maps[name] = query.payload.to_bytes()
-        query.reply(query.key_expr, b"{}")
+        data = self.maps[name] = query.payload.to_bytes()
+        header = read_map(data).header
+        entry = MapEntry(name=name, version=1, versions=[1], keyframes=header.keyframes, landmarks=header.landmarks,
+                         size_bytes=len(data), built_by=header.built_by, created=header.created,
+                         detector_model=header.detector_model)
+        query.reply(query.key_expr, entry.model_dump_json().encode())
 
     def close(self) -> None:
         for queryable in self.queryables:

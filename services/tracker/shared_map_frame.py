@@ -8,8 +8,8 @@ import numpy as np
 
 
 @dataclass
-class SharedFrame:
-    """Where a robot's poses go in a shared map: frame ``<map>/<robot>`` (its own) until the map server places it,
+class SharedMapFrame:
+    """Where a robot's poses go in a shared map: frame ``<map>/<robot>`` (its own) until the map server merges it,
     then the map's frame, through ``T`` (the robot's frame into the map's)."""
 
     map_name: str
