@@ -104,6 +104,38 @@ def synthetic_room(tmp_path_factory):
     return room
 
 
+class KeyframeNetworks:
+    """Each keyframe network (``detector.model``: f32, no latency budget, the default input scale) built once, and
+    its keypoints of a dev frame detected once; tests only read them."""
+
+    def __init__(self, sequence: Path) -> None:
+        from twohr.dataset import RGBDSequence
+
+        self.sequence = RGBDSequence(sequence)
+        self._detectors: dict = {}
+        self._keypoints: dict = {}
+
+    def detector(self, name: str):
+        from twohr.config import DetectorConfig
+        from twohr_services.detector.core import R2D2Detector
+
+        if name not in self._detectors:
+            self._detectors[name] = R2D2Detector(DetectorConfig(model=name, latency_budget_ms=None, precision="f32"))
+        return self._detectors[name]
+
+    def keypoints(self, name: str, index: int):
+        if (name, index) not in self._keypoints:
+            self._keypoints[name, index] = self.detector(name).detect(self.sequence.read(index).rgb)
+        return self._keypoints[name, index]
+
+
+@pytest.fixture(scope="session")
+def keyframe_networks(dev_sequence) -> KeyframeNetworks:
+    """:class:`KeyframeNetworks` of the dev sequence, for the session: the detector's tests and the Siamese
+    matcher's read the same networks' keypoints of the same frames."""
+    return KeyframeNetworks(dev_sequence)
+
+
 @pytest.fixture(scope="session")
 def zenoh_router():
     """A real Zenoh router on a free loopback port; yields its endpoint."""

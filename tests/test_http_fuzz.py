@@ -50,8 +50,10 @@ def gateway(zenoh_router, dev_sequence, tmp_path_factory, tiny_map):
     recordings = tmp_path_factory.mktemp("recordings")
     maps = tmp_path_factory.mktemp("maps")  # a map store with one map, for the /maps routes and session maps
     write_map(maps / "lab.map", tiny_map("lab", RGBDSequence(dev_sequence).camera))
+    # no pipeline runs, so no refined path ever comes: a recording the recorder has opened is waited for 10 s and
+    # refine_timeout more (30 s by default), here 1 s
     settings_ = GatewaySettings(data_roots=[dev_sequence.parent], recordings=recordings, api_token=TOKEN, bus=bus,
-                                maps=maps)
+                                maps=maps, refine_timeout=1.0)
     port = free_port()
     server = uvicorn.Server(uvicorn.Config(create_app(settings_), host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
@@ -80,11 +82,16 @@ def gateway(zenoh_router, dev_sequence, tmp_path_factory, tiny_map):
     stand_in.close()
 
 
-def fuzz(url: str, headers: dict, mode: schemathesis.GenerationMode, session_ids: list[str]) -> tuple[Counter, list]:
-    """Run schemathesis cases of every operation (paths with a session id: random ids and real ones); count cases,
+#: the callers the fuzzer plays: with the API token and without any
+CALLERS = {"token": {"Authorization": f"Bearer {TOKEN}"}, "no-token": {}}
+
+
+def fuzz(url: str, mode: schemathesis.GenerationMode, session_ids: list[str]) -> dict[str, tuple[Counter, list]]:
+    """Run schemathesis cases of every operation (paths with a session id: random ids and real ones), each case sent
+    by every caller of :data:`CALLERS` (generating a case costs more than sending it); count each caller's cases,
     status classes and check failures."""
     schema = schemathesis.openapi.from_url(f"{url}/openapi.json")
-    tally, problems = Counter(), []
+    found = {caller: (Counter(), []) for caller in CALLERS}
     for result in schema.get_all_operations():
         operation = result.ok()
         strategies = [operation.as_strategy(generation_mode=mode)]
@@ -96,37 +103,45 @@ def fuzz(url: str, headers: dict, mode: schemathesis.GenerationMode, session_ids
                   suppress_health_check=list(HealthCheck))
         @given(case=st.one_of(strategies))
         def run(case):
-            response = case.call(base_url=url, headers=headers, timeout=30)
-            tally["cases"] += 1
-            tally[f"{case.operation.label} {response.status_code}"] += 1
-            tally[f"{response.status_code // 100}xx"] += 1
-            try:
-                case.validate_response(response, checks=CHECKS)
-            except (Failure, FailureGroup) as exc:
-                tally["violations"] += 1
-                problems.append(f"{case.method} {case.formatted_path} -> {response.status_code}: "
-                                f"{' | '.join(str(exc).strip().splitlines()[:12])}")
+            for caller, headers in CALLERS.items():
+                tally, problems = found[caller]
+                response = case.call(base_url=url, headers=headers, timeout=30)
+                tally["cases"] += 1
+                tally[f"{case.operation.label} {response.status_code}"] += 1
+                tally[f"{response.status_code // 100}xx"] += 1
+                try:
+                    case.validate_response(response, checks=CHECKS)
+                except (Failure, FailureGroup) as exc:
+                    tally["violations"] += 1
+                    problems.append(f"{case.method} {case.formatted_path} -> {response.status_code}: "
+                                    f"{' | '.join(str(exc).strip().splitlines()[:12])}")
 
         try:
             run()
         except Unsatisfiable:  # nothing to break in an operation without parameters: no negative cases
             assert mode == schemathesis.GenerationMode.NEGATIVE, operation.label
-    return tally, problems
+    return found
 
 
-@pytest.mark.parametrize("token", [TOKEN, None], ids=["token", "no-token"])
-def test_schemathesis_finds_no_5xx_and_no_undocumented_response(gateway, token):
-    headers = {"Authorization": f"Bearer {token}"} if token else {}
-    total, problems = Counter(), []
+@pytest.fixture(scope="module")
+def fuzzed(gateway) -> dict[str, tuple[Counter, list]]:
+    """Each caller's tally and problems over both generation modes: one fuzzing pass serves both tests below."""
+    found = {caller: (Counter(), []) for caller in CALLERS}
     for mode in (schemathesis.GenerationMode.POSITIVE, schemathesis.GenerationMode.NEGATIVE):
-        tally, found = fuzz(gateway["url"], headers, mode, gateway["sessions"])
-        total += tally
-        problems += found
-    print(f"schemathesis ({'with' if token else 'without'} token): {dict(total)}")
+        for caller, (tally, problems) in fuzz(gateway["url"], mode, gateway["sessions"]).items():
+            found[caller][0].update(tally)
+            found[caller][1].extend(problems)
+    return found
+
+
+@pytest.mark.parametrize("caller", list(CALLERS))
+def test_schemathesis_finds_no_5xx_and_no_undocumented_response(fuzzed, caller):
+    total, problems = fuzzed[caller]
+    print(f"schemathesis ({'with' if caller == 'token' else 'without'} token): {dict(total)}")
     assert total["cases"] >= 200
     assert total["5xx"] == 0 and not problems, "\n".join(sorted(set(problems))[:20])
     answered = {tuple(key.rsplit(" ", 1)) for key in total if key.startswith(("GET ", "POST ", "DELETE "))}
-    if token is None:  # only the page's routes and the gateway's liveness answer without the token
+    if caller == "no-token":  # only the page's routes and the gateway's liveness answer without the token
         assert {label for label, code in answered if code.startswith("2")} <= {"GET /live", "GET /healthz"}
     else:
         assert "401" not in {code for _, code in answered} and total["2xx"] >= 5
@@ -134,7 +149,7 @@ def test_schemathesis_finds_no_5xx_and_no_undocumented_response(gateway, token):
 
 def test_long_recording_requests_leave_the_gateway_responsive(gateway, dev_sequence):
     """45 concurrent GET /recording of an ended session whose MCAP the recorder has not finalised each wait for
-    it (10 s); meanwhile GET /sessions answers at once."""
+    it (10 s and the gateway's refine_timeout, 1 s here); meanwhile GET /sessions answers at once."""
     url, auth = gateway["url"], {"Authorization": f"Bearer {TOKEN}"}
     with httpx.Client(base_url=url, headers=auth, timeout=60) as client:
         created = client.post("/sessions", json={"sequence": dev_sequence.name, "robot_id": "longreq"})

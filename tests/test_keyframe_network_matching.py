@@ -9,10 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from twohr.config import DetectorConfig, MatcherConfig
+from twohr.config import MatcherConfig
 from twohr.dataset import RGBDSequence
 from twohr.models import KEYFRAME_NETWORKS
-from twohr_services.detector.core import R2D2Detector
 from twohr_services.matcher.core import build_matcher
 
 FIRST, SECOND = 120, 145  # 25 frames at 30 Hz: a person walks through this stretch
@@ -24,12 +23,12 @@ def frames(dev_sequence):
     return sequence.camera.matrix, sequence.read(FIRST), sequence.read(SECOND)
 
 
-def relative_pose(network: str, frames) -> tuple[int, float, np.ndarray, np.ndarray]:
+def relative_pose(network: str, frames, keyframe_networks) -> tuple[int, float, np.ndarray, np.ndarray]:
     """(PnP inliers, their share of the matches, rotation vector, translation) of the second frame in the first's
-    camera, from ``network``'s keypoints matched by the Siamese head."""
-    camera, first, second = frames
-    detector = R2D2Detector(DetectorConfig(model=network, latency_budget_ms=None, precision="f32"))
-    kp_a, kp_b = detector.detect(first.rgb), detector.detect(second.rgb)
+    camera, from ``network``'s keypoints (f32, no latency budget: the session's, which the detector's tests read
+    too) matched by the Siamese head."""
+    camera, first, _ = frames
+    kp_a, kp_b = keyframe_networks.keypoints(network, FIRST), keyframe_networks.keypoints(network, SECOND)
     matches = build_matcher(MatcherConfig(method="siamese"))(kp_a.descriptors, kp_b.descriptors)
     xy_a, xy_b = kp_a.xy[matches.idx_a], kp_b.xy[matches.idx_b]
     depth = first.depth[np.round(xy_a[:, 1]).astype(int), np.round(xy_a[:, 0]).astype(int)]
@@ -43,8 +42,8 @@ def relative_pose(network: str, frames) -> tuple[int, float, np.ndarray, np.ndar
     return len(inliers), len(inliers) / len(matches), rvec.ravel(), tvec.ravel()
 
 
-def test_the_siamese_matcher_gives_every_network_the_same_relative_pose(frames):
-    poses = {network: relative_pose(network, frames) for network in KEYFRAME_NETWORKS}  # faster2d2's once
+def test_the_siamese_matcher_gives_every_network_the_same_relative_pose(frames, keyframe_networks):
+    poses = {network: relative_pose(network, frames, keyframe_networks) for network in KEYFRAME_NETWORKS}
     reference = poses["faster2d2"]
     # the camera moves about 10 cm and 3 degrees between the frames; the networks agree to a few millimetres
     assert reference[0] >= 150 and reference[1] >= 0.5 and np.linalg.norm(reference[3]) > 0.05

@@ -30,16 +30,17 @@ from twohr_services.detector.images import network_size
 from twohr_services.detector.networks import _prepare_model
 
 TIMED_AT = network_size(640, 480, DetectorConfig().min_input_scale)  # where auto times the candidates for VGA
+REAL_FRAME = 120
 
 
 @pytest.fixture(scope="module")
 def real_frame(dev_sequence):
-    return RGBDSequence(dev_sequence).read(120).rgb
+    return RGBDSequence(dev_sequence).read(REAL_FRAME).rgb
 
 
 @pytest.fixture(scope="module")
-def faster2d2_keypoints(real_frame):
-    return R2D2Detector(DetectorConfig(model="faster2d2", latency_budget_ms=None, precision="f32")).detect(real_frame)
+def faster2d2_keypoints(keyframe_networks):
+    return keyframe_networks.keypoints("faster2d2", REAL_FRAME)
 
 
 def agreement(keypoints, reference) -> tuple[float, float]:
@@ -51,10 +52,12 @@ def agreement(keypoints, reference) -> tuple[float, float]:
 
 
 @pytest.mark.parametrize("name", list(KEYFRAME_NETWORKS))
-def test_every_keyframe_network_loads_and_finds_keypoints_on_a_real_frame(name, real_frame, faster2d2_keypoints):
-    detector = R2D2Detector(DetectorConfig(model=name, latency_budget_ms=None, precision="f32"))
+def test_every_keyframe_network_loads_and_finds_keypoints_on_a_real_frame(name, keyframe_networks,
+                                                                           faster2d2_keypoints):
+    # built once per session (f32, no latency budget), its keypoints of the real frame detected once
+    detector = keyframe_networks.detector(name)
     assert detector.model == KEYFRAME_NETWORKS[name] == get_spec(detector.model, "r2d2").name
-    kp = detector.detect(real_frame)
+    kp = keyframe_networks.keypoints(name, REAL_FRAME)
     assert 150 <= len(kp) <= 1500
     assert np.all(np.isfinite(kp.scores)) and np.allclose(np.linalg.norm(kp.descriptors, axis=1), 1, atol=1e-4)
     near, cosine = agreement(kp, faster2d2_keypoints)
