@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import collections
+import json
 import os
 import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -37,6 +39,37 @@ def dev_sequence() -> Path:
     if not DEV_SEQUENCE.is_dir():
         pytest.fail(f"the real dev sequence is required at {DEV_SEQUENCE} (../shared beside the repo)")
     return DEV_SEQUENCE
+
+
+#: the config the stack tests' sessions run (the networks' input at half size)
+FAST_CONFIG = {"detector.input_scale": 0.5}
+#: the share of this host's replay rate (``twohr run``, paced by poses) its live cameras run at in the tests: a
+#: live stack adds the bus and its processes, and a live camera's frames must not outrun its keyframe jobs there
+LIVE_SHARE = 0.8
+#: the camera rate of the dev frames and the lowest rate the tests run them at
+RECORDED_HZ, SLOWEST_HZ = 30.0, 5.0
+
+
+@pytest.fixture(scope="session")
+def camera_hz(dev_sequence, tmp_path_factory, request) -> float:
+    """The frame rate of the tests' live cameras and real-rate replays on this host: the dev frames' 30 Hz where the
+    host's stack carries a robot at that rate, else what it carries. CPUs differ tenfold in the keyframe networks (a
+    keyframe job 0.86 s on a 2-core AVX2 EPYC, against well under 0.1 s with AMX), and a test of what the fleet does
+    (who gets which frames, fail-over, TLS) must not fail on a slow one for its speed, which ``twohr bench`` measures.
+    Measured once per test session: ``twohr run`` on 90 dev frames with :data:`FAST_CONFIG`, paced by its poses."""
+    out = tmp_path_factory.mktemp("camera_hz")
+    sets = [arg for key, value in FAST_CONFIG.items() for arg in ("--set", f"{key}={value}")]
+    done = subprocess.run([str(Path(sys.executable).with_name("twohr")), "run", "--sequence", str(dev_sequence),
+                           "--frames", "90", *sets, "--out", str(out), "--quiet"],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    replay_fps = json.loads((out / "summary.json").read_text())["fps"]
+    hz = float(min(RECORDED_HZ, max(SLOWEST_HZ, round(LIVE_SHARE * replay_fps))))
+    terminal = request.config.pluginmanager.get_plugin("terminalreporter")
+    if terminal is not None:
+        terminal.write_line(f"\nlive cameras in the tests run at {hz:g} Hz on this host (its replay of the dev "
+                            f"frames: {replay_fps:.1f} FPS)")
+    return hz
 
 
 @pytest.fixture(scope="session")

@@ -125,6 +125,9 @@ class CameraInlet:
     def control_keys(self) -> list[str]:
         return [keys.key(self.robot, keys.CONTROL)]
 
+    def heard(self, control: ControlMsg, replica: str) -> None:
+        pass  # its frames come in memory, none off the bus
+
     def takes(self, control: ControlMsg, replica: str) -> bool:
         return control.tracker == replica
 

@@ -49,7 +49,7 @@ def twohr(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "twohr_app", *args], capture_output=True, text=True, timeout=120)
 
 
-def test_two_robots_sharing_a_map_are_merged_into_one_frame(sharing_stack, dev_sequence, tmp_path):
+def test_two_robots_sharing_a_map_are_merged_into_one_frame(sharing_stack, dev_sequence, tmp_path, camera_hz):
     s = sharing_stack
     robots = {"a": (RGBDSequence(dev_sequence), 320),
               "b": (RGBDSequence(backwards(dev_sequence, tmp_path)), 400)}
@@ -62,7 +62,8 @@ def test_two_robots_sharing_a_map_are_merged_into_one_frame(sharing_stack, dev_s
         sequence, frames = robots[robot]
         rows[robot] = camera_session(stacks[robot], sequence, robot, frames, busy=0, progress=False,
                                      map_request=SHARE, posted=a_started if robot == "a" else None,
-                                     post_after=a_started if robot == "b" else None)
+                                     post_after=a_started if robot == "b" else None,
+                                     camera_hz=camera_hz / 2)  # two robots: each at half what the host carries
 
     cpu0 = process_cpu_s(s["system"])
     threads = [threading.Thread(target=run, args=(robot,)) for robot in robots]

@@ -22,6 +22,9 @@ from twohr_services.recorder.core import read_messages
 
 TOKEN = "test-token-faults-1"
 FAST = {"detector.input_scale": 0.5}
+#: the poses a session has when a service of it is killed: its recording has a few messages by then (a fixed second
+#: after its start had none on a CPU whose first keyframe takes that long)
+MID_SESSION_POSES = 10
 
 
 @pytest.fixture(scope="module")
@@ -164,7 +167,10 @@ def test_a_killed_service_fails_its_session_and_comes_back(stack, dev_sequence, 
     robot = f"kill_{victim}"
     session_id = start(client, robot, dev_sequence, max_frames=300, rate=1.0)
     wait_state(client, session_id, ("starting",), 120)
-    time.sleep(1.0)
+    deadline = time.monotonic() + 60
+    while client.get(f"/sessions/{session_id}").json()["frames"] < MID_SESSION_POSES:  # mid-session on any CPU
+        assert time.monotonic() < deadline, f"{MID_SESSION_POSES} poses not within 60 s"
+        time.sleep(0.1)
     os.kill(system.group.pid(victim), signal.SIGKILL)
     t0 = time.monotonic()
     info = wait_state(client, session_id, ("starting", "running"), 60)

@@ -115,10 +115,11 @@ def start_session(fleet, robot: str) -> str:
     return created.json()["id"]
 
 
-def camera(fleet, host: str, bundle: str, robot: str, frames: int, start: int = 0, sequence: Path | None = None):
+def camera(fleet, host: str, bundle: str, robot: str, frames: int, start: int = 0, sequence: Path | None = None,
+           rate: float = 30.0):
     return fleet["net"].start(host, *twohr("camera", "--keys", str(fleet["tmp"] / f"{bundle}.bundle"), "--robot",
                                            robot, "--replay", str(sequence), "--frames", str(frames),
-                                           "--start", str(start)))
+                                           "--start", str(start), "--rate", f"{rate:g}"))
 
 
 def listen(fleet, host: str, bundle: str, key: str, name: str):
@@ -135,16 +136,24 @@ def session(fleet, session_id: str) -> dict:
     return answer.json()
 
 
-def test_one_identity_per_robot_tls_on_the_wire_and_no_intruder(fleet, dev_sequence, self_signed_bundle):
+def test_one_identity_per_robot_tls_on_the_wire_and_no_intruder(fleet, dev_sequence, self_signed_bundle, camera_hz):
     a_session = start_session(fleet, "a")
+    try:
+        identity_and_wire(fleet, dev_sequence, self_signed_bundle, camera_hz, a_session)
+    finally:  # the robot is free for the next test whatever this one found
+        api(fleet, "DELETE", f"/sessions/{a_session}", token=bundle_token(fleet, "a"))
+
+
+def identity_and_wire(fleet, dev_sequence, self_signed_bundle, camera_hz: float, a_session: str) -> None:
     # b's token cannot start, read or stop a's session
     assert api(fleet, "POST", "/sessions", token=bundle_token(fleet, "b"),
                json={"robot_id": "a", "source": "camera"}).status_code == 403
     assert api(fleet, "GET", f"/sessions/{a_session}", token=bundle_token(fleet, "b")).status_code == 403
     poses_at_b = listen(fleet, "b", "b", "twohr/a/pose", "poses-at-b")
-    a_cam = camera(fleet, "a", "a", "a", 150, sequence=dev_sequence)
-    b_cam = camera(fleet, "b", "b", "a", 60, start=300, sequence=dev_sequence)  # b's frames into a's session
-    assert a_cam.wait(120) == 0 and b_cam.wait(120) == 0, a_cam.output() + b_cam.output()
+    a_cam = camera(fleet, "a", "a", "a", 150, sequence=dev_sequence, rate=camera_hz)
+    b_cam = camera(fleet, "b", "b", "a", 60, start=300, sequence=dev_sequence,  # b's frames into a's session
+                   rate=camera_hz)
+    assert a_cam.wait(120 + 150 / camera_hz) == 0 and b_cam.wait(120) == 0, a_cam.output() + b_cam.output()
     time.sleep(3.0)
     info = session(fleet, a_session)
     # a's session got a's 150 frames and none of b's 60, and b read a's poses

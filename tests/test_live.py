@@ -39,11 +39,11 @@ def live_stack(tmp_path_factory, dev_sequence):
 
 
 def play_camera(client: httpx.Client, live_stack: dict, dev_sequence, robot: str, session_id: str,
-                frames: int) -> dict:
-    """`twohr camera --replay` at 30 Hz into a running camera session; returns the session's state once the last
-    frames' poses are in."""
+                frames: int, rate: float = 30.0) -> dict:
+    """`twohr camera --replay` at ``rate`` Hz into a running camera session; returns the session's state once the
+    last frames' poses are in."""
     camera = subprocess.run(
-        [sys.executable, "-m", "twohr_app", "camera", "--replay", str(dev_sequence), "--rate", "30",
+        [sys.executable, "-m", "twohr_app", "camera", "--replay", str(dev_sequence), "--rate", f"{rate:g}",
          "--robot", robot, "--zenoh-config", str(live_stack["client_config"]), "--frames", str(frames)],
         capture_output=True, text=True, timeout=300)
     assert camera.returncode == 0, camera.stderr
@@ -56,7 +56,7 @@ def play_camera(client: httpx.Client, live_stack: dict, dev_sequence, robot: str
     return info
 
 
-def test_camera_session_over_ros2_end_to_end(live_stack, dev_sequence, tmp_path):
+def test_camera_session_over_ros2_end_to_end(live_stack, dev_sequence, tmp_path, camera_hz):
     typestore = get_typestore(Stores.ROS2_JAZZY)
     samples: list[tuple[str, bytes]] = []
     lock = threading.Lock()
@@ -74,7 +74,7 @@ def test_camera_session_over_ros2_end_to_end(live_stack, dev_sequence, tmp_path)
             session_id = response.json()["id"]
             assert client.post("/sessions", json={"source": "camera", "robot_id": "live1",
                                                   "sequence": "x"}).status_code == 422
-            info = play_camera(client, live_stack, dev_sequence, "live1", session_id, FRAMES)
+            info = play_camera(client, live_stack, dev_sequence, "live1", session_id, FRAMES, camera_hz)
             assert info["state"] == "running" and info["source"] == "camera", info
             time.sleep(1.0)
             info = client.delete(f"/sessions/{session_id}").json()

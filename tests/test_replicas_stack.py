@@ -21,6 +21,7 @@ from twohr.bus import free_port, open_session, query_health
 from twohr_app.supervisor import start_system
 
 FAST = {"detector.input_scale": 0.5}
+RECORDED_HZ = 30.0  # the dev frames' rate: a replay's rate is a factor of it
 TWOHR = Path(sys.executable).with_name("twohr")
 
 
@@ -98,13 +99,14 @@ def test_two_detector_replicas_share_the_jobs_and_one_killed_loses_none(stack, d
     assert all(f" on {os.uname().nodename} pid " in line for line in lines), lines
 
 
-def test_two_robots_at_once_each_get_a_tracker_of_their_own(stack, dev_sequence):
+def test_two_robots_at_once_each_get_a_tracker_of_their_own(stack, dev_sequence, camera_hz):
     frames = 60
     before = {r["replica"]: r["received"] for r in replica_health_of(stack, "tracker")}
     with httpx.Client(base_url=stack["url"], timeout=30) as http:
         sessions = {}
         for robot, start in (("left", 0), ("right", 400)):
-            created = http.post("/sessions", json={"sequence": dev_sequence.name, "robot_id": robot, "rate": 1.0,
+            created = http.post("/sessions", json={"sequence": dev_sequence.name, "robot_id": robot,
+                                                   "rate": camera_hz / RECORDED_HZ,
                                                    "start": start, "max_frames": frames, "record": False,
                                                    "config": FAST})
             assert created.status_code == 201, created.text
@@ -130,14 +132,15 @@ def test_two_robots_at_once_each_get_a_tracker_of_their_own(stack, dev_sequence)
         assert done[robot]["frames"] <= received[replica] < frames + frames // 2, (received, done)
 
 
-def test_a_tracker_that_dies_hands_its_robot_to_another_in_the_same_map(stack, dev_sequence):
+def test_a_tracker_that_dies_hands_its_robot_to_another_in_the_same_map(stack, dev_sequence, camera_hz):
     """SIGKILL of the tracker serving a robot mid-session: within 2 s the gateway moves the session to the other
     tracker, which goes on in the latest snapshot of the robot's map; the session stays running, poses go on, and
     the whole run, before and after the move, scores within 0.03 m under one alignment (a new frame would not)."""
     with httpx.Client(base_url=stack["url"], timeout=30) as http:
         sessions = {}
         for robot, start, frames in (("moved", 0, 330), ("spared", 280, 150)):
-            created = http.post("/sessions", json={"sequence": dev_sequence.name, "robot_id": robot, "rate": 1.0,
+            created = http.post("/sessions", json={"sequence": dev_sequence.name, "robot_id": robot,
+                                                   "rate": camera_hz / RECORDED_HZ,
                                                    "start": start, "max_frames": frames, "record": False,
                                                    "config": FAST})
             assert created.status_code == 201, created.text

@@ -22,6 +22,10 @@ class FrameInlet(Protocol):
     def control_keys(self) -> list[str]:
         """The keys its sessions start and stop on."""
 
+    def heard(self, control: ControlMsg, replica: str) -> None:
+        """A session's control as it arrives off the bus, before it waits in the inbox behind the frame being
+        tracked: where its robot's frames go is known from then on."""
+
     def takes(self, control: ControlMsg, replica: str) -> bool:
         """Whether the session ``control`` starts, moves or stops is tracker ``replica``'s."""
 
@@ -51,14 +55,18 @@ class BusInlet:
     def control_keys(self) -> list[str]:
         return [keys.all_robots(keys.CONTROL)]
 
-    def takes(self, control: ControlMsg, replica: str) -> bool:
+    def heard(self, control: ControlMsg, replica: str) -> None:
+        # on arrival: a first frame may keep the service thread a few seconds, and the other robot's frames that
+        # came meanwhile were queued here and then ignored (38 of 60 in a test)
         if control.tracker in ("", replica):
-            return True
+            return
         if control.command in ("start", "move"):
             self.elsewhere[control.session_id] = control.robot_id
         else:
             self.elsewhere.pop(control.session_id, None)
-        return False
+
+    def takes(self, control: ControlMsg, replica: str) -> bool:
+        return control.tracker in ("", replica)
 
     def wants(self, robot: str) -> bool:
         # a robot another tracker serves: its frames stay there (its controls still come in: they move it)

@@ -25,7 +25,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 from twohr import keys
 from twohr.errors import TwohrError
-from twohr.messages import ControlMsg, FrameMsg, MergeMsg, decode, encode
+from twohr.messages import ControlMsg, FrameMsg, MergeMsg, MessageError, decode, encode
 from twohr.rates import RateThinning
 from twohr.service import (
     Service,
@@ -259,6 +259,16 @@ class TrackerService(Service):
         if stream == "frames" and not self.inlet.wants(robot):
             return
         super()._on_sample(sample)
+        if stream == keys.CONTROL:  # queued first: a frame that follows it must not overtake it
+            self._heard(robot, sample.payload.to_bytes())
+
+    def _heard(self, robot: str, payload: bytes) -> None:
+        try:
+            control, _ = decode(payload, ControlMsg)
+        except MessageError:
+            return  # the service thread drops it, and says so
+        if control.robot_id == robot:  # else the service thread drops it as spoofed
+            self.inlet.heard(control, self.replica)
 
 
 class _FinishingFirst:

@@ -97,9 +97,9 @@ class _CameraSession:
     the RSS samples and upstream bytes it counts, and what the gateway says of the session at its end."""
 
     def __init__(self, stack: LiveStack, sequence, robot: str, frames: int, camera_runs: int, start: int,
-                 rate: float, sample_every_s: float, progress: bool) -> None:
+                 rate: float, sample_every_s: float, progress: bool, camera_hz: float) -> None:
         self.stack, self.sequence, self.robot, self.frames = stack, sequence, robot, frames
-        self.camera_runs, self.start, self.rate = camera_runs, start, rate
+        self.camera_runs, self.start, self.rate, self.camera_hz = camera_runs, start, rate, camera_hz
         self.sample_every_s, self.progress = sample_every_s, progress
         self.per_run = frames // camera_runs
         self.poses = PoseLog()
@@ -112,7 +112,8 @@ class _CameraSession:
 
     def start_camera(self) -> subprocess.Popen:
         return subprocess.Popen(
-            [sys.executable, "-m", "twohr_app", "camera", "--replay", str(self.sequence.root), "--rate", "30",
+            [sys.executable, "-m", "twohr_app", "camera", "--replay", str(self.sequence.root), "--rate",
+             f"{self.camera_hz:g}",
              "--robot", self.robot, *self.stack.camera_args, "--frames", str(self.per_run), "--start",
              str(self.start), *(["--loop"] if self.per_run > len(self.sequence) else []),
              *(["--edge"] if self.stack.edge else [])],
@@ -140,7 +141,12 @@ class _CameraSession:
             return camera.poll() is None
         # a robot's own tracker lingers for the session's stop: its frames are done once all are counted
         return camera.poll() is None and (client.get(f"/sessions/{self.session_id}").json()["frames_sent"] or 0) \
-            < self.per_run * (self.rate / 30 if self.rate else 1) - 1
+            < self.per_run * self.relayed_share - 1
+
+    @property
+    def relayed_share(self) -> float:
+        """The share of the camera's frames the source relays: all, or those of the session's admitted rate."""
+        return min(1.0, self.rate / self.camera_hz) if self.rate else 1.0
 
     def feed(self, client) -> None:
         """Run the cameras one after another, sampling every process's RSS every ``sample_every_s``."""
@@ -172,7 +178,7 @@ class _CameraSession:
         while time.monotonic() < deadline:
             info = client.get(f"/sessions/{self.session_id}").json()
             sent = info["frames_sent"] or 0
-            if sent >= self.frames * (self.rate / 30 if self.rate else 1) - 1 \
+            if sent >= self.frames * self.relayed_share - 1 \
                     and info["frames"] + (info["frames_dropped"] or 0) >= sent:
                 break
             time.sleep(0.5)
@@ -218,20 +224,22 @@ def camera_session(stack: LiveStack, sequence, robot: str, frames: int, busy: in
                    sample_every_s: float = 10.0, progress: bool = True, camera_runs: int = 1,
                    config_overrides: dict | None = None, start: int = 0, rate: float = 0.0,
                    map_request: dict | None = None, posted: threading.Event | None = None,
-                   post_after: threading.Event | None = None) -> dict:
+                   post_after: threading.Event | None = None, camera_hz: float = 30.0) -> dict:
     """One live camera session with ``busy`` busy processes beside the stack; see the module docstring.
     ``camera_runs`` > 1 feeds the session ``frames`` frames that many times, each by a new ``twohr camera`` (a new
     client on the bus whose stamps start again, as a robot's camera driver restarted); ``frames`` then counts all.
     ``config_overrides`` (dotted keys) is the session's pipeline config, as ``POST /sessions`` takes it. ``start``:
     the sequence's first frame the camera sends; ``rate``: the session's admitted rate (Hz, 0 = the camera's).
     ``map_request``: the session's ``map`` (e.g. ``{"name": "lab", "mode": "share"}``). ``post_after``: the session
-    is started once this event is set (another robot's session first), and ``posted`` is set once it was."""
+    is started once this event is set (another robot's session first), and ``posted`` is set once it was.
+    ``camera_hz``: the frame rate the camera sends the recorded frames at."""
     from twohr import keys
     from twohr.bus import open_session
 
     if stack.edge and camera_runs != 1:
         raise ValueError("a robot that tracks itself runs one camera per session")
-    session = _CameraSession(stack, sequence, robot, frames, camera_runs, start, rate, sample_every_s, progress)
+    session = _CameraSession(stack, sequence, robot, frames, camera_runs, start, rate, sample_every_s, progress,
+                             camera_hz)
     observer = open_session(stack.observer)
     subscriber = observer.declare_subscriber(keys.key(robot, "pose"), session.poses)
     hogs = _busy(busy)
