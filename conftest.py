@@ -53,9 +53,10 @@ RECORDED_HZ, SLOWEST_HZ = 30.0, 5.0
 @pytest.fixture(scope="session")
 def camera_hz(dev_sequence, tmp_path_factory, request) -> float:
     """The frame rate of the tests' live cameras and real-rate replays on this host: the dev frames' 30 Hz where the
-    host's stack carries a robot at that rate, else what it carries. CPUs differ tenfold in the keyframe networks (a
-    keyframe job 0.86 s on a 2-core AVX2 EPYC, against well under 0.1 s with AMX), and a test of what the fleet does
-    (who gets which frames, fail-over, TLS) must not fail on a slow one for its speed, which ``twohr bench`` measures.
+    host's stack carries a robot at that rate, else what it carries. CPUs differ severalfold in the keyframe networks
+    (a keyframe job at half input size 0.86 s on one 2-core AVX2 EPYC; 0.24-0.31 s at full size on the AMX Xeon), and
+    a test of what the fleet does (who gets which frames, fail-over, TLS) must not fail on a slow one for its speed,
+    which ``twohr bench`` measures.
     Measured once per test session: ``twohr run`` on 90 dev frames with :data:`FAST_CONFIG`, paced by its poses."""
     out = tmp_path_factory.mktemp("camera_hz")
     sets = [arg for key, value in FAST_CONFIG.items() for arg in ("--set", f"{key}={value}")]

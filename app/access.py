@@ -196,8 +196,9 @@ TRACKER_RESULTS = ("pose", "path", "status", "landmarks", "keyframes")
 
 def robot_grants(robot: str, ros2_domain: int = 0, edge: bool = False) -> Grants:
     """What robot ``robot`` may do on a fleet's bus: what a ``client`` may of twohr's keys, but publish only its own
-    camera, and neither ask the services' health nor follow their liveliness tokens (both name every replica and
-    its host: the operator's, through ``GET /healthz``); of ROS 2, :func:`robot_ros2_grants`.
+    camera, read only its own live map points (``landmarks``), and neither ask the services' health nor follow their
+    liveliness tokens (both name every replica and its host: the operator's, through ``GET /healthz``); of ROS 2,
+    :func:`robot_ros2_grants`.
 
     ``edge`` (``twohr keys add --edge``): it runs its own tracker (``twohr camera --edge``), which also publishes
     the robot's own results (:data:`TRACKER_RESULTS`), hears its own sessions start and stop, asks the network
@@ -206,7 +207,10 @@ def robot_grants(robot: str, ros2_domain: int = 0, edge: bool = False) -> Grants
     ``edge+<robot>``; of any other robot's keys, nothing more."""
     client = role_grants(ros2_domain)["client"]
     ros2 = robot_ros2_grants(robot, ros2_domain)
-    twohr_only = [k for k in client.subscribe if k.startswith(f"{PREFIX}/")]
+    # another robot's live map points are not its to read (the live view hides them too): its own only
+    others_points = _robots("landmarks")
+    twohr_only = [k for k in client.subscribe if k.startswith(f"{PREFIX}/") and k not in others_points] + [
+        key(robot, "landmarks")]
     grants = Grants(publish=[key(robot, RAW_CAMERA), *ros2.publish], subscribe=twohr_only + ros2.subscribe,
                     serve=ros2.serve, ask=client.ask + ros2.ask, watch_liveliness=False, read_health=False,
                     matching=[k for k in client.publish if k.startswith(f"{PREFIX}/")] + ros2.publish,

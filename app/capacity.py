@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, Field
 
-from twohr.files import AS_OPEN, write_atomic
+from twohr.files import write_atomic
 
 #: keyframe jobs one robot asks for per second at 30 Hz with the default keyframe policy: `twohr bench --fleet 4
 #: --frames 300` recorded 33 jobs over 10 s of the dev frames (docs/fleet.md, "Capacity")
@@ -38,6 +38,9 @@ KEYFRAME_JOBS_PER_S = 3.3
 #: mapping work beside the networks take the rest (two live robots on 2 cores used 1.52-1.62 stack cores and got
 #: 34-60 % of their frames posed: docs/fleet.md)
 USABLE_SHARE = 0.6
+#: the most robots a kept figure may admit (a cache file edited to 1e6 would start a million trackers; Infinity
+#: would stop twohr up): a kept figure out of 1..MAX_ROBOTS is ignored and measured again
+MAX_ROBOTS = 256
 #: how long the timing run may take (s): the networks are compiled in it
 MEASURE_TIMEOUT_S = 300
 #: frames of the timing run (its first keyframe job and frame warm the networks and the flow and are not counted)
@@ -47,7 +50,7 @@ TIMED_FRAMES = 30
 class Capacity(BaseModel):
     """What one host carries, and how that was found."""
 
-    robots: float = Field(description="robots admitted at 30 Hz (--max-robots)")
+    robots: float = Field(ge=1, le=MAX_ROBOTS, description="robots admitted at 30 Hz (--max-robots)")
     cpu_model: str
     cores: int
     keyframe_ms: float | None = Field(None, description="one keyframe job (detector, yolo, matcher, mapping), "
@@ -92,7 +95,7 @@ def keep(capacity: Capacity) -> None:
     """Keep ``capacity`` for its host (a bench's figure beside the start-time one)."""
     kept = _kept()
     kept[f"{capacity.cpu_model}|{capacity.cores}|{capacity.source}"] = capacity.model_dump()
-    write_atomic(cache_file(), json.dumps(kept, indent=1), AS_OPEN)
+    write_atomic(cache_file(), json.dumps(kept, indent=1))  # private: whoever may write it sets the admission
 
 
 def keep_bench(max_robots: int) -> Capacity:

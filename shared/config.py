@@ -7,6 +7,7 @@ Load from YAML with :func:`load_config` and override with dotted ``key=value`` p
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any, Literal
 
@@ -18,6 +19,15 @@ from .errors import ConfigError, validation_problems
 
 class Section(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+#: what names a dynamics table (``yolo.dynamics_table`` over HTTP or the bus): no path, no dot
+TABLE_NAME = re.compile(r"[A-Za-z0-9_-]{1,64}")
+
+
+def is_table_name(value: str) -> bool:
+    """Whether ``value`` names a dynamics table rather than giving a file's path."""
+    return TABLE_NAME.fullmatch(value) is not None
 
 
 class DetectorConfig(Section):
@@ -34,6 +44,11 @@ class DetectorConfig(Section):
         "machine of those whose measured feature quality is within 2 points of R2D2's (twohr.models.auto_candidates), "
         "timed once per host and kept in $TWOHR_CACHE/models/auto-choices.json (`twohr models auto`); the choice goes "
         "into the run's provenance")
+
+    @property
+    def descriptor_layout(self) -> tuple[int, str]:
+        """The width and dtype of the descriptors these features give: what a map of them must hold."""
+        return (32, "uint8") if self.features in ("orb", "fast") else (128, "float32")
 
     @field_validator("model")
     @classmethod
@@ -97,7 +112,9 @@ class YoloConfig(Section):
     iou_threshold: float = Field(0.45, ge=0, le=1, description="class-aware NMS overlap")
     max_detections: int = Field(100, ge=1, description="keep at most this many detections per image")
     dynamics_table: str | None = Field(
-        None, description="YAML file: high/medium/low -> class names; None = the paper's table")
+        None, description="a table's name (high/medium/low -> class names): one the stack ships or the operator put in "
+        "$TWOHR_DYNAMICS_TABLES as <name>.yaml; None = the paper's table. A YAML file's path only in process "
+        "(twohr run --set, the lab): POST /sessions refuses a path")
     remove_levels: list[Literal["high", "medium", "low"]] = Field(
         default_factory=lambda: ["high"], description="mask objects of these dynamics levels")
     mask: Literal["box", "depth"] = Field("depth", description="box = dilated boxes; depth = box pixels near its "

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import struct
 from typing import Annotated, Any, ClassVar, Literal
 
@@ -47,6 +48,10 @@ class MessageError(TwohrError):
 
 #: Largest dimension an array header may claim; beyond it numpy cannot even describe the array.
 MAX_DIMENSION = 2**31 - 1
+#: Most pixels an image in a message may have (a 640x480 camera sends 0.3 M, a 4K one 8.3 M): a larger claimed shape
+#: is refused before decoding, and OpenCV refuses to decode a larger one (a PNG of a few bytes can claim gigapixels)
+MAX_IMAGE_PIXELS = 100_000_000
+os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_IMAGE_PIXELS))  # read at OpenCV's first decode
 
 
 class ArraySpec(BaseModel):
@@ -326,6 +331,8 @@ def _check_array(spec: ArraySpec) -> None:
         expected = math.prod(spec.shape) * np.dtype(spec.dtype).itemsize  # Python ints: no overflow
         if expected != spec.nbytes:
             raise MessageError(f"array {spec.name}: {spec.nbytes} bytes for shape {spec.shape} {spec.dtype}")
+    elif math.prod(spec.shape[:2]) > MAX_IMAGE_PIXELS:
+        raise MessageError(f"array {spec.name}: an image of {spec.shape[:2]} pixels, at most {MAX_IMAGE_PIXELS}")
 
 
 def _imdecode(spec: ArraySpec, blob: bytes, flags: int) -> np.ndarray:

@@ -55,6 +55,15 @@ PER_FRAME_NICE = -5
 BACKGROUND_NICE = 10
 ServicePriority = Literal["per_frame", "keyframe", "normal", "background"]
 COUNTERS = ("received", "processed", "dropped", "malformed", "ignored", "errors")
+#: queries of one robot a service holds waiting at most (a tracker has a few keyframe jobs in flight per robot)
+MAX_QUEUED_QUERIES = 64
+#: sessions whose robot a service remembers (a start past this forgets the oldest)
+SESSIONS_REMEMBERED = 1024
+
+
+def robot_of(key: str) -> str:
+    """The robot of a per-robot key (``twohr/<robot>/...``), '' for any other key: whose queue an item joins."""
+    return key.split("/", 2)[1] if key.count("/") >= 2 else ""
 
 
 class UnknownSession(Exception):
@@ -137,7 +146,7 @@ class _RobotQueues:
         self.size = 0
 
     def append(self, item) -> None:
-        robot = str(item[0]).split("/", 2)[1] if str(item[0]).count("/") >= 2 else ""
+        robot = robot_of(str(item[0]))
         self.queues.setdefault(robot, collections.deque()).append(item)
         self.size += 1
 
@@ -179,6 +188,9 @@ class Service:
         self.stopping = threading.Event()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self.session_configs: dict[str, PipelineConfig] = {}
+        self.session_robots: dict[str, str] = {}  # session -> the robot its start control named
+        self._queued_queries: dict[str, int] = {}  # robot -> its queries waiting in the inbox
+        self.refused: dict[str, int] = {}  # robot (of the key) -> messages refused (malformed, or not its session's)
         self.replica = replica_id()
 
     # -- to override
@@ -214,8 +226,10 @@ class Service:
         self.log.info("%s warm in %.2f s", what, time.perf_counter() - t0)
 
     def health(self) -> dict:
+        with self.counters.lock:
+            refused = dict(self.refused)
         return {"service": self.name, "replica": self.replica, "host": socket.gethostname(), "pid": os.getpid(),
-                "queue": len(self.inbox), **self.counters.as_dict()}
+                "queue": len(self.inbox), **self.counters.as_dict(), "refused": refused}
 
     def declare_replica_queryable(self, query: str) -> zenoh.Queryable:
         """Answer ``query`` (e.g. ``rpc/detect``) for every robot, as this replica: the tracker picks one replica
@@ -234,9 +248,31 @@ class Service:
         self.inbox.put((key, sample.payload.to_bytes()), urgent=key.endswith("/" + keys.CONTROL))
 
     def _on_query(self, query: zenoh.Query) -> None:
-        """Queue a query (a request/reply stage); it is served before any queued stream sample."""
+        """Queue a query (a request/reply stage); it is served before any queued stream sample. A robot with
+        :data:`MAX_QUEUED_QUERIES` queries waiting already is answered "busy" at once: one robot's flood of
+        queries holds no other robot's up, and the queue stays bounded."""
         self.counters.add("received")
-        self.inbox.put((str(query.key_expr), query), urgent=True)
+        key = str(query.key_expr)
+        robot = robot_of(key)
+        with self.counters.lock:
+            waiting = self._queued_queries.get(robot, 0)
+            if waiting < MAX_QUEUED_QUERIES:
+                self._queued_queries[robot] = waiting + 1
+        if waiting >= MAX_QUEUED_QUERIES:
+            self.counters.add("dropped")
+            query.reply_err(f"{self.name}: busy: robot {robot} has {waiting} queries waiting here".encode())
+            query.drop()
+            return
+        self.inbox.put((key, query), urgent=True)
+
+    def _dequeued_query(self, key: str) -> None:
+        robot = robot_of(key)
+        with self.counters.lock:
+            left = self._queued_queries.get(robot, 1) - 1
+            if left > 0:
+                self._queued_queries[robot] = left
+            else:
+                self._queued_queries.pop(robot, None)
 
     def config_for(self, session_id: str) -> PipelineConfig:
         """The pipeline config of a running session; raises :class:`UnknownSession` for any other."""
@@ -250,8 +286,20 @@ class Service:
         serves only the sessions assigned to it)."""
         return True
 
+    def _check_owner(self, header) -> None:
+        """:class:`MessageError` for a message on a session another robot started: a session id is no secret (every
+        robot may read another's poses), its start control says whose it is."""
+        owner = self.session_robots.get(header.session_id)
+        if owner is not None and owner != header.robot_id:
+            raise MessageError(f"robot {header.robot_id!r} spoke for session {header.session_id}, which is robot "
+                               f"{owner!r}'s")
+
     def _handle_control(self, payload: bytes) -> None:
         control, _ = decode(payload, ControlMsg)
+        if control.command in ("start", "move"):  # an ended session's too: its last messages come after its stop
+            self.session_robots[control.session_id] = control.robot_id
+            while len(self.session_robots) > SESSIONS_REMEMBERED:
+                self.session_robots.pop(next(iter(self.session_robots)))
         if not self.takes(control):
             return
         if control.command == "move" and not self.follows_moves:
@@ -283,13 +331,14 @@ class Service:
         if item is None:
             return False
         key, payload = item
+        if isinstance(payload, zenoh.Query):
+            self._dequeued_query(key)
         try:
-            check_robot(key, payload)
+            header = check_robot(key, payload)
+            if header is not None and self.follows_sessions and not key.endswith("/" + keys.CONTROL):
+                self._check_owner(header)
         except MessageError as exc:
-            self.counters.add("malformed")
-            self.log.warning("dropped a message on %s: %s", key, exc)
-            if isinstance(payload, zenoh.Query):
-                payload.reply_err(f"{self.name}: {exc}".encode())
+            self._refuse(key, payload, exc)
             return True
         try:
             if self.follows_sessions and key.endswith("/" + keys.CONTROL):
@@ -298,8 +347,7 @@ class Service:
                 self.handle(key, payload)
             self.counters.add("processed")
         except MessageError as exc:
-            self.counters.add("malformed")
-            self.log.warning("dropped malformed message on %s: %s", key, exc)
+            self._refuse(key, payload, exc, answer=False)  # a query's handler answers it (reply_to)
         except UnknownSession as exc:
             self.counters.add("ignored")
             if isinstance(payload, zenoh.Query):
@@ -309,6 +357,17 @@ class Service:
             self.counters.add("errors")
             self.log.exception("error while handling %s", key)
         return True
+
+    def _refuse(self, key: str, payload, exc: MessageError, answer: bool = True) -> None:
+        """A message refused: counted (in all and by the robot of its key), said, and (``answer``) a query answered
+        at once."""
+        self.counters.add("malformed")
+        robot = robot_of(key)
+        with self.counters.lock:
+            self.refused[robot] = self.refused.get(robot, 0) + 1
+        self.log.warning("refused a message on %s: %s", key, exc)
+        if answer and isinstance(payload, zenoh.Query):
+            payload.reply_err(f"{self.name}: {exc}".encode())
 
     def run(self, stop: threading.Event | None = None) -> None:
         """Serve until ``stop`` is set (or SIGINT/SIGTERM when run as a program)."""
@@ -393,20 +452,22 @@ def change_priority(nice: int) -> bool:
     return True
 
 
-def check_robot(key: str, payload) -> None:
+def check_robot(key: str, payload):
     """Raise :class:`MessageError` unless a twohr message's header names the robot of the key it came on: a
-    publisher allowed on ``twohr/r2/...`` must not speak for ``r1``."""
+    publisher allowed on ``twohr/r2/...`` must not speak for ``r1``. Returns the header (None for a key of no
+    robot's)."""
     if isinstance(payload, zenoh.Query):
         payload = payload.payload.to_bytes() if payload.payload is not None else b""
     try:
         robot, _ = keys.parse(key)
     except ValueError:
-        return  # not a per-robot key (health, liveliness)
+        return None  # not a per-robot key (health, liveliness)
     if robot in keys.RESERVED_ROBOT_IDS:
-        return  # a map's key (twohr/maps/<name>/...): its messages are about any robot of the map
+        return None  # a map's key (twohr/maps/<name>/...): its messages are about any robot of the map
     message, _ = split(payload)
     if message.robot_id != robot:
         raise MessageError(f"a message for robot {message.robot_id!r} on {key}")
+    return message
 
 
 def reply_to(query: zenoh.Query, answer) -> None:

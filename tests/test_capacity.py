@@ -32,3 +32,10 @@ def test_auto_measures_once_keeps_the_figure_and_prefers_the_fleet_bench(tmp_pat
 
     keep_bench(3)
     assert auto_capacity(say=said.append).robots == 3.0 and len(said) == 1
+    # the kept file is private, and a figure edited out of bounds is not taken: measured again
+    assert capacity.cache_file().stat().st_mode & 0o777 == 0o600
+    for bad in ("1e6", "Infinity"):
+        kept = capacity.cache_file().read_text()
+        capacity.cache_file().write_text(kept.replace('"robots": 3.0', f'"robots": {bad}'))
+        assert capacity.kept_capacity().source == "measured at start", bad
+        capacity.cache_file().write_text(kept)

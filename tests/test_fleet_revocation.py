@@ -465,3 +465,46 @@ def test_the_denial_log_drains_zenohs_output_when_its_terminal_is_gone_and_remem
     assert len(denials._filter._names) == MAX_TRACKED
     with contextlib.suppress(OSError):
         gone.close()
+
+
+def test_a_robot_reads_the_others_poses_but_only_its_own_map_points(keys, tmp_path):
+    """On the keyed router: the tracker publishes a's and b's poses and live map points (``landmarks``); robot b
+    hears a's poses and its own points, and none of a's points (another robot's map is not its to read)."""
+    router = Router(keys, tmp_path / "router.log")
+    sessions = []
+    try:
+        tracker = join(keys.identity("tracker"), router.endpoint)
+        b = join(load_identity(tmp_path / "b.bundle"), router.endpoint)
+        sessions += [tracker, b]
+        heard: dict[str, int] = {}
+
+        def count(sample) -> None:
+            heard[str(sample.key_expr)] = heard.get(str(sample.key_expr), 0) + 1
+
+        for key in ("twohr/a/pose", "twohr/a/landmarks", "twohr/b/landmarks"):
+            b.declare_subscriber(key, count)
+        time.sleep(1.0)  # the subscriptions reach the router
+        for _ in range(20):
+            for key in ("twohr/a/pose", "twohr/a/landmarks", "twohr/b/landmarks"):
+                tracker.put(key, b"x")
+            time.sleep(0.02)
+        time.sleep(1.0)
+        assert heard.get("twohr/a/pose") == 20 and heard.get("twohr/b/landmarks") == 20, heard
+        assert "twohr/a/landmarks" not in heard, heard
+    finally:
+        for session in sessions:
+            session.close()
+        router.stop()
+
+
+def test_giving_the_key_folders_away_never_follows_a_link_planted_in_one(keys, tmp_path):
+    """``twohr keys init --owner``: a link in a service's folder is given away itself, not the file it points to."""
+    if os.geteuid() != 0:
+        pytest.skip("giving files to another user needs root")
+    target = tmp_path / "elsewhere.txt"
+    target.write_text("not the fleet's")
+    planted = keys.service_folder("detector") / "planted"
+    planted.symlink_to(target)
+    keys.give({"*": 54321})
+    assert target.stat().st_uid == 0 and planted.lstat().st_uid == 54321
+    assert keys.service_folder("detector").stat().st_uid == 54321

@@ -125,3 +125,17 @@ def test_a_received_frame_decodes_each_image_on_first_use(dev_sequence):
     assert frame.depth.shape == (480, 640)  # the depth alone is fine
     with pytest.raises(MessageError, match="corrupt"):
         _ = frame.rgb
+
+
+def test_an_image_claiming_more_pixels_than_the_cap_is_refused_before_it_is_decoded():
+    import cv2
+
+    from twohr.messages import MAX_IMAGE_PIXELS
+
+    side = int(MAX_IMAGE_PIXELS**0.5) + 1
+    ok, png = cv2.imencode(".png", np.zeros((8, 8), np.uint16))
+    claimed = encode(FrameMsg(**IDS, camera=CAMERA_PRESETS["bonn"]),
+                     blobs={"rgb": encoded_image("rgb", png.tobytes(), "png", "uint8", (side, side, 3)),
+                            "depth": encoded_image("depth", png.tobytes(), "png", "uint16", (8, 8))})
+    with pytest.raises(MessageError, match="at most"):
+        decode(claimed)

@@ -205,3 +205,50 @@ def test_replicas_answers_merge_counts_nested_counters_and_lists():
         "service": "tracker", "processed": 12, "robots": ["a", "b"], "ready": True,
         "jobs": {"detector": {"answered": {"r1": 4, "r2": 4}, "lost": 2, "alive": ["r1", "r2"]}}}
     assert answers[0]["jobs"]["detector"]["answered"] == {"r1": 3}  # the replicas' own answers are left as they were
+
+
+class SlowAnswers(Service):
+    """Answers ``twohr/<robot>/rpc/echo/<replica>`` queries, each after ``hold`` is set: a service busy with a job."""
+
+    name = "slow_test"
+
+    def __init__(self, bus):
+        super().__init__(bus)
+        self.hold = threading.Event()
+
+    def on_start(self):
+        self.queryable = self.declare_replica_queryable("rpc/echo")
+
+    def handle(self, key, query):
+        self.hold.wait(30)
+        query.reply(query.key_expr, b"done")
+
+
+def test_a_robots_flood_of_queries_is_answered_busy_and_holds_up_no_other_robots(bus_config):
+    from twohr.service import MAX_QUEUED_QUERIES
+
+    service = SlowAnswers(bus_config)
+    stop, thread = run_service(service)
+    client = open_session(bus_config)
+    try:
+        wait_for_services(client, ["slow_test"], timeout=30)
+        flood = [client.get(f"twohr/b/rpc/echo/{service.replica}", payload=pose_payload(i, "b"), timeout=60)
+                 for i in range(MAX_QUEUED_QUERIES + 40)]
+        # one query is being answered, MAX_QUEUED_QUERIES wait, the other 39 are answered busy at once
+        deadline = time.monotonic() + 20
+        while service.counters.dropped < 39:
+            assert time.monotonic() < deadline, service.counters.as_dict()
+            time.sleep(0.05)
+        a = client.get(f"twohr/a/rpc/echo/{service.replica}", payload=pose_payload(0, "a"), timeout=60)
+        time.sleep(0.5)
+        assert len(service.inbox) <= MAX_QUEUED_QUERIES + 1, len(service.inbox)
+        service.hold.set()
+        assert [r.ok.payload.to_bytes() for r in a] == [b"done"]  # a's one query was queued and answered
+        answers = [reply for replies in flood for reply in replies]
+        busy = [r for r in answers if r.err is not None and b"busy" in r.err.payload.to_bytes()]
+        assert len(busy) == 39 and len(answers) - len(busy) == MAX_QUEUED_QUERIES + 1, (len(answers), len(busy))
+    finally:
+        service.hold.set()
+        client.close()
+        stop.set()
+        thread.join(10)

@@ -21,7 +21,7 @@ from twohr_app.pipeline import run_sequence
 from twohr_app.supervisor import start_system
 from twohr_services.recorder.core import topic_counts
 
-FRAMES = 60
+FRAMES = 30  # a second of the camera, every frame a keyframe job, twice (the stack and one process)
 # half-resolution R2D2 keeps this test quick; the same overrides go to `twohr run` below. The every-frame
 # schedule is deterministic, so the bus and one process must agree exactly; the camera-rate schedule is
 # tested at the end of this module.
@@ -123,6 +123,8 @@ def test_bad_requests_get_clear_4xx(system, dev_sequence):
             ({"sequence": dev_sequence.name, "config": {"tracker.bogus": 1}}, 422, "tracker.bogus"),
             ({"sequence": dev_sequence.name, "robot_id": "bad id!"}, 422, "robot_id"),
             ({"sequence": dev_sequence.name, "rate": -1}, 422, "rate"),
+            ({"sequence": dev_sequence.name, "config": {"yolo.dynamics_table": "/etc/passwd"}}, 422, "not a path"),
+            ({"sequence": dev_sequence.name, "config": {"yolo.dynamics_table": "../t"}}, 422, "not a path"),
             ({"sequence": "missing_sequence"}, 422, "not found|not under"),
         ]
         for body, code, message in cases:

@@ -286,13 +286,14 @@ class Fleet:
             if uid is None:
                 continue
             folder = self.service_folder(role)
+            # a link planted in a folder is given away itself, never what it points to
             for path in (folder, *folder.iterdir()):
-                os.chown(path, uid, uid)
+                os.chown(path, uid, uid, follow_symlinks=False)
             if role == "router":  # it writes its lease and acknowledgements there
                 private_folder(self.router_state.parent)
                 private_folder(self.router_state)
                 for path in (self.router_state, *self.router_state.iterdir()):
-                    os.chown(path, uid, uid)
+                    os.chown(path, uid, uid, follow_symlinks=False)
 
     def issue_service(self, role: str, hosts: list[str] | None = None) -> Path:
         """(Re)make the key folder of service ``role``: a new certificate (for ``hosts`` besides the local names,

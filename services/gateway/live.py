@@ -25,12 +25,15 @@ from twohr import keys
 from twohr.foxglove_live import EVERYTHING, Authorize, LiveView, Viewer, robot_viewer, server_tls
 from twohr.identity import CERT_FILE, KEY_FILE
 from twohr.messages import ControlMsg, MessageError, decode
+from twohr.service import check_robot
 
 from .tokens import Tokens
 
 log = logging.getLogger("twohr.gateway.live")
 
 STREAMS = ("frames", "keypoints", "dynamics", "pose", "landmarks", "path")
+#: sessions the live view remembers the robot of (a start past this forgets the oldest)
+MAX_SESSIONS = 1024
 
 
 def live_access(settings, tokens: Tokens | None = None) -> tuple[ssl.SSLContext | None, Authorize | None]:
@@ -61,6 +64,7 @@ class BusLiveView:
         self.ready = threading.Condition()
         self.malformed = 0
         self.stopping = False
+        self.sessions: dict[str, str] = {}  # session -> robot, of the sessions started (their start controls)
         # and the shared maps' merges: a robot's submap frame hung under the map's (FoxgloveConverter.merge)
         self.subscribers = [session.declare_subscriber(key, self._on_sample) for key in (
             *(keys.all_robots(stream) for stream in (*STREAMS, keys.CONTROL)), keys.merged_key())]
@@ -81,16 +85,30 @@ class BusLiveView:
                     return
                 key, payload = self.queue.popleft()
             try:
+                header = check_robot(key, payload)
                 if keys.parse(key)[1] == keys.CONTROL:
                     control, _ = decode(payload, ControlMsg)
+                    self._follow(control)
                     if control.command == "start":  # every channel up front: none loses its first message
                         self.view.reset(control.robot_id)
                         self.view.advertise(control.robot_id)
                 else:
+                    if header is not None and self.sessions.get(header.session_id) != header.robot_id:
+                        raise MessageError(f"robot {header.robot_id!r} runs no session {header.session_id}")
                     self.view.convert_and_log(payload)
             except (MessageError, ValueError) as exc:
                 self.malformed += 1
                 log.debug("live view skipped %s: %s", key, exc)
+
+    def _follow(self, control: ControlMsg) -> None:
+        """The sessions running, by their start controls: a message is drawn only for the robot whose session it
+        is (a session id is no secret; the key says which robot sent it), so no robot draws as another, and a robot
+        that runs nothing makes no channels. An ended session is kept (its refined path comes after its stop)
+        until :data:`MAX_SESSIONS` newer ones started."""
+        if control.command in ("start", "move"):
+            self.sessions[control.session_id] = control.robot_id
+            while len(self.sessions) > MAX_SESSIONS:
+                self.sessions.pop(next(iter(self.sessions)))
 
     def close(self) -> None:
         for subscriber in self.subscribers:

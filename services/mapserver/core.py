@@ -77,6 +77,61 @@ class KeyframeBatch:
     descriptors: np.ndarray
 
 
+#: the most keyframe poses one batch may carry (every keyframe of the session so far: a long session has a few
+#: thousand), keypoints and new descriptors (a batch's new keyframes see a few thousand)
+MAX_BATCH_KEYFRAMES = 100_000
+MAX_BATCH_POINTS = 2_000_000
+#: how far a pose's rotation may be from a rotation (|R^T R - I|, max entry) and its last row from (0, 0, 0, 1)
+RIGID_TOLERANCE = 1e-3
+
+
+class BatchRefused(ValueError):
+    """A robot's keyframe batch that does not fit its session: said in one line, never taken in part."""
+
+
+def check_batch(batch: KeyframeBatch, descriptor_width: int, descriptor_dtype: str) -> None:
+    """:class:`BatchRefused` unless ``batch`` is what a tracker sends (:class:`KeyframeBatch`): K×4×4 finite rigid
+    poses and K finite stamps, ``keypoint_first`` from 0 up to P for keyframes ``first`` on within the K, P rows of
+    finite observations, landmark ids of 0 and above, and descriptors of the session's network (``descriptor_width``
+    of ``descriptor_dtype``, known from its start, never from a batch), each array under the stated caps."""
+    poses, stamps, starts = batch.poses, batch.stamps, batch.keypoint_first
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or stamps.shape != (len(poses),):
+        raise BatchRefused(f"poses {poses.shape} and stamps {stamps.shape}: want (K, 4, 4) and (K,)")
+    if len(poses) > MAX_BATCH_KEYFRAMES:
+        raise BatchRefused(f"{len(poses)} keyframe poses: at most {MAX_BATCH_KEYFRAMES}")
+    if not (np.isfinite(poses).all() and np.isfinite(stamps).all()):
+        raise BatchRefused("poses or stamps that are not finite")
+    rotations = poses[:, :3, :3].astype(np.float64)
+    off_rotation = np.abs(np.einsum("kji,kjl->kil", rotations, rotations) - np.eye(3)).max(initial=0.0)
+    off_row = np.abs(poses[:, 3, :] - (0, 0, 0, 1)).max(initial=0.0)
+    if off_rotation > RIGID_TOLERANCE or off_row > RIGID_TOLERANCE or (np.linalg.det(rotations) < 0).any():
+        raise BatchRefused("a pose that is not rigid")
+    if starts.ndim != 1 or len(starts) < 1 or batch.first + len(starts) - 1 > len(poses) or not np.issubdtype(
+            starts.dtype, np.integer):
+        raise BatchRefused(f"keypoint_first {starts.shape} {starts.dtype} for keyframes {batch.first} on of "
+                           f"{len(poses)}")
+    points = len(batch.xy)
+    if starts[0] != 0 or starts[-1] != points or (np.diff(starts) < 0).any():
+        raise BatchRefused(f"keypoint_first does not split the {points} keypoints in order")
+    if points > MAX_BATCH_POINTS or len(batch.described) > MAX_BATCH_POINTS:
+        raise BatchRefused(f"{points} keypoints and {len(batch.described)} descriptors: at most {MAX_BATCH_POINTS}")
+    shapes = {"xy": (batch.xy, (points, 2)), "depth": (batch.depth, (points,)),
+              "landmark": (batch.landmark, (points,)), "positions": (batch.positions, (points, 3)),
+              "described": (batch.described, (len(batch.described),)),
+              "descriptors": (batch.descriptors, (len(batch.described), descriptor_width))}
+    for name, (array, shape) in shapes.items():
+        if array.shape != shape:
+            raise BatchRefused(f"{name} {array.shape}: want {shape}")
+    if batch.descriptors.dtype != np.dtype(descriptor_dtype):
+        raise BatchRefused(f"descriptors of {batch.descriptors.dtype}: the session's network gives {descriptor_dtype}")
+    for name in ("landmark", "described"):
+        array = getattr(batch, name)
+        if not np.issubdtype(array.dtype, np.integer) or (array < 0).any():
+            raise BatchRefused(f"{name}: want landmark ids of 0 and above")
+    if not all(np.isfinite(a).all() for a in (batch.xy, batch.depth, batch.positions, batch.descriptors)):
+        raise BatchRefused("observations or descriptors that are not finite")
+
+
 @dataclass
 class Observations:
     """One keyframe's keypoints that observe a described landmark: pixel ``xy``, ``depth`` (m), the robot's

@@ -35,10 +35,10 @@ from twohr.features import mutual_nn
 from twohr.geometry import rot_to_quat
 from twohr.mapclient import NO_SNAPSHOT
 from twohr.mapfile import MapFileError, arrays_file, encode_map
-from twohr.messages import ControlMsg, KeyframesMsg, MergeMsg, decode, encode
+from twohr.messages import ControlMsg, KeyframesMsg, MergeMsg, MessageError, decode, encode
 from twohr.service import Service, UnknownSession, one_line_errors, service_parser
 
-from .core import STORED, KeyframeBatch, MergeEvent, SharedMap, export
+from .core import STORED, BatchRefused, KeyframeBatch, MergeEvent, SharedMap, check_batch, export
 from .room import MapRoom, MapRoomSettings
 
 #: how long after a session's stop its tracker's last keyframes are waited for (the final bundle adjustment)
@@ -145,11 +145,18 @@ class MapServerService(Service):
         opened = self.maps[name]
         began = time.thread_time()
         session = opened.sessions[message.session_id]
+        batch = KeyframeBatch(first=message.first, **{name: arrays[name] for name in KeyframesMsg.required_arrays})
+        try:
+            check_batch(batch, *session.control.config.detector.descriptor_layout)
+        except BatchRefused as exc:
+            self.report(session.control, "refused", f"map {name}: a keyframe batch refused: {exc}")
+            raise MessageError(f"keyframes of session {message.session_id}: {exc}") from None
         session.bytes_in += len(payload)
         session.final = session.final or message.final
-        if opened.shared_map.submaps[message.robot_id].session != message.session_id:
+        submap = opened.shared_map.submaps.get(message.robot_id)
+        if submap is None or submap.session != message.session_id:
             return  # an earlier session of the robot, still finishing: its keyframes are in the map already
-        event = opened.shared_map.add(message.robot_id, KeyframeBatch(first=message.first, **arrays), message.camera)
+        event = opened.shared_map.add(message.robot_id, batch, message.camera)
         session.keyframes = len(opened.shared_map.submaps[message.robot_id])
         if event is not None:
             self._merged(opened, event)
@@ -161,7 +168,11 @@ class MapServerService(Service):
         for name, opened in list(self.maps.items()):
             if all(s.ended_at is not None and (s.final or now - s.ended_at > FINAL_WAIT_S)
                    for s in opened.sessions.values()):
-                self._close(name, opened)
+                try:
+                    self._close(name, opened)
+                except Exception:  # a map that cannot be saved is one map's error, never the room's exit
+                    self.counters.add("errors")
+                    self.log.exception("map %s: closing it failed", name)
         return handled
 
     def _merged(self, opened: OpenMap, event: MergeEvent) -> None:
@@ -222,7 +233,7 @@ class MapServerService(Service):
                                  parent=None if opened.shared_map.stored is None else opened.shared_map.stored.header,
                                  cameras=exported.cameras[1:], camera_robots=exported.robots)
             payload = encode_map(stored)
-        except MapFileError as exc:
+        except (MapFileError, ValueError) as exc:  # a pydantic ValidationError is a ValueError
             self.report(control, "error", f"map {name} not saved: {exc}")
             return False
         if self.room.store is None:

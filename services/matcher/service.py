@@ -20,6 +20,9 @@ from twohr.service import MODEL_CACHE_SIZE, Service, reply_to, serve
 
 from .core import build_matcher
 
+#: descriptor pairs one query may ask to compare (Na x Nb): a keyframe's 1500 against a local map of 5000 are 7.5 M
+MAX_MATCH_PAIRS = 75_000_000
+
 
 class MatcherService(Service):
     """Siamese (or baseline) matching as a query/reply service, with each session's matcher config."""
@@ -50,6 +53,7 @@ class MatcherService(Service):
         match = self.matcher_for(self.config_for(request.session_id).matcher.model_dump_json())
         t0 = time.perf_counter()
         desc_a, desc_b = arrays["desc_a"], arrays["desc_b"]
+        check_pair(desc_a, desc_b)
         if "desc_b_sizes" in arrays:  # several reference sets, each matched apart
             sizes = np.asarray(arrays["desc_b_sizes"], np.int64)
             if sizes.ndim != 1 or (sizes < 0).any() or int(sizes.sum()) != len(desc_b):
@@ -65,6 +69,16 @@ class MatcherService(Service):
         data = encode(reply, found)
         self.publish(keys.key(request.robot_id, "matches"), data)
         return data
+
+
+def check_pair(desc_a: np.ndarray, desc_b: np.ndarray) -> None:
+    """:class:`MessageError` unless two sets of descriptors can be matched within :data:`MAX_MATCH_PAIRS`: rows of
+    one width and dtype (a mutual nearest neighbour builds the whole Na x Nb matrix)."""
+    if desc_a.ndim != 2 or desc_b.ndim != 2 or desc_a.shape[1] != desc_b.shape[1] or desc_a.dtype != desc_b.dtype:
+        raise MessageError(f"descriptors {desc_a.shape} {desc_a.dtype} and {desc_b.shape} {desc_b.dtype}: want two "
+                           "sets of rows of one width and dtype")
+    if len(desc_a) * len(desc_b) > MAX_MATCH_PAIRS:
+        raise MessageError(f"{len(desc_a)} x {len(desc_b)} descriptors to match: at most {MAX_MATCH_PAIRS} pairs")
 
 
 def main(argv: list[str] | None = None) -> None:

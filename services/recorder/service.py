@@ -17,7 +17,7 @@ from pathlib import Path
 from twohr import keys
 from twohr.bus import BusConfig, bus_from_args
 from twohr.mcapfile import recover
-from twohr.messages import ControlMsg, MergeMsg, PathMsg, decode, split
+from twohr.messages import ControlMsg, MergeMsg, MessageError, PathMsg, decode, split
 from twohr.service import Service, one_line_errors, service_parser
 
 from .core import RecordingOptions, SessionRecorder
@@ -40,6 +40,7 @@ class RecorderService(Service):
         self.open: dict[str, SessionRecorder] = {}
         self.sharing: dict[str, str] = {}  # sessions that share a map: its name
         self.closing: dict[str, float] = {}
+        self.owners: dict[str, str] = {}  # session -> the robot its start named, while its file is open
 
     def on_start(self) -> None:
         for path in sorted(self.recordings.glob("*.mcap")):
@@ -65,6 +66,7 @@ class RecorderService(Service):
                     "record_frames": self.options.record_frames or control.record_frames})
                 self.open[control.session_id] = SessionRecorder(self.recordings / f"{control.session_id}.mcap",
                                                                 options)
+                self.owners[control.session_id] = control.robot_id
             recorder = self.open.get(control.session_id)
             if recorder is not None:
                 recorder.write(key, payload, now)
@@ -81,6 +83,9 @@ class RecorderService(Service):
                     self.open[session_id].write(key, payload, now)
             return
         recorder = self.open.get(message.session_id)
+        if recorder is not None and self.owners.get(message.session_id) != message.robot_id:
+            # a session id is no secret: the key (checked against the header) says which robot sent this
+            raise MessageError(f"robot {message.robot_id!r} spoke for session {message.session_id}")
         if recorder is not None:
             recorder.write(key, payload, now)
             if stream == "pose":
@@ -108,6 +113,7 @@ class RecorderService(Service):
         if recorder is not None:
             recorder.close()
             del self.open[session_id]  # only now: a session not in ``open`` has a complete, indexed file
+            self.owners.pop(session_id, None)
             self.log.info("finalised %s (%s)", recorder.path, recorder.counts)
 
     def run(self, stop=None) -> None:

@@ -7,6 +7,7 @@ detections whose class belongs to the levels that should be removed.
 
 from __future__ import annotations
 
+import os
 from importlib import resources
 from pathlib import Path
 from typing import Literal, get_args
@@ -15,6 +16,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from twohr.config import is_table_name
 from twohr.errors import ConfigError, validation_problems
 from twohr.features import Detections
 
@@ -89,11 +91,28 @@ class DynamicsTable(BaseModel):
                           [n for n, k in zip(detections.names, keep, strict=True) if k])
 
 
+#: where the operator installs dynamics tables a session may name (``<name>.yaml``)
+TABLES_ENV = "TWOHR_DYNAMICS_TABLES"
+#: the name of the table the stack ships (the paper's)
+PAPER_TABLE = "dynamics"
+
+
 def load_dynamics_table(path: str | Path | None = None) -> DynamicsTable:
-    """The table in a YAML file, or the paper's table (``dynamics.yaml`` beside this module) when ``path`` is None.
+    """The paper's table (``dynamics.yaml`` beside this module) when ``path`` is None or its name; a table's name
+    (:func:`twohr.config.is_table_name`): ``<name>.yaml`` in ``$TWOHR_DYNAMICS_TABLES``; else a YAML file's path
+    (in process only: the gateway refuses one).
 
     Raises :class:`ConfigError` with the file name for a missing file, invalid YAML, an unknown
     level or a class listed under two levels."""
+    if isinstance(path, str) and is_table_name(path):
+        if path == PAPER_TABLE:
+            path = None
+        else:
+            folder = os.environ.get(TABLES_ENV)
+            if not folder or not (Path(folder) / f"{path}.yaml").is_file():
+                raise ConfigError(f"dynamics table {path!r} is not installed: the stack ships {PAPER_TABLE!r}; the "
+                                  f"operator adds <name>.yaml to ${TABLES_ENV}")
+            path = Path(folder) / f"{path}.yaml"
     if path is None:
         text = resources.files(__package__).joinpath("dynamics.yaml").read_text()
         where = "the built-in dynamics table"

@@ -15,7 +15,7 @@ from pathlib import Path
 from fastapi import APIRouter, Depends, HTTPException, status
 from fastapi.responses import FileResponse, PlainTextResponse
 
-from twohr.config import PipelineConfig, load_config
+from twohr.config import PipelineConfig, is_table_name, load_config
 from twohr.dataset import RGBDSequence
 from twohr.errors import TwohrError
 from twohr.mapfile import MapFileError
@@ -87,6 +87,11 @@ def checked_start(request: SessionRequest, settings: GatewaySettings) -> tuple[P
     try:
         config = load_config(None, request.config)
         validate_models(config)
+        table = config.yolo.dynamics_table
+        if table is not None and not is_table_name(table):
+            raise TwohrError("yolo.dynamics_table: name an installed table (the stack's 'dynamics', or the "
+                             "operator's in $TWOHR_DYNAMICS_TABLES), not a path: a session reads no file of its "
+                             "caller's choosing")
         folder = None
         if request.source == "sequence":
             folder = resolve_under_roots(request.sequence, settings.data_roots)

@@ -5,7 +5,10 @@ keyframe's robot, and a matched landmark kept once."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
+import pytest
 
 from twohr.config import PipelineConfig
 from twohr.dataset import CameraIntrinsics
@@ -14,7 +17,15 @@ from twohr.geometry import invert_pose, make_pose, project, so3_exp, transform_p
 from twohr.keyframe_sender import KeyframeSender
 from twohr.mapfile import MapArrays, arrays_file, encode_map, read_map
 from twohr.mapstore import without_robot
-from twohr_services.mapserver.core import STORED, KeyframeBatch, SharedMap, export, pose_gap
+from twohr_services.mapserver.core import (
+    STORED,
+    BatchRefused,
+    KeyframeBatch,
+    SharedMap,
+    check_batch,
+    export,
+    pose_gap,
+)
 
 CAMERA = CameraIntrinsics(fx=400, fy=400, cx=319.5, cy=239.5, width=640, height=480)
 #: robot b's frame in robot a's (the map's): what the merge must find
@@ -148,3 +159,117 @@ def test_a_robot_that_shares_a_stored_map_tracks_in_its_frame_and_the_map_grows_
     new_points = len(grown.landmark_positions) - len(base.landmark_positions)
     assert len(exported.arrays.landmark_positions) == len(base.landmark_positions) + new_points, (
         len(exported.arrays.landmark_positions), len(base.landmark_positions), new_points)
+
+
+def _malformed(batch: KeyframeBatch) -> dict[str, KeyframeBatch]:
+    """One batch made wrong in each way a robot could send it."""
+    def changed(**parts) -> KeyframeBatch:
+        return dataclasses.replace(batch, **parts)
+
+    poses = batch.poses.copy()
+    poses[0, :3, :3] *= 2.0
+    nan_positions = batch.positions.copy()
+    nan_positions[0, 0] = np.nan
+    ragged = batch.keypoint_first.copy()
+    ragged[-1] += 5
+    return {"poses not rigid": changed(poses=poses),
+            "poses not 4x4": changed(poses=batch.poses[:, :3, :]),
+            "infinite stamps": changed(stamps=np.full_like(batch.stamps, np.inf)),
+            "a position not finite": changed(positions=nan_positions),
+            "keypoint_first past the keypoints": changed(keypoint_first=ragged),
+            "keyframes beyond the poses": changed(first=len(batch.poses)),
+            "descriptors 0 wide": changed(descriptors=np.zeros((len(batch.described), 0), np.float32)),
+            "descriptors of bytes": changed(descriptors=batch.descriptors.astype(np.uint8)),
+            "a negative landmark id": changed(landmark=-np.ones_like(batch.landmark)),
+            "fewer depths than keypoints": changed(depth=batch.depth[:-1]),
+            "float ids": changed(described=batch.described.astype(np.float64))}
+
+
+def test_every_batch_a_tracker_sends_passes_and_each_malformed_one_is_refused_in_one_line():
+    points, descriptors = world(0)
+    batches = keyframes_of(robot_map(points, descriptors, camera_path(6, 0.0), np.eye(4)))
+    for batch in batches:
+        check_batch(batch, 128, "float32")
+    for what, bad in _malformed(batches[-1]).items():
+        with pytest.raises(BatchRefused) as refused:
+            check_batch(bad, 128, "float32")
+        assert "\n" not in str(refused.value), what
+    # the width is the session's network's, not the batch's: 128-D floats are not an ORB session's
+    with pytest.raises(BatchRefused, match="want"):
+        check_batch(batches[-1], 32, "uint8")
+
+
+def test_the_map_room_refuses_another_robots_session_and_malformed_keyframes_and_goes_on(bus_config, tmp_path):
+    """On a real router: robot b sends keyframes on a's session and malformed keyframes on its own (descriptors 0
+    wide, rows of different lengths); the map room refuses each, counts them for b, keeps a's session as it was
+    (not final, its keyframes taken), and saves the map when the sessions end."""
+    import threading
+    import time
+
+    from twohr import keys
+    from twohr.bus import open_session, query_health
+    from twohr.mapmodes import MapMode
+    from twohr.messages import ControlMsg, KeyframesMsg, encode
+    from twohr.service import declare_publisher
+    from twohr_services.mapserver.room import MapRoomSettings
+    from twohr_services.mapserver.service import MapServerService
+
+    room = MapServerService(bus_config, MapRoomSettings(maps=tmp_path / "maps"))
+    stop = threading.Event()
+    thread = threading.Thread(target=room.run, args=(stop,), daemon=True)
+    thread.start()
+    client = open_session(bus_config)
+    publishers = {key: declare_publisher(client, key) for robot in ("a", "b")
+                  for key in (keys.key(robot, keys.CONTROL), keys.key(robot, "keyframes"))}
+
+    def control(robot: str, command: str) -> None:
+        publishers[keys.key(robot, keys.CONTROL)].put(encode(ControlMsg(
+            session_id=f"s-{robot}", robot_id=robot, frame_index=-1, stamp=time.time(), command=command,
+            map_name="lab", map_mode=MapMode.SHARE, config=PipelineConfig())))
+
+    def send(robot: str, session: str, batch: KeyframeBatch, final: bool = False) -> None:
+        arrays = {name: getattr(batch, name) for name in KeyframesMsg.required_arrays}
+        publishers[keys.key(robot, "keyframes")].put(encode(KeyframesMsg(
+            session_id=session, robot_id=robot, frame_index=-1, stamp=time.time(), map_name="lab",
+            first=batch.first, camera=CAMERA, final=final), arrays))
+
+    def until(condition, what: str) -> None:
+        deadline = time.monotonic() + 30
+        while not condition():
+            assert time.monotonic() < deadline, what
+            time.sleep(0.05)
+
+    try:
+        until(lambda: query_health(client, "mapserver", timeout=1.0) is not None, "the map room never answered")
+        points, descriptors = world(0)
+        a_batches = keyframes_of(robot_map(points, descriptors, camera_path(6, 0.0), np.eye(4)))
+        b_batches = keyframes_of(robot_map(points, descriptors, camera_path(6, 0.3), T_AB))
+        for robot in ("a", "b"):
+            control(robot, "start")
+        until(lambda: "lab" in room.maps and len(room.maps["lab"].sessions) == 2, "the sessions did not start")
+        send("a", "s-a", a_batches[0])
+        ragged = dataclasses.replace(b_batches[0], depth=b_batches[0].depth[:-3])
+        zero_wide = dataclasses.replace(b_batches[0], descriptors=np.zeros((len(b_batches[0].described), 0),
+                                                                           np.float32))
+        send("b", "s-a", b_batches[0], final=True)  # b speaking for a's session
+        send("b", "s-b", zero_wide)
+        send("b", "s-b", ragged)
+        for batch in a_batches[1:]:
+            send("a", "s-a", batch)
+        until(lambda: room.maps["lab"].sessions["s-a"].keyframes == len(a_batches), "a's keyframes were not taken")
+        health = query_health(client, "mapserver", timeout=5.0)
+        assert health["refused"] == {"b": 3} and health["errors"] == 0, health
+        assert not room.maps["lab"].sessions["s-a"].final and room.maps["lab"].sessions["s-b"].keyframes == 0
+        send("b", "s-b", b_batches[0])  # b's own, well formed: taken
+        until(lambda: room.maps["lab"].sessions["s-b"].keyframes == 1, "b's own keyframes were not taken")
+        send("a", "s-a", a_batches[-1], final=True)
+        send("b", "s-b", b_batches[0], final=True)
+        for robot in ("a", "b"):
+            control(robot, "stop")
+        until(lambda: "lab" not in room.maps, "the shared map was not closed")
+        assert thread.is_alive()
+        assert (tmp_path / "maps").is_dir() and any((tmp_path / "maps").rglob("*")), "the map was not saved"
+    finally:
+        client.close()
+        stop.set()
+        thread.join(30)

@@ -188,3 +188,15 @@ def test_knn_candidates_of_a_whole_map_query_need_bounded_memory():
     small_a, small_b = knn_candidates(a[:200], b, 3, block=30_000)  # one row of A at a time: the same candidates
     np.testing.assert_array_equal(small_a, idx_a[:600])
     np.testing.assert_array_equal(small_b, idx_b[:600])
+
+
+def test_a_match_query_of_ragged_or_too_many_descriptors_is_refused_before_any_matrix():
+    from twohr.messages import MessageError
+    from twohr_services.matcher.service import MAX_MATCH_PAIRS, check_pair
+
+    rows = np.zeros((10, 128), np.float32)
+    check_pair(rows, rows)
+    for a, b in ((rows, rows[:, :64]), (rows, rows.astype(np.float64)), (rows[0], rows),
+                 (np.zeros((MAX_MATCH_PAIRS // 1000 + 1, 1), np.float32), np.zeros((1000, 1), np.float32))):
+        with pytest.raises(MessageError):
+            check_pair(a, b)

@@ -203,9 +203,11 @@ def test_recorder_service_over_the_bus(bus_config, dev_sequence, tmp_path):
             poses.put(pose(item.index, item.stamp, "sess2"))
         poses.put(pose(9, 0.0, "other_session"))  # not recorded into sess2
         poses.put(b"malformed")
+        # robot r2 on its own key, speaking for r1's session (whose id every robot can read): refused
+        declare_publisher(client, "twohr/r2/pose").put(pose(8, 0.0, "sess2", robot="r2"))
         deadline = time.time() + 15
         # keys have no ordering between them: stop only once everything else has been handled
-        while service.counters.processed + service.counters.malformed < 11:
+        while service.counters.processed + service.counters.malformed < 12:
             assert time.time() < deadline, service.counters
             time.sleep(0.1)
         control.put(encode(start.model_copy(update={"command": "stop"})))
@@ -223,7 +225,7 @@ def test_recorder_service_over_the_bus(bus_config, dev_sequence, tmp_path):
         assert counts["/twohr/r1/control"] == 2 and counts["/twohr/r1/path"] == 1 and counts["/r1/path_refined"] == 1
         np.testing.assert_allclose(recorded_trajectory(tmp_path / "sess2.mcap").poses, refined.poses)
         assert len(recorded_trajectory(tmp_path / "sess2.mcap", online=True)) == 4
-        assert service.counters.malformed == 1
+        assert service.counters.malformed == 2 and service.refused == {"r1": 1, "r2": 1}, service.refused
     finally:
         stop.set()
         thread.join(5)

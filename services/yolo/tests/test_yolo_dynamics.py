@@ -72,3 +72,16 @@ def test_table_naming_a_class_the_model_lacks(tmp_path):
     with pytest.raises(ConfigError, match="persn"):
         DynamicMasker(YoloConfig(dynamics_table=str(path)))
     DynamicsTable(high=["person"]).check_names(["person", "chair"])
+
+
+def test_a_table_is_named_the_papers_by_its_name_an_operators_from_its_folder(tmp_path, monkeypatch):
+    from twohr_services.yolo.dynamics import TABLES_ENV
+
+    paper = load_dynamics_table()
+    assert load_dynamics_table("dynamics") == paper
+    monkeypatch.setenv(TABLES_ENV, str(tmp_path))
+    (tmp_path / "warehouse.yaml").write_text("high: [person, dog]\nlow: [chair]\n")
+    table = load_dynamics_table("warehouse")
+    assert table.high == ["person", "dog"] and table != paper
+    with pytest.raises(ConfigError, match="'forklifts' is not installed"):
+        load_dynamics_table("forklifts")
