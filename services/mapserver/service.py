@@ -145,7 +145,7 @@ class MapServerService(Service):
         opened = self.maps[name]
         began = time.thread_time()
         session = opened.sessions[message.session_id]
-        batch = KeyframeBatch(first=message.first, **{name: arrays[name] for name in KeyframesMsg.required_arrays})
+        batch = KeyframeBatch(first=message.first, **{part: arrays[part] for part in KeyframesMsg.required_arrays})
         try:
             check_batch(batch, *session.control.config.detector.descriptor_layout)
         except BatchRefused as exc:
